@@ -1,0 +1,1 @@
+"""Cloud daemon: serves model suffixes, one standby/service state per robot."""

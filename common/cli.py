@@ -1,0 +1,43 @@
+"""The `elasticfog` command line.
+
+The root app is assembled from the `elasticfog.commands` entry points declared in pyproject.toml:
+each package registers its own commands, so `common` never imports the daemons. Only this module
+exits the process; a `UserError` anywhere becomes one line on stderr and exit code 2.
+"""
+
+from __future__ import annotations
+
+import sys
+from importlib.metadata import entry_points
+
+import typer
+from rich.console import Console
+
+from common.errors import UserError
+
+ENTRY_POINT_GROUP = "elasticfog.commands"
+
+app = typer.Typer(
+    name="elasticfog",
+    help="Elastic split computing for fog and cloud robotics over Zenoh.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+
+
+def _register_commands() -> None:
+    for ep in sorted(entry_points(group=ENTRY_POINT_GROUP), key=lambda e: e.name):
+        ep.load()(app)
+
+
+_register_commands()
+
+
+def main() -> None:
+    """Console-script entry point."""
+    try:
+        app(standalone_mode=True)
+    except UserError as exc:
+        Console(stderr=True).print(f"[red]error:[/red] {exc}", highlight=False, soft_wrap=True)
+        sys.exit(exc.exit_code)

@@ -1,0 +1,1 @@
+"""Deployment: the network-namespace testbed, docker-compose demo and example fleets."""

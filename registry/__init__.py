@@ -1,0 +1,1 @@
+"""Registry daemon: the routing information base, the scheduler and the embedded Zenoh router."""

@@ -1,0 +1,1 @@
+"""Robot daemon: frame sources, split-decision policies and the per-frame loop."""
