@@ -1,0 +1,719 @@
+"""The routing information base (RIB): the registry's state in one sqlite file.
+
+Tables: deployments, deployment_states (per deployment and robot: standby, service or draining, with
+the epoch of the last state change), robots, routes (robot → deployment, epoch), profiles
+(latency samples per robot × deployment × source) and events (every transition, with its reason).
+The file survives restarts: a restarted registry reads routes and epochs back and resumes from
+them, so epochs keep growing and the anycast invariant can be repaired. Liveness flags are not
+trusted after a restart: call `reset_liveness()` and seed membership again from liveliness.
+
+The schema carries a version in sqlite's `user_version`; a file written by another version is
+refused with a message naming the file. WAL journal mode lets readers (the CLI's queryables) run
+while the scheduler writes. One connection is shared behind a lock, so callers on Zenoh callback
+threads and the scheduler thread are serialized; every write is its own short transaction.
+
+Times stored here (`last_seen`, `since`, `ts`, `updated_at`) are wall-clock seconds since the epoch,
+so they mean something after a restart and on another host.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sqlite3
+import threading
+import time
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import asdict, dataclass
+from enum import Enum
+from pathlib import Path
+from typing import Any
+
+from common.errors import UserError
+
+SCHEMA_VERSION = 1
+# Events are kept for inspection, not forever: older rows are pruned past this count.
+EVENTS_KEEP = 10_000
+EVENTS_PRUNE_EVERY = 500
+DEFAULT_EVENTS_LIMIT = 100
+BUSY_TIMEOUT_MS = 2_000
+MEMORY = ":memory:"
+
+_SCHEMA = """
+CREATE TABLE deployments (
+    id           TEXT PRIMARY KEY,
+    service      TEXT NOT NULL,
+    model_digest TEXT NOT NULL,
+    capacity     INTEGER NOT NULL,
+    load         INTEGER NOT NULL,
+    version      TEXT NOT NULL,
+    last_seen    REAL NOT NULL,
+    alive        INTEGER NOT NULL,
+    draining     INTEGER NOT NULL DEFAULT 0
+);
+CREATE TABLE deployment_states (
+    deployment TEXT NOT NULL,
+    robot      TEXT NOT NULL,
+    state      TEXT NOT NULL CHECK (state IN ('standby', 'service', 'draining')),
+    epoch      INTEGER NOT NULL,
+    PRIMARY KEY (deployment, robot)
+);
+CREATE TABLE robots (
+    id        TEXT PRIMARY KEY,
+    service   TEXT NOT NULL,
+    alive     INTEGER NOT NULL,
+    last_seen REAL NOT NULL
+);
+CREATE TABLE routes (
+    robot         TEXT PRIMARY KEY,
+    deployment    TEXT,
+    epoch         INTEGER NOT NULL,
+    since         REAL NOT NULL,
+    issued_epoch  INTEGER NOT NULL
+);
+CREATE TABLE profiles (
+    robot      TEXT NOT NULL,
+    deployment TEXT NOT NULL,
+    source     TEXT NOT NULL CHECK (source IN ('telemetry', 'probe')),
+    samples    TEXT NOT NULL,
+    updated_at REAL NOT NULL,
+    PRIMARY KEY (robot, deployment, source)
+);
+CREATE TABLE events (
+    seq        INTEGER PRIMARY KEY AUTOINCREMENT,
+    ts         REAL NOT NULL,
+    kind       TEXT NOT NULL,
+    robot      TEXT,
+    deployment TEXT,
+    epoch      INTEGER,
+    reason     TEXT NOT NULL
+);
+CREATE INDEX events_robot ON events (robot, seq);
+"""
+_TABLES = frozenset({"deployments", "deployment_states", "robots", "routes", "profiles", "events"})
+
+
+class DeploymentState(str, Enum):
+    """A deployment's state for one robot (FogROS2-LS state machine)."""
+
+    STANDBY = "standby"
+    SERVICE = "service"
+    DRAINING = "draining"
+
+
+class EventKind(str, Enum):
+    """What an event row records."""
+
+    DEPLOYMENT_UP = "deployment_up"
+    DEPLOYMENT_DOWN = "deployment_down"
+    DEPLOYMENT_DRAIN = "deployment_drain"
+    ROBOT_UP = "robot_up"
+    ROBOT_DOWN = "robot_down"
+    ROUTE = "route"
+    STATE = "state"
+    ACK_FAILED = "ack_failed"
+    STANDBY_FAILED = "standby_failed"
+    PUBLISH_FAILED = "publish_failed"
+    SWITCH_FAILED = "switch_failed"
+    EPOCH_RAISED = "epoch_raised"
+
+
+@dataclass(frozen=True)
+class DeploymentRow:
+    """A cloud/edge deployment as the registry last saw it."""
+
+    id: str
+    service: str
+    model_digest: str
+    capacity: int
+    load: int
+    version: str
+    last_seen: float
+    alive: bool
+    draining: bool
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain data for a JSON view."""
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class RobotRow:
+    """A robot as the registry last saw it."""
+
+    id: str
+    service: str
+    alive: bool
+    last_seen: float
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain data for a JSON view."""
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class RouteRow:
+    """Which deployment serves a robot (None: the robot computes locally), under which epoch."""
+
+    robot: str
+    deployment: str | None
+    epoch: int
+    since: float
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain data for a JSON view."""
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class DeploymentStateRow:
+    """One deployment's state for one robot."""
+
+    deployment: str
+    robot: str
+    state: DeploymentState
+    epoch: int
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain data for a JSON view."""
+        return {**asdict(self), "state": self.state.value}
+
+
+@dataclass(frozen=True)
+class ProfileRow:
+    """Persisted latency samples of one robot × deployment × source (oldest first)."""
+
+    robot: str
+    deployment: str
+    source: str
+    samples: tuple[float, ...]
+    updated_at: float
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain data for a JSON view."""
+        return {**asdict(self), "samples": list(self.samples)}
+
+
+@dataclass(frozen=True)
+class EventRow:
+    """One recorded transition."""
+
+    seq: int
+    ts: float
+    kind: str
+    robot: str | None
+    deployment: str | None
+    epoch: int | None
+    reason: str
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain data for a JSON view."""
+        return asdict(self)
+
+
+def _check_id(what: str, value: str) -> None:
+    if not isinstance(value, str) or not value:
+        raise ValueError(f"{what} must be a non-empty string, got {value!r}")
+
+
+def _check_count(what: str, value: int) -> None:
+    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+        raise ValueError(f"{what} must be an integer >= 0, got {value!r}")
+
+
+class Rib:
+    """The routing information base over one sqlite file (or `":memory:"` for tests)."""
+
+    def __init__(self, path: str | Path, *, clock: Callable[[], float] = time.time) -> None:
+        self.path = str(path)
+        self._clock = clock
+        self._lock = threading.RLock()
+        self._inserts_since_prune = 0
+        if self.path != MEMORY:
+            Path(self.path).parent.mkdir(parents=True, exist_ok=True)
+        try:
+            # Autocommit mode: transactions are opened explicitly in `_tx`.
+            self._conn = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False)
+        except sqlite3.Error as exc:
+            raise UserError(f"cannot open the RIB at {self.path}: {exc}") from None
+        try:
+            self._open()
+        except sqlite3.DatabaseError as exc:
+            self._conn.close()
+            raise UserError(f"{self.path} is not an elasticfog RIB (sqlite: {exc})") from None
+        except UserError:
+            self._conn.close()
+            raise
+
+    # -- lifecycle ---------------------------------------------------------------------------
+    def _open(self) -> None:
+        conn = self._conn
+        conn.execute(f"PRAGMA busy_timeout = {BUSY_TIMEOUT_MS}")
+        version = int(conn.execute("PRAGMA user_version").fetchone()[0])
+        tables = {r[0] for r in conn.execute("SELECT name FROM sqlite_master WHERE type='table'")}
+        if version == 0:
+            if tables:
+                raise UserError(
+                    f"{self.path} is a sqlite file with other tables ({', '.join(sorted(tables))}),"
+                    " not an elasticfog RIB"
+                )
+            # Statement by statement: executescript would commit halfway through the transaction.
+            with self._tx():
+                for statement in _SCHEMA.split(";"):
+                    if statement.strip():
+                        conn.execute(statement)
+                conn.execute(f"PRAGMA user_version = {SCHEMA_VERSION}")
+        elif version != SCHEMA_VERSION:
+            raise UserError(
+                f"{self.path}: RIB schema version {version} is not supported (this elasticfog reads"
+                f" version {SCHEMA_VERSION}); move the file away to start a fresh RIB"
+            )
+        elif missing := sorted(_TABLES - tables):
+            raise UserError(f"{self.path}: RIB tables are missing ({', '.join(missing)})")
+        # WAL: the CLI's read-only views never wait for a scheduler write. NORMAL sync is durable
+        # across a process crash, which is the failure the RIB has to survive.
+        conn.execute("PRAGMA journal_mode = WAL")
+        conn.execute("PRAGMA synchronous = NORMAL")
+
+    def close(self) -> None:
+        """Close the file; the object is unusable afterwards."""
+        with self._lock:
+            self._conn.close()
+
+    def __enter__(self) -> Rib:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    @contextmanager
+    def _tx(self) -> Iterator[sqlite3.Connection]:
+        with self._lock:
+            conn = self._conn
+            # Nested use joins the caller's transaction instead of opening a second one.
+            own = not conn.in_transaction
+            if own:
+                conn.execute("BEGIN IMMEDIATE")
+            try:
+                yield conn
+            except BaseException:
+                if own:
+                    conn.execute("ROLLBACK")
+                raise
+            else:
+                if own:
+                    conn.execute("COMMIT")
+
+    def _query(self, sql: str, params: Sequence[Any] = ()) -> list[sqlite3.Row]:
+        with self._lock:
+            cur = self._conn.cursor()
+            cur.row_factory = sqlite3.Row
+            return list(cur.execute(sql, params))
+
+    def _event(
+        self,
+        conn: sqlite3.Connection,
+        kind: EventKind | str,
+        robot: str | None,
+        deployment: str | None,
+        epoch: int | None,
+        reason: str,
+    ) -> None:
+        kind_s = kind.value if isinstance(kind, EventKind) else str(kind)
+        conn.execute(
+            "INSERT INTO events (ts, kind, robot, deployment, epoch, reason) VALUES (?,?,?,?,?,?)",
+            (self._clock(), kind_s, robot, deployment, epoch, reason),
+        )
+        self._inserts_since_prune += 1
+        if self._inserts_since_prune >= EVENTS_PRUNE_EVERY:
+            self._inserts_since_prune = 0
+            conn.execute(
+                "DELETE FROM events WHERE seq <= (SELECT MAX(seq) FROM events) - ?", (EVENTS_KEEP,)
+            )
+
+    # -- events --------------------------------------------------------------------------------
+    def record_event(
+        self,
+        kind: EventKind | str,
+        *,
+        robot: str | None = None,
+        deployment: str | None = None,
+        epoch: int | None = None,
+        reason: str = "",
+    ) -> None:
+        """Append one event."""
+        with self._tx() as conn:
+            self._event(conn, kind, robot, deployment, epoch, reason)
+
+    def events(
+        self,
+        limit: int = DEFAULT_EVENTS_LIMIT,
+        *,
+        robot: str | None = None,
+        kind: str | None = None,
+    ) -> list[EventRow]:
+        """The newest `limit` events (optionally of one robot or kind), oldest first."""
+        if isinstance(limit, bool) or not isinstance(limit, int) or limit < 1:
+            raise ValueError(f"events limit must be an integer >= 1, got {limit!r}")
+        where, params = [], []
+        if robot is not None:
+            where.append("robot = ?")
+            params.append(robot)
+        if kind is not None:
+            where.append("kind = ?")
+            params.append(str(getattr(kind, "value", kind)))
+        clause = f"WHERE {' AND '.join(where)}" if where else ""
+        rows = self._query(
+            f"SELECT * FROM events {clause} ORDER BY seq DESC LIMIT ?", [*params, limit]
+        )
+        return [
+            EventRow(
+                seq=r["seq"],
+                ts=r["ts"],
+                kind=r["kind"],
+                robot=r["robot"],
+                deployment=r["deployment"],
+                epoch=r["epoch"],
+                reason=r["reason"],
+            )
+            for r in reversed(rows)
+        ]
+
+    # -- deployments -----------------------------------------------------------------------------
+    def upsert_deployment(
+        self,
+        deployment: str,
+        *,
+        service: str,
+        model_digest: str,
+        capacity: int,
+        version: str,
+        load: int = 0,
+    ) -> None:
+        """Register or refresh a live deployment; records `deployment_up` when it was not alive."""
+        _check_id("deployment id", deployment)
+        _check_id("service", service)
+        _check_count("capacity", capacity)
+        _check_count("load", load)
+        now = self._clock()
+        with self._tx() as conn:
+            row = conn.execute(
+                "SELECT alive FROM deployments WHERE id = ?", (deployment,)
+            ).fetchone()
+            conn.execute(
+                "INSERT INTO deployments (id, service, model_digest, capacity, load, version,"
+                " last_seen, alive, draining) VALUES (?,?,?,?,?,?,?,1,0)"
+                " ON CONFLICT (id) DO UPDATE SET service=excluded.service,"
+                " model_digest=excluded.model_digest, capacity=excluded.capacity,"
+                " load=excluded.load, version=excluded.version, last_seen=excluded.last_seen,"
+                " alive=1,"
+                " draining=CASE WHEN deployments.alive THEN deployments.draining ELSE 0 END",
+                (deployment, service, model_digest, capacity, load, version, now),
+            )
+            if row is None or not row[0]:
+                self._event(
+                    conn, EventKind.DEPLOYMENT_UP, None, deployment, None, f"service {service}"
+                )
+
+    def set_deployment_alive(self, deployment: str, alive: bool, reason: str = "") -> bool:
+        """Mark a known deployment alive or gone; returns whether the flag changed."""
+        with self._tx() as conn:
+            row = conn.execute(
+                "SELECT alive FROM deployments WHERE id = ?", (deployment,)
+            ).fetchone()
+            if row is None or bool(row[0]) == alive:
+                return False
+            conn.execute(
+                "UPDATE deployments SET alive = ?, last_seen = ?, draining = 0 WHERE id = ?",
+                (int(alive), self._clock(), deployment),
+            )
+            kind = EventKind.DEPLOYMENT_UP if alive else EventKind.DEPLOYMENT_DOWN
+            self._event(conn, kind, None, deployment, None, reason)
+            return True
+
+    def set_deployment_draining(self, deployment: str, reason: str = "") -> bool:
+        """Mark a live deployment as draining (planned shutdown); returns whether it changed."""
+        with self._tx() as conn:
+            row = conn.execute(
+                "SELECT alive, draining FROM deployments WHERE id = ?", (deployment,)
+            ).fetchone()
+            if row is None or not row[0] or row[1]:
+                return False
+            conn.execute(
+                "UPDATE deployments SET draining = 1, last_seen = ? WHERE id = ?",
+                (self._clock(), deployment),
+            )
+            self._event(conn, EventKind.DEPLOYMENT_DRAIN, None, deployment, None, reason)
+            return True
+
+    def update_deployment_load(
+        self, deployment: str, load: int, capacity: int | None = None
+    ) -> None:
+        """Record a deployment's reported load (and capacity); refreshes `last_seen`."""
+        _check_count("load", load)
+        if capacity is not None:
+            _check_count("capacity", capacity)
+        with self._tx() as conn:
+            conn.execute(
+                "UPDATE deployments SET load = ?, capacity = COALESCE(?, capacity), last_seen = ?"
+                " WHERE id = ?",
+                (load, capacity, self._clock(), deployment),
+            )
+
+    def deployments(self) -> list[DeploymentRow]:
+        """Every known deployment, by id."""
+        return [_deployment_row(r) for r in self._query("SELECT * FROM deployments ORDER BY id")]
+
+    def deployment(self, deployment: str) -> DeploymentRow | None:
+        """One deployment, or None when unknown."""
+        rows = self._query("SELECT * FROM deployments WHERE id = ?", (deployment,))
+        return _deployment_row(rows[0]) if rows else None
+
+    # -- robots --------------------------------------------------------------------------------
+    def upsert_robot(self, robot: str, *, service: str) -> None:
+        """Register (or refresh) a live robot; records `robot_up` when it was not alive."""
+        _check_id("robot id", robot)
+        _check_id("service", service)
+        with self._tx() as conn:
+            row = conn.execute("SELECT alive FROM robots WHERE id = ?", (robot,)).fetchone()
+            conn.execute(
+                "INSERT INTO robots (id, service, alive, last_seen) VALUES (?,?,1,?)"
+                " ON CONFLICT (id) DO UPDATE SET service=excluded.service, alive=1,"
+                " last_seen=excluded.last_seen",
+                (robot, service, self._clock()),
+            )
+            if row is None or not row[0]:
+                self._event(conn, EventKind.ROBOT_UP, robot, None, None, f"service {service}")
+
+    def set_robot_alive(self, robot: str, alive: bool, reason: str = "") -> bool:
+        """Mark a known robot alive or gone; returns whether the flag changed."""
+        with self._tx() as conn:
+            row = conn.execute("SELECT alive FROM robots WHERE id = ?", (robot,)).fetchone()
+            if row is None or bool(row[0]) == alive:
+                return False
+            conn.execute(
+                "UPDATE robots SET alive = ?, last_seen = ? WHERE id = ?",
+                (int(alive), self._clock(), robot),
+            )
+            kind = EventKind.ROBOT_UP if alive else EventKind.ROBOT_DOWN
+            self._event(conn, kind, robot, None, None, reason)
+            return True
+
+    def robots(self) -> list[RobotRow]:
+        """Every known robot, by id."""
+        return [_robot_row(r) for r in self._query("SELECT * FROM robots ORDER BY id")]
+
+    def robot(self, robot: str) -> RobotRow | None:
+        """One robot, or None when unknown."""
+        rows = self._query("SELECT * FROM robots WHERE id = ?", (robot,))
+        return _robot_row(rows[0]) if rows else None
+
+    def reset_liveness(self) -> None:
+        """Mark every deployment and robot as not alive, without events.
+
+        Called at startup: flags from a previous run mean nothing until liveliness confirms them.
+        """
+        with self._tx() as conn:
+            conn.execute("UPDATE deployments SET alive = 0, draining = 0")
+            conn.execute("UPDATE robots SET alive = 0")
+
+    # -- deployment states -------------------------------------------------------------------
+    def set_deployment_state(
+        self, deployment: str, robot: str, state: DeploymentState | str, epoch: int
+    ) -> None:
+        """Record a deployment's state for a robot (acknowledged or assumed)."""
+        state = DeploymentState(state)
+        _check_count("epoch", epoch)
+        with self._tx() as conn:
+            conn.execute(
+                "INSERT INTO deployment_states (deployment, robot, state, epoch) VALUES (?,?,?,?)"
+                " ON CONFLICT (deployment, robot) DO UPDATE SET state=excluded.state,"
+                " epoch=excluded.epoch",
+                (deployment, robot, state.value, epoch),
+            )
+            self._event(conn, EventKind.STATE, robot, deployment, epoch, state.value)
+
+    def deployment_states(
+        self, *, robot: str | None = None, deployment: str | None = None
+    ) -> list[DeploymentStateRow]:
+        """States, optionally of one robot or one deployment."""
+        where, params = [], []
+        if robot is not None:
+            where.append("robot = ?")
+            params.append(robot)
+        if deployment is not None:
+            where.append("deployment = ?")
+            params.append(deployment)
+        clause = f"WHERE {' AND '.join(where)}" if where else ""
+        rows = self._query(
+            f"SELECT * FROM deployment_states {clause} ORDER BY robot, deployment", params
+        )
+        return [
+            DeploymentStateRow(
+                deployment=r["deployment"],
+                robot=r["robot"],
+                state=DeploymentState(r["state"]),
+                epoch=r["epoch"],
+            )
+            for r in rows
+        ]
+
+    # -- routes and epochs -----------------------------------------------------------------------
+    def reserve_epoch(self, robot: str, at_least: int = 0) -> int:
+        """Issue a new epoch for a robot: larger than every epoch issued before, and ≥ `at_least`.
+
+        The issued high-water mark is persisted before any deployment hears of the epoch, so a
+        registry that crashes mid-switch never issues the same epoch twice after its restart.
+        """
+        _check_id("robot id", robot)
+        with self._tx() as conn:
+            row = conn.execute(
+                "SELECT issued_epoch FROM routes WHERE robot = ?", (robot,)
+            ).fetchone()
+            issued = max((row[0] if row else 0) + 1, at_least)
+            if row is None:
+                conn.execute(
+                    "INSERT INTO routes (robot, deployment, epoch, since, issued_epoch)"
+                    " VALUES (?, NULL, 0, ?, ?)",
+                    (robot, self._clock(), issued),
+                )
+            else:
+                conn.execute("UPDATE routes SET issued_epoch = ? WHERE robot = ?", (issued, robot))
+            return issued
+
+    def set_route(
+        self, robot: str, deployment: str | None, epoch: int, reason: str = ""
+    ) -> RouteRow:
+        """Persist a route (None: the robot computes locally) under an epoch from `reserve_epoch`.
+
+        Epochs only grow: an epoch not newer than the current route's is refused. The new
+        deployment's state for the robot becomes `service` in the same transaction.
+        """
+        _check_id("robot id", robot)
+        _check_count("epoch", epoch)
+        now = self._clock()
+        with self._tx() as conn:
+            row = conn.execute(
+                "SELECT deployment, epoch, issued_epoch FROM routes WHERE robot = ?", (robot,)
+            ).fetchone()
+            previous, current, issued = (row[0], row[1], row[2]) if row else (None, 0, 0)
+            if epoch <= current:
+                raise ValueError(
+                    f"route epoch {epoch} for robot {robot!r} is not newer than the current"
+                    f" {current}"
+                )
+            conn.execute(
+                "INSERT INTO routes (robot, deployment, epoch, since, issued_epoch)"
+                " VALUES (?,?,?,?,?) ON CONFLICT (robot) DO UPDATE SET"
+                " deployment=excluded.deployment, epoch=excluded.epoch, since=excluded.since,"
+                " issued_epoch=excluded.issued_epoch",
+                (robot, deployment, epoch, now, max(issued, epoch)),
+            )
+            if deployment is not None:
+                conn.execute(
+                    "INSERT INTO deployment_states (deployment, robot, state, epoch)"
+                    " VALUES (?,?,'service',?) ON CONFLICT (deployment, robot) DO UPDATE SET"
+                    " state='service', epoch=excluded.epoch",
+                    (deployment, robot, epoch),
+                )
+            moved = f"{previous or 'local'} -> {deployment or 'local'}"
+            self._event(
+                conn,
+                EventKind.ROUTE,
+                robot,
+                deployment,
+                epoch,
+                f"{reason}: {moved}" if reason else moved,
+            )
+        return RouteRow(robot=robot, deployment=deployment, epoch=epoch, since=now)
+
+    def route(self, robot: str) -> RouteRow | None:
+        """A robot's route, or None when it never had one (a reserved epoch alone is no route)."""
+        rows = self._query("SELECT * FROM routes WHERE robot = ? AND epoch > 0", (robot,))
+        return _route_row(rows[0]) if rows else None
+
+    def routes(self) -> list[RouteRow]:
+        """Every route, by robot."""
+        return [
+            _route_row(r)
+            for r in self._query("SELECT * FROM routes WHERE epoch > 0 ORDER BY robot")
+        ]
+
+    def issued_epoch(self, robot: str) -> int:
+        """The highest epoch ever issued for a robot (0 when none)."""
+        rows = self._query("SELECT issued_epoch FROM routes WHERE robot = ?", (robot,))
+        return int(rows[0][0]) if rows else 0
+
+    # -- profiles --------------------------------------------------------------------------------
+    def save_profile(
+        self,
+        robot: str,
+        deployment: str,
+        source: str,
+        samples: Iterable[float],
+        updated_at: float | None = None,
+    ) -> None:
+        """Persist a window's samples (oldest first) so a restarted registry keeps its profiles."""
+        values = [float(s) for s in samples]
+        if not all(math.isfinite(v) and v >= 0 for v in values):
+            raise ValueError(f"profile samples must be finite numbers >= 0, got {values!r}")
+        source = str(getattr(source, "value", source))
+        with self._tx() as conn:
+            conn.execute(
+                "INSERT INTO profiles (robot, deployment, source, samples, updated_at)"
+                " VALUES (?,?,?,?,?) ON CONFLICT (robot, deployment, source) DO UPDATE SET"
+                " samples=excluded.samples, updated_at=excluded.updated_at",
+                (
+                    robot,
+                    deployment,
+                    source,
+                    json.dumps(values),
+                    self._clock() if updated_at is None else updated_at,
+                ),
+            )
+
+    def profiles(self, robot: str | None = None) -> list[ProfileRow]:
+        """Persisted profiles, optionally of one robot."""
+        if robot is None:
+            rows = self._query("SELECT * FROM profiles ORDER BY robot, deployment, source")
+        else:
+            rows = self._query(
+                "SELECT * FROM profiles WHERE robot = ? ORDER BY deployment, source", (robot,)
+            )
+        return [
+            ProfileRow(
+                robot=r["robot"],
+                deployment=r["deployment"],
+                source=r["source"],
+                samples=tuple(float(x) for x in json.loads(r["samples"])),
+                updated_at=r["updated_at"],
+            )
+            for r in rows
+        ]
+
+
+def _deployment_row(r: sqlite3.Row) -> DeploymentRow:
+    return DeploymentRow(
+        id=r["id"],
+        service=r["service"],
+        model_digest=r["model_digest"],
+        capacity=r["capacity"],
+        load=r["load"],
+        version=r["version"],
+        last_seen=r["last_seen"],
+        alive=bool(r["alive"]),
+        draining=bool(r["draining"]),
+    )
+
+
+def _robot_row(r: sqlite3.Row) -> RobotRow:
+    return RobotRow(
+        id=r["id"], service=r["service"], alive=bool(r["alive"]), last_seen=r["last_seen"]
+    )
+
+
+def _route_row(r: sqlite3.Row) -> RouteRow:
+    return RouteRow(
+        robot=r["robot"], deployment=r["deployment"], epoch=r["epoch"], since=r["since"]
+    )

@@ -1,0 +1,518 @@
+"""The latency-bounded scheduler: decides which deployment should serve each robot.
+
+Pure decision logic, no I/O: the registry daemon hands it a snapshot (the robot's route and
+telemetry window, the live deployments with their load, the robot's probe profiles) and gets back a
+`Decision` or None. It keeps a little memory per robot (when a violation started, when the robot
+last moved, which deployments it left for being slow) so that it can apply hysteresis; time comes
+from an injectable clock so tests run instantly.
+
+Triggers, in order:
+1. the robot has no route and a deployment is available (`initial`);
+2. the serving deployment's liveliness token is gone (`deployment_lost`) or it drains (`drain`);
+3. the robot reports `timeout_count` consecutive timeouts against its deployment (`timeouts`);
+4. the latency bound is violated by the robot's telemetry window for `hysteresis_s` without a break
+   (`bound_violation`);
+5. another deployment is predicted better by `better_margin` for `improve_hold_s` (`better`).
+1–3 act at once; 4 and 5 wait out `min_dwell_s` after the robot's last move.
+
+Choice: among live, non-draining deployments of the robot's service, those whose recent probe
+profile (load-adjusted) meets the bound rank first, lowest predicted latency first; then the others
+(the best available); full deployments and those left for a violation rank last, the latter until
+their probes have met the bound for `recovery_s`. Forced moves take the first of that ranking. A
+move for a violation or an improvement also needs a target predicted better than the current by
+`better_margin`, and otherwise stays. For a violation "current" is the robot's telemetry (probe
+windows lag behind a sudden delay); a second violation within `flap_window_s` of the last move for
+one also needs the target to beat the current deployment's own probe profile. For an improvement it
+is the current deployment's probe profile (like for like), else the telemetry. With no live
+deployment the robot gets no route and computes locally.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from enum import Enum
+
+from registry.latency import LatencyBound, WindowStats
+
+DEFAULT_MIN_DWELL_S = 3.0
+DEFAULT_TIMEOUT_COUNT = 3
+DEFAULT_IMPROVE_HOLD_S = 5.0
+DEFAULT_RECOVERY_S = 5.0
+DEFAULT_PROFILE_MAX_AGE_S = 10.0
+DEFAULT_MIN_SAMPLES = 5
+DEFAULT_MIN_PROBE_SAMPLES = 3
+DEFAULT_LOAD_WEIGHT = 1.0
+DEFAULT_RETRY_BACKOFF_S = 1.0
+DEFAULT_FLAP_WINDOW_S = 60.0
+
+
+class Reason(str, Enum):
+    """Why the scheduler moves a robot."""
+
+    INITIAL = "initial"
+    DEPLOYMENT_LOST = "deployment_lost"
+    DRAIN = "drain"
+    TIMEOUTS = "timeouts"
+    BOUND_VIOLATION = "bound_violation"
+    BETTER = "better"
+
+
+# Triggers that cannot wait: the robot is (or will soon be) without a working deployment.
+FORCED_REASONS = frozenset({Reason.INITIAL, Reason.DEPLOYMENT_LOST, Reason.DRAIN, Reason.TIMEOUTS})
+# Leaving for these reasons marks the old deployment as bad until its probes recover.
+PENALIZING_REASONS = frozenset({Reason.BOUND_VIOLATION, Reason.TIMEOUTS})
+
+
+@dataclass(frozen=True)
+class SchedulerParams:
+    """Tuning of the scheduler beyond the latency bound itself (defaults in docs/registry.md)."""
+
+    min_dwell_s: float = DEFAULT_MIN_DWELL_S
+    timeout_count: int = DEFAULT_TIMEOUT_COUNT
+    improve_hold_s: float = DEFAULT_IMPROVE_HOLD_S
+    recovery_s: float = DEFAULT_RECOVERY_S
+    profile_max_age_s: float = DEFAULT_PROFILE_MAX_AGE_S
+    min_samples: int = DEFAULT_MIN_SAMPLES
+    min_probe_samples: int = DEFAULT_MIN_PROBE_SAMPLES
+    load_weight: float = DEFAULT_LOAD_WEIGHT
+    retry_backoff_s: float = DEFAULT_RETRY_BACKOFF_S
+    flap_window_s: float = DEFAULT_FLAP_WINDOW_S
+
+    def __post_init__(self) -> None:
+        for name in (
+            "min_dwell_s",
+            "improve_hold_s",
+            "recovery_s",
+            "load_weight",
+            "retry_backoff_s",
+            "flap_window_s",
+        ):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise ValueError(f"scheduler {name} must be a number >= 0, got {value!r}")
+        if not (math.isfinite(self.profile_max_age_s) and self.profile_max_age_s > 0):
+            raise ValueError(
+                f"scheduler profile_max_age_s must be > 0, got {self.profile_max_age_s!r}"
+            )
+        for name in ("timeout_count", "min_samples", "min_probe_samples"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"scheduler {name} must be at least 1, got {getattr(self, name)}")
+
+
+@dataclass(frozen=True)
+class DeploymentView:
+    """What the scheduler needs to know about one deployment."""
+
+    id: str
+    service: str
+    alive: bool = True
+    draining: bool = False
+    load: int = 0
+    capacity: int = 0  # 0: unknown, no load adjustment
+    model_digest: str | None = None
+
+    @property
+    def utilization(self) -> float:
+        """Load over capacity (0 when the capacity is unknown)."""
+        return self.load / self.capacity if self.capacity > 0 else 0.0
+
+    @property
+    def full(self) -> bool:
+        """True when every worker and queue slot is taken (it would answer `busy`)."""
+        return self.capacity > 0 and self.load >= self.capacity
+
+
+@dataclass(frozen=True)
+class RobotView:
+    """What the scheduler needs to know about one robot.
+
+    `telemetry` is the window of frames answered by the serving deployment; `timeouts` counts the
+    robot's consecutive timeouts against `timeouts_on` (None: its current route).
+    """
+
+    id: str
+    service: str
+    route: str | None
+    telemetry: WindowStats | None = None
+    timeouts: int = 0
+    timeouts_on: str | None = None
+    model_digest: str | None = None
+
+
+@dataclass(frozen=True)
+class Decision:
+    """Move `robot` from `from_deployment` to `to_deployment` (None: compute locally).
+
+    `candidates` lists acceptable targets best first (`to_deployment` first) so the switch protocol
+    can fall back to the next one when a deployment does not acknowledge.
+    """
+
+    robot: str
+    from_deployment: str | None
+    to_deployment: str | None
+    reason: Reason
+    candidates: tuple[str, ...] = ()
+    predicted_s: float | None = None
+
+
+@dataclass(frozen=True)
+class _Candidate:
+    deployment: DeploymentView
+    predicted_s: float | None
+    meets: bool
+    penalized: bool
+
+    @property
+    def tier(self) -> int:
+        if self.penalized or self.deployment.full:
+            return 2
+        return 0 if self.meets else 1
+
+    def sort_key(self) -> tuple[int, bool, float, float, str]:
+        # Known latency before unknown; then lower predicted latency, lower load, stable by id.
+        pred = self.predicted_s if self.predicted_s is not None else math.inf
+        return (
+            self.tier,
+            self.predicted_s is None,
+            pred,
+            self.deployment.utilization,
+            self.deployment.id,
+        )
+
+
+@dataclass
+class _RobotState:
+    last_switch_at: float | None = None
+    violation_since: float | None = None
+    better_since: float | None = None
+    better_target: str | None = None
+    failed_at: float | None = None
+    violation_move_at: float | None = None
+    left_at: dict[str, float] = field(default_factory=dict)
+    good_since: dict[str, float] = field(default_factory=dict)
+
+
+class Scheduler:
+    """Latency-bounded deployment choice with hysteresis; see the module docstring."""
+
+    def __init__(
+        self,
+        bound: LatencyBound,
+        params: SchedulerParams | None = None,
+        *,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.bound = bound
+        self.params = params if params is not None else SchedulerParams()
+        self._clock = clock
+        self._robots: dict[str, _RobotState] = {}
+
+    # -- memory --------------------------------------------------------------------------------
+    def record_switch(
+        self, robot: str, from_deployment: str | None, to_deployment: str | None, reason: Reason
+    ) -> None:
+        """Tell the scheduler a switch was carried out (the switch protocol may pick a fallback)."""
+        now = self._clock()
+        st = self._state(robot)
+        st.last_switch_at = now
+        st.violation_since = None
+        st.better_since = None
+        st.better_target = None
+        st.failed_at = None
+        if Reason(reason) is Reason.BOUND_VIOLATION:
+            st.violation_move_at = now
+        if from_deployment is not None and Reason(reason) in PENALIZING_REASONS:
+            st.left_at[from_deployment] = now
+            st.good_since.pop(from_deployment, None)
+        if to_deployment is not None:
+            # A forced move may have had to pick a penalized deployment: it is the route now.
+            st.left_at.pop(to_deployment, None)
+            st.good_since.pop(to_deployment, None)
+
+    def record_failure(self, robot: str) -> None:
+        """Tell the scheduler no candidate took the robot: back off before deciding again."""
+        self._state(robot).failed_at = self._clock()
+
+    def forget(self, robot: str) -> None:
+        """Drop the memory of a robot that left the fleet."""
+        self._robots.pop(robot, None)
+
+    def penalized(self, robot: str) -> frozenset[str]:
+        """Deployments the robot left for being slow and that have not recovered yet."""
+        st = self._robots.get(robot)
+        return frozenset(st.left_at) if st else frozenset()
+
+    def _state(self, robot: str) -> _RobotState:
+        st = self._robots.get(robot)
+        if st is None:
+            st = self._robots[robot] = _RobotState()
+        return st
+
+    # -- decision --------------------------------------------------------------------------------
+    def evaluate(
+        self,
+        robot: RobotView,
+        deployments: Sequence[DeploymentView],
+        profiles: Mapping[str, WindowStats],
+    ) -> Decision | None:
+        """Decide whether `robot` should move; `profiles` are its probe windows per deployment."""
+        now = self._clock()
+        st = self._state(robot.id)
+        by_id = {d.id: d for d in deployments}
+        self._update_recovery(st, by_id, profiles, now)
+
+        current = by_id.get(robot.route) if robot.route is not None else None
+        forced: Reason | None = None
+        if robot.route is None:
+            forced = Reason.INITIAL
+        elif current is None or not current.alive:
+            forced = Reason.DEPLOYMENT_LOST
+        elif current.draining:
+            forced = Reason.DRAIN
+        elif robot.timeouts >= self.params.timeout_count and robot.timeouts_on in (
+            None,
+            robot.route,
+        ):
+            forced = Reason.TIMEOUTS
+
+        if (
+            st.failed_at is not None
+            and now - st.failed_at < self.params.retry_backoff_s
+            and forced is not Reason.DEPLOYMENT_LOST
+        ):
+            # The last attempt found no taker; retrying at once would hammer the same deployments.
+            return None
+        ranked = self._rank(robot, deployments, profiles, st, now)
+        if forced is not None:
+            st.violation_since = None
+            st.better_since = None
+            return self._forced(robot, forced, ranked)
+
+        assert current is not None  # forced covers every route without a live deployment
+        if self._violating(robot):
+            st.better_since = None
+            if st.violation_since is None:
+                st.violation_since = now
+            if now - st.violation_since >= self.bound.hysteresis_s and self._dwelt(st, now):
+                own = self._candidate(robot, current, profiles, st, now).predicted_s
+                recent = (
+                    st.violation_move_at is not None
+                    and now - st.violation_move_at < self.params.flap_window_s
+                )
+                return self._on_violation(robot, current, ranked, own, recent)
+            return None
+        st.violation_since = None
+        reference = self._reference(robot, current, profiles, st, now)
+        return self._on_improvement(robot, current, ranked, reference, st, now)
+
+    def _forced(
+        self, robot: RobotView, reason: Reason, ranked: list[_Candidate]
+    ) -> Decision | None:
+        targets = [c for c in ranked if c.deployment.id != robot.route]
+        if targets:
+            return Decision(
+                robot=robot.id,
+                from_deployment=robot.route,
+                to_deployment=targets[0].deployment.id,
+                reason=reason,
+                candidates=tuple(c.deployment.id for c in targets),
+                predicted_s=targets[0].predicted_s,
+            )
+        if reason is Reason.DEPLOYMENT_LOST:
+            # Nothing else alive: drop the route so the robot computes locally.
+            return Decision(robot.id, robot.route, None, reason)
+        # No route and nothing to offer, or the only deployment drains / times out: stay put.
+        return None
+
+    def _on_violation(
+        self,
+        robot: RobotView,
+        current: DeploymentView,
+        ranked: list[_Candidate],
+        own_probe_s: float | None,
+        recent_violation_move: bool,
+    ) -> Decision | None:
+        # Targets that meet the bound rank first, then the best available. Either way a target has
+        # to be predicted better than what the robot sees by `better_margin`: moving between two
+        # equally marginal deployments trades one violation for another and back.
+        observed = self._observed(robot)
+        assert observed is not None  # only called while violating
+        limit = observed * (1 - self.bound.better_margin)
+        if recent_violation_move:
+            # A second violation soon after moving for one hints that the deployment is not the
+            # bottleneck (the robot's uplink, or probes that are cheaper than frames). Demand like
+            # for like: the target must also beat the current deployment's own probe profile.
+            if own_probe_s is None:
+                return None
+            limit = min(limit, own_probe_s * (1 - self.bound.better_margin))
+        targets = [
+            c
+            for c in ranked
+            if c.deployment.id != current.id
+            and c.tier < 2
+            and c.predicted_s is not None
+            and c.predicted_s < limit
+        ]
+        if not targets:
+            return None
+        return Decision(
+            robot=robot.id,
+            from_deployment=current.id,
+            to_deployment=targets[0].deployment.id,
+            reason=Reason.BOUND_VIOLATION,
+            candidates=tuple(c.deployment.id for c in targets),
+            predicted_s=targets[0].predicted_s,
+        )
+
+    def _on_improvement(
+        self,
+        robot: RobotView,
+        current: DeploymentView,
+        ranked: list[_Candidate],
+        reference: float | None,
+        st: _RobotState,
+        now: float,
+    ) -> Decision | None:
+        if reference is None:
+            st.better_since = None
+            return None
+        limit = reference * (1 - self.bound.better_margin)
+        targets = [
+            c
+            for c in ranked
+            if c.deployment.id != current.id
+            and c.tier == 0
+            and c.predicted_s is not None
+            and c.predicted_s < limit
+        ]
+        if not targets:
+            st.better_since = None
+            st.better_target = None
+            return None
+        best = targets[0].deployment.id
+        if st.better_target != best or st.better_since is None:
+            st.better_since = now
+            st.better_target = best
+        if now - st.better_since < self.params.improve_hold_s or not self._dwelt(st, now):
+            return None
+        return Decision(
+            robot=robot.id,
+            from_deployment=current.id,
+            to_deployment=best,
+            reason=Reason.BETTER,
+            candidates=tuple(c.deployment.id for c in targets),
+            predicted_s=targets[0].predicted_s,
+        )
+
+    # -- helpers ---------------------------------------------------------------------------------
+    def _dwelt(self, st: _RobotState, now: float) -> bool:
+        return st.last_switch_at is None or now - st.last_switch_at >= self.params.min_dwell_s
+
+    def _reference(
+        self,
+        robot: RobotView,
+        current: DeploymentView,
+        profiles: Mapping[str, WindowStats],
+        st: _RobotState,
+        now: float,
+    ) -> float | None:
+        """The current deployment's latency on the same scale as the candidates' predictions.
+
+        Its own probe profile when fresh (like for like: probes are smaller than frames, so
+        telemetry against probes would always favour moving), else the robot's telemetry.
+        """
+        own = self._candidate(robot, current, profiles, st, now).predicted_s
+        return own if own is not None else self._observed(robot)
+
+    def _observed(self, robot: RobotView) -> float | None:
+        tele = robot.telemetry
+        if tele is None or tele.count < self.params.min_samples:
+            return None
+        return tele.value(self.bound.stat)
+
+    def _violating(self, robot: RobotView) -> bool:
+        observed = self._observed(robot)
+        return observed is not None and observed > self.bound.seconds
+
+    def _fresh(self, stats: WindowStats | None, now: float) -> WindowStats | None:
+        if stats is None or stats.count < self.params.min_probe_samples:
+            return None
+        if now - stats.last_at > self.params.profile_max_age_s:
+            return None
+        return stats
+
+    def _candidate(
+        self,
+        robot: RobotView,
+        dep: DeploymentView,
+        profiles: Mapping[str, WindowStats],
+        st: _RobotState,
+        now: float,
+    ) -> _Candidate:
+        stats = self._fresh(profiles.get(dep.id), now)
+        predicted = None
+        if stats is not None:
+            # Load-aware: a busier deployment queues more; scale by its utilization.
+            predicted = stats.value(self.bound.stat) * (
+                1 + self.params.load_weight * dep.utilization
+            )
+        return _Candidate(
+            deployment=dep,
+            predicted_s=predicted,
+            meets=predicted is not None and predicted <= self.bound.seconds,
+            penalized=dep.id in st.left_at,
+        )
+
+    def _rank(
+        self,
+        robot: RobotView,
+        deployments: Sequence[DeploymentView],
+        profiles: Mapping[str, WindowStats],
+        st: _RobotState,
+        now: float,
+    ) -> list[_Candidate]:
+        usable = [
+            d
+            for d in deployments
+            if d.alive
+            and not d.draining
+            and d.service == robot.service
+            and (
+                robot.model_digest is None
+                or d.model_digest is None
+                or d.model_digest == robot.model_digest
+            )
+        ]
+        ranked = [self._candidate(robot, d, profiles, st, now) for d in usable]
+        return sorted(ranked, key=_Candidate.sort_key)
+
+    def _update_recovery(
+        self,
+        st: _RobotState,
+        by_id: Mapping[str, DeploymentView],
+        profiles: Mapping[str, WindowStats],
+        now: float,
+    ) -> None:
+        for dep, left_at in list(st.left_at.items()):
+            view = by_id.get(dep)
+            if view is None or not view.alive:
+                # Gone: a deployment that comes back is a fresh process and starts clean.
+                del st.left_at[dep]
+                st.good_since.pop(dep, None)
+                continue
+            stats = self._fresh(profiles.get(dep), now)
+            good = (
+                stats is not None
+                and stats.last_at > left_at
+                and stats.value(self.bound.stat) <= self.bound.seconds
+            )
+            if not good:
+                st.good_since.pop(dep, None)
+                continue
+            since = st.good_since.setdefault(dep, now)
+            if now - since >= self.params.recovery_s:
+                del st.left_at[dep]
+                del st.good_since[dep]

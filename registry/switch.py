@@ -1,0 +1,335 @@
+"""The epoch-fenced switch protocol: moves a robot from one deployment to another.
+
+Order of operations (the anycast invariant: each request is computed by exactly one deployment):
+1. reserve epoch e+1 in the RIB (persisted first, so a crash never reuses it);
+2. new deployment → `service(robot, e+1)`; wait for its acknowledgement (it has declared the robot's
+   service key). No ack (timeout, refusal, transport error, a stale ack) → record `ack_failed` with
+   the reason and try the next candidate under a fresh epoch;
+3. persist the route robot → new deployment under e+1;
+4. publish the route change;
+5. old deployment → `standby(robot, e+1)`, skipped (recorded as standby) when it is dead;
+   candidates that did not ack get `standby` too, so a late `service` cannot leave two deployments
+   serving.
+
+Epochs only grow. A deployment accepts `service(e)` only when e is newer than every epoch it has
+seen for the robot and `standby(e)` when e is at least that; it answers with its epoch. A reply
+whose epoch, robot, deployment or state does not match the request is a stale ack and is ignored.
+A refusal that names a newer epoch (the RIB was restored from an older file) raises the RIB's epoch
+past it and retries that deployment once.
+
+The transport is abstract (`SwitchTransport`): the registry daemon plugs Zenoh in (queries on
+`ef/<fleet>/dep/<id>/ctl`, a publication on `ef/<fleet>/route/<robot>`); tests plug in a fake. One
+`Switcher` is driven by one thread (the scheduler's); the RIB serializes its own writes.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+from enum import Enum
+from typing import Any, Protocol
+
+from registry.rib import DeploymentState, EventKind, Rib
+from registry.scheduler import Decision, Scheduler
+
+CTL_TIMEOUT_S = 0.5
+
+
+@dataclass(frozen=True)
+class CtlRequest:
+    """Put `robot`'s state on a deployment to `state` under `epoch`."""
+
+    robot: str
+    state: DeploymentState
+    epoch: int
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain data for the wire codec."""
+        return {
+            "robot": self.robot,
+            "state": DeploymentState(self.state).value,
+            "epoch": self.epoch,
+        }
+
+
+@dataclass(frozen=True)
+class CtlReply:
+    """A deployment's answer to a `CtlRequest`: its state and epoch for the robot now."""
+
+    deployment: str
+    robot: str
+    state: DeploymentState | None
+    epoch: int
+    ok: bool = True
+    error: str = ""
+
+
+@dataclass(frozen=True)
+class RouteChange:
+    """What the registry publishes on the robot's route key after a switch."""
+
+    robot: str
+    deployment: str | None
+    epoch: int
+    reason: str
+    previous: str | None
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain data for the wire codec."""
+        return asdict(self)
+
+
+class TransportError(Exception):
+    """The transport could not deliver a request or publication (the message says why)."""
+
+
+class SwitchTransport(Protocol):
+    """What the switch protocol needs from the network."""
+
+    def send_ctl(self, deployment: str, request: CtlRequest, timeout_s: float) -> CtlReply | None:
+        """Send a state request to a deployment; its reply, or None after `timeout_s` without one.
+
+        Raises `TransportError` when the request cannot be sent or the reply cannot be decoded.
+        """
+        ...
+
+    def publish_route(self, change: RouteChange) -> None:
+        """Publish a route change to the robot (and anyone watching); may raise TransportError."""
+        ...
+
+
+class Outcome(str, Enum):
+    """How one service request ended."""
+
+    ACKED = "acked"
+    TIMEOUT = "timeout"
+    REFUSED = "refused"
+    STALE = "stale_ack"
+    ERROR = "transport_error"
+
+
+@dataclass(frozen=True)
+class Attempt:
+    """One service request to one candidate."""
+
+    deployment: str
+    epoch: int
+    outcome: Outcome
+    detail: str = ""
+
+
+@dataclass(frozen=True)
+class SwitchResult:
+    """The route after a switch attempt, and the attempts made."""
+
+    robot: str
+    previous: str | None
+    deployment: str | None
+    epoch: int
+    changed: bool
+    reason: str
+    attempts: tuple[Attempt, ...] = ()
+
+
+@dataclass(frozen=True)
+class _Answer:
+    outcome: Outcome
+    detail: str
+    newer_epoch: int | None = None
+
+
+class Switcher:
+    """Runs the switch protocol over a transport, persisting every step in the RIB."""
+
+    def __init__(
+        self, rib: Rib, transport: SwitchTransport, *, ctl_timeout_s: float = CTL_TIMEOUT_S
+    ) -> None:
+        if not ctl_timeout_s > 0:
+            raise ValueError(f"ctl_timeout_s must be > 0, got {ctl_timeout_s!r}")
+        self.rib = rib
+        self.transport = transport
+        self.ctl_timeout_s = ctl_timeout_s
+
+    def apply(self, decision: Decision) -> SwitchResult:
+        """Carry out a scheduler decision; a decision about a route that changed meanwhile is
+        dropped unchanged."""
+        route = self.rib.route(decision.robot)
+        current = route.deployment if route else None
+        if current != decision.from_deployment:
+            return SwitchResult(
+                robot=decision.robot,
+                previous=current,
+                deployment=current,
+                epoch=route.epoch if route else 0,
+                changed=False,
+                reason=f"stale decision (route is {current or 'local'} now)",
+            )
+        candidates = decision.candidates or (
+            (decision.to_deployment,) if decision.to_deployment is not None else ()
+        )
+        return self.switch(decision.robot, candidates, reason=decision.reason.value)
+
+    def switch(self, robot: str, candidates: Sequence[str], *, reason: str) -> SwitchResult:
+        """Move `robot` to the first candidate that acknowledges `service`.
+
+        With no taker the route stays where it is when the old deployment is alive; otherwise the
+        route is dropped (the robot computes locally) under a new epoch.
+        """
+        route = self.rib.route(robot)
+        previous = route.deployment if route else None
+        attempts: list[Attempt] = []
+        failed: list[str] = []
+        tried: set[str] = set()
+        for deployment in candidates:
+            if deployment == previous or deployment in tried:
+                continue
+            tried.add(deployment)
+            epoch = self.rib.reserve_epoch(robot)
+            answer = self._request(deployment, CtlRequest(robot, DeploymentState.SERVICE, epoch))
+            if answer.newer_epoch is not None:
+                attempts.append(Attempt(deployment, epoch, answer.outcome, answer.detail))
+                epoch = self.rib.reserve_epoch(robot, at_least=answer.newer_epoch + 1)
+                self.rib.record_event(
+                    EventKind.EPOCH_RAISED,
+                    robot=robot,
+                    deployment=deployment,
+                    epoch=epoch,
+                    reason=f"{deployment} knows epoch {answer.newer_epoch}",
+                )
+                answer = self._request(
+                    deployment, CtlRequest(robot, DeploymentState.SERVICE, epoch)
+                )
+            attempts.append(Attempt(deployment, epoch, answer.outcome, answer.detail))
+            if answer.outcome is Outcome.ACKED:
+                return self._commit(robot, previous, deployment, epoch, reason, failed, attempts)
+            failed.append(deployment)
+            self.rib.record_event(
+                EventKind.ACK_FAILED,
+                robot=robot,
+                deployment=deployment,
+                epoch=epoch,
+                reason=f"{reason}: {answer.outcome.value}: {answer.detail}",
+            )
+        return self._no_taker(
+            robot, route.epoch if route else 0, previous, reason, failed, attempts
+        )
+
+    # -- steps ---------------------------------------------------------------------------------
+    def _commit(
+        self,
+        robot: str,
+        previous: str | None,
+        deployment: str,
+        epoch: int,
+        reason: str,
+        failed: list[str],
+        attempts: list[Attempt],
+    ) -> SwitchResult:
+        self.rib.set_route(robot, deployment, epoch, reason)
+        self._publish(RouteChange(robot, deployment, epoch, reason, previous))
+        for old in [previous, *failed]:
+            if old is not None and old != deployment:
+                self._standby(robot, old, epoch)
+        return SwitchResult(robot, previous, deployment, epoch, True, reason, tuple(attempts))
+
+    def _no_taker(
+        self,
+        robot: str,
+        route_epoch: int,
+        previous: str | None,
+        reason: str,
+        failed: list[str],
+        attempts: list[Attempt],
+    ) -> SwitchResult:
+        old = self.rib.deployment(previous) if previous is not None else None
+        if previous is not None and (old is None or not old.alive):
+            # The old deployment is gone and nobody took over: the robot computes locally.
+            epoch = self.rib.reserve_epoch(robot)
+            why = f"{reason}: no deployment acknowledged" if attempts else reason
+            self.rib.set_route(robot, None, epoch, why)
+            self._publish(RouteChange(robot, None, epoch, why, previous))
+            for dep in [previous, *failed]:
+                self._standby(robot, dep, epoch)
+            return SwitchResult(robot, previous, None, epoch, True, why, tuple(attempts))
+        if attempts:
+            self.rib.record_event(
+                EventKind.SWITCH_FAILED,
+                robot=robot,
+                deployment=previous,
+                epoch=route_epoch,
+                reason=f"{reason}: no candidate acknowledged; route kept",
+            )
+        # Fence the candidates that may still act on a late `service`.
+        fence = self.rib.issued_epoch(robot)
+        for dep in failed:
+            self._standby(robot, dep, fence)
+        return SwitchResult(robot, previous, previous, route_epoch, False, reason, tuple(attempts))
+
+    def _standby(self, robot: str, deployment: str, epoch: int) -> None:
+        row = self.rib.deployment(deployment)
+        if row is None or not row.alive:
+            # Nothing to tell a dead deployment; a restarted one starts with every robot in standby.
+            self.rib.set_deployment_state(deployment, robot, DeploymentState.STANDBY, epoch)
+            return
+        answer = self._request(deployment, CtlRequest(robot, DeploymentState.STANDBY, epoch))
+        if answer.outcome is Outcome.ACKED:
+            self.rib.set_deployment_state(deployment, robot, DeploymentState.STANDBY, epoch)
+        else:
+            self.rib.record_event(
+                EventKind.STANDBY_FAILED,
+                robot=robot,
+                deployment=deployment,
+                epoch=epoch,
+                reason=f"{answer.outcome.value}: {answer.detail}",
+            )
+
+    def _publish(self, change: RouteChange) -> None:
+        try:
+            self.transport.publish_route(change)
+        except TransportError as exc:
+            # The route is persisted; robots also learn it from the RIB views and their next query.
+            self.rib.record_event(
+                EventKind.PUBLISH_FAILED,
+                robot=change.robot,
+                deployment=change.deployment,
+                epoch=change.epoch,
+                reason=str(exc),
+            )
+
+    def _request(self, deployment: str, request: CtlRequest) -> _Answer:
+        try:
+            reply = self.transport.send_ctl(deployment, request, self.ctl_timeout_s)
+        except TransportError as exc:
+            return _Answer(Outcome.ERROR, str(exc))
+        if reply is None:
+            return _Answer(Outcome.TIMEOUT, f"no reply within {self.ctl_timeout_s:g} s")
+        if (reply.deployment, reply.robot) != (deployment, request.robot):
+            return _Answer(
+                Outcome.STALE,
+                f"reply is for {reply.deployment}/{reply.robot}, not {deployment}/{request.robot}",
+            )
+        if not reply.ok:
+            # A refusal carries the deployment's own state and epoch, whatever was asked.
+            if reply.epoch > request.epoch:
+                return _Answer(
+                    Outcome.REFUSED,
+                    f"refused epoch {request.epoch}: deployment knows epoch {reply.epoch}",
+                    newer_epoch=reply.epoch,
+                )
+            return _Answer(Outcome.REFUSED, reply.error or "refused")
+        state = reply.state.value if isinstance(reply.state, Enum) else reply.state
+        if state != request.state.value:
+            return _Answer(Outcome.STALE, f"ack for state {state}, expected {request.state.value}")
+        if reply.epoch != request.epoch:
+            return _Answer(Outcome.STALE, f"ack for epoch {reply.epoch}, expected {request.epoch}")
+        return _Answer(Outcome.ACKED, "")
+
+
+def carry_out(scheduler: Scheduler, switcher: Switcher, decision: Decision) -> SwitchResult:
+    """Apply a decision and tell the scheduler how it went (the daemon's glue, in one place)."""
+    result = switcher.apply(decision)
+    if result.changed:
+        scheduler.record_switch(decision.robot, result.previous, result.deployment, decision.reason)
+    elif result.attempts:
+        scheduler.record_failure(decision.robot)
+    return result
