@@ -1,7 +1,186 @@
-"""Commands of this package (filled in as the package grows)."""
+"""`elasticfog init DIR`: write a commented, single-host fleet.yaml to start from.
+
+The file describes a registry listening on 127.0.0.1:PORT, two cloud deployments (`edge-1` in
+service, `edge-2` standby) and one robot (`robot-1`), with a latency bound and a deadline. It is
+checked with `load_fleet` before it is written, so what `init` writes always loads.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
 
 import typer
+import yaml
+
+from common.config import DEFAULT_REGISTRY_PORT, ZOO_PREFIX, fleet_from_dict
+from common.errors import UserError
+from common.keys import DEFAULT_FLEET, validate_id
+
+FLEET_FILE = "fleet.yaml"
+DEFAULT_MODEL = "zoo:vgg"
+DEFAULT_SERVICE = "vision"
+
+# Values are JSON-quoted (valid YAML), so a fleet named `yes` or `123` stays a string.
+TEMPLATE = """\
+# elasticfog fleet, written by `elasticfog init`: everything on this host (loopback).
+# Start each line in its own terminal, in this folder:
+#   elasticfog registry --config fleet.yaml
+#   elasticfog cloud --config fleet.yaml --id edge-1
+#   elasticfog cloud --config fleet.yaml --id edge-2
+#   elasticfog robot --config fleet.yaml --id robot-1 --frames 100
+# Unknown keys are errors. Relative paths are relative to this file.
+
+# Fleet name: every Zenoh key of this fleet starts with ef/<fleet>/.
+fleet: {fleet}
+# The service robots call; its anycast key is ef/<fleet>/svc/<service>/<robot>/infer.
+service: {service}
+# The ONNX model: zoo:<name> (built from code, see `elasticfog model zoo list`) or a path.
+model: {model}
+# Candidate cuts: at most this many tensors cross a cut (null names = every cut found).
+cuts:
+  max_cut_tensors: 2
+  names: null
+
+registry:
+  # Where every daemon and CLI connects to meet the fleet. For several hosts, use an address
+  # the other hosts can reach, and listen on it.
+  endpoint: {endpoint}
+  # The registry embeds a Zenoh router listening here.
+  listen: [{endpoint}]
+  embedded_router: true
+  # The routing information base (sqlite); default: <fleet>.rib.sqlite next to this file.
+  # db: rib.sqlite
+
+# Machines by id. Peers talk to each other directly: each listens on an endpoint the others can
+# reach (port 0: any free port, announced to the others through the registry's router).
+machines:
+  edge-1:
+    role: cloud
+    listen: [tcp/127.0.0.1:0]
+    workers: 1        # inference workers
+    queue: 4          # requests waiting for a worker before answering "busy"
+    fault: {{delay_ms: 0, drop: 0, stall: false}}   # fault injection at start (tests)
+  edge-2:
+    role: cloud
+    listen: [tcp/127.0.0.1:0]
+    workers: 1
+    queue: 4
+  robot-1:
+    role: robot
+    listen: [tcp/127.0.0.1:0]
+    source: synthetic   # or video:PATH, camera:INDEX
+    fps: 10
+    # uplink_mbit: 2    # pace the uplink in the application (single-host emulation)
+
+# Who serves whom at start (FogROS2-LS): exactly one cloud in service per robot.
+initial_policy:
+  robot-1: robot
+  edge-1: service
+  edge-2: standby
+
+# The scheduler keeps <stat> of the last <window> frames' latencies under <seconds>; a violation
+# held for hysteresis_s moves the robot to a deployment predicted to meet the bound.
+latency_bound:
+  stat: median          # median | mean | p95 | max | stddev
+  seconds: 0.3
+  window: 20
+  hysteresis_s: 1.0
+  better_margin: 0.2    # move a satisfied robot only for a deployment 20% better
+
+# Past this, the robot finishes the frame itself (no frame is ever lost).
+deadline_s: 0.5
+
+# The split policy: elastic (ElasticAction), robot, cloud, static:<k>, neurosurgeon, ans.
+policy:
+  kind: elastic
+  params: {{}}
+
+# What a policy minimises per frame (weights).
+objective:
+  latency: 1.0
+  cpu: 0.0
+  energy: 0.0
+  bytes: 0.0
+
+zenoh:
+  mode: peer
+  lease_ms: 1000          # a silent peer is dropped after this
+  shared_memory: true     # between processes of this host
+"""
+
+
+def render_fleet(
+    *,
+    port: int = DEFAULT_REGISTRY_PORT,
+    fleet: str = DEFAULT_FLEET,
+    model: str = DEFAULT_MODEL,
+    service: str = DEFAULT_SERVICE,
+) -> str:
+    """The text of a single-host fleet.yaml."""
+    return TEMPLATE.format(
+        fleet=json.dumps(fleet),
+        service=json.dumps(service),
+        model=json.dumps(model),
+        endpoint=f"tcp/127.0.0.1:{port}",
+    )
+
+
+def write_fleet(
+    directory: Path,
+    *,
+    port: int = DEFAULT_REGISTRY_PORT,
+    fleet: str = DEFAULT_FLEET,
+    model: str = DEFAULT_MODEL,
+    force: bool = False,
+) -> Path:
+    """Write DIR/fleet.yaml (creating DIR) and return its path; UserError on bad input or if the
+    file exists and `force` is false."""
+    validate_id(fleet, "fleet name")
+    if not 1 <= port <= 65535:
+        raise UserError(f"--port {port}: expected a TCP port in 1..65535")
+    if model.startswith(ZOO_PREFIX):
+        validate_id(model[len(ZOO_PREFIX) :], "zoo model name")
+    else:
+        model_file = Path(model).expanduser().resolve()
+        if not model_file.is_file():
+            raise UserError(f"--model {model}: no such file (or use zoo:NAME)")
+        model = str(model_file)
+    if directory.exists() and not directory.is_dir():
+        raise UserError(f"{directory}: exists and is not a directory")
+    target = directory / FLEET_FILE
+    if target.exists() and not force:
+        raise UserError(f"{target}: already exists; use --force to overwrite it")
+    text = render_fleet(port=port, fleet=fleet, model=model)
+    fleet_from_dict(yaml.safe_load(text), source=target)  # what we write must load
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+        target.write_text(text, encoding="utf-8")
+    except OSError as exc:
+        raise UserError(f"{target}: cannot write: {exc.strerror or exc}") from None
+    return target
+
+
+def init(
+    directory: Path = typer.Argument(..., metavar="DIR", help="Folder to write fleet.yaml into."),
+    port: int = typer.Option(
+        DEFAULT_REGISTRY_PORT, "--port", help="Port the registry listens on (127.0.0.1)."
+    ),
+    fleet: str = typer.Option(DEFAULT_FLEET, "--fleet", help="Fleet name (in every key)."),
+    model: str = typer.Option(DEFAULT_MODEL, "--model", help="zoo:NAME or an ONNX file."),
+    force: bool = typer.Option(False, "--force", help="Overwrite an existing fleet.yaml."),
+) -> None:
+    """Write a commented single-host fleet.yaml: a registry, edge-1 (service), edge-2 (standby)
+    and robot-1."""
+    try:
+        target = write_fleet(directory, port=port, fleet=fleet, model=model, force=force)
+    except UserError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(exc.exit_code) from None
+    typer.echo(f"wrote {target}")
+    typer.echo(f"next: elasticfog registry --config {target}")
 
 
 def register(app: typer.Typer) -> None:
-    """Add this package's commands to the root app."""
+    """Add `elasticfog init` to the root app."""
+    app.command("init")(init)

@@ -1,0 +1,649 @@
+"""fleet.yaml: the fleet's configuration as pydantic models, and its loader.
+
+One file describes a fleet (modeled on FogROS2-LS): its name (used in every key, `ef/<fleet>/...`),
+the service and model, where the registry is, the machines (cloud deployments and robots, each with
+its own overrides), the initial policy (which deployment serves which robot at start), the latency
+bound, the deadline, the split policy, the objective and Zenoh settings.
+
+Every field has a description; unknown keys are refused (a typo must not be silently ignored) and
+types are strict (`"10"` is not a number). `load_fleet` turns every problem into one `UserError`
+line naming the file and the field path, e.g.
+`fleet.yaml: latency_bound.stat: Input should be 'median', 'mean', 'p95', 'max' or 'stddev'`.
+Relative paths in the file (model, registry db, TLS files, video sources) are relative to the file.
+"""
+
+from __future__ import annotations
+
+import difflib
+import re
+import types
+import typing
+from pathlib import Path
+from typing import Annotated, Any, Literal, Union
+
+import yaml
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    PrivateAttr,
+    ValidationError,
+    ValidationInfo,
+    model_validator,
+)
+
+from common.errors import UserError
+from common.keys import DEFAULT_FLEET, validate_id
+from common.wire.codec import DEFAULT_MAX_PAYLOAD_BYTES
+
+DEFAULT_REGISTRY_PORT = 7447
+DEFAULT_REGISTRY_ENDPOINT = f"tcp/127.0.0.1:{DEFAULT_REGISTRY_PORT}"
+DEFAULT_LEASE_MS = 1000
+ZOO_PREFIX = "zoo:"
+MAX_ERRORS_SHOWN = 5
+
+LatencyStat = Literal["median", "mean", "p95", "max", "stddev"]
+LATENCY_STATS: tuple[str, ...] = typing.get_args(LatencyStat)
+Role = Literal["cloud", "robot"]
+InitialState = Literal["robot", "service", "standby"]
+
+# Zenoh endpoints: <protocol>/<address>[?metadata][#config]; IP protocols need host:port.
+_IP_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
+_OTHER_PROTOCOLS = ("unixsock-stream", "unixpipe", "vsock", "serial")
+_HOST_PORT = re.compile(r"^(\[[0-9a-fA-F:.]+\]|[^\s:/\[\]]+):(\d{1,5})$")
+
+
+def _check_id(value: str) -> str:
+    return validate_id(value, "id")
+
+
+def _check_endpoint(value: str) -> str:
+    protocol, sep, address = value.partition("/")
+    address = re.split(r"[?#]", address, maxsplit=1)[0]
+    if not sep or protocol not in _IP_PROTOCOLS + _OTHER_PROTOCOLS or not address:
+        raise ValueError(
+            f"{value!r} is not a Zenoh endpoint; expected <protocol>/<address>, e.g. "
+            f"tcp/127.0.0.1:{DEFAULT_REGISTRY_PORT} (protocols: "
+            f"{', '.join(_IP_PROTOCOLS + _OTHER_PROTOCOLS)})"
+        )
+    if protocol in _IP_PROTOCOLS:
+        match = _HOST_PORT.match(address)
+        if match is None or int(match.group(2)) > 65535:
+            raise ValueError(f"{value!r}: expected {protocol}/HOST:PORT with PORT in 0..65535")
+    return value
+
+
+Id = Annotated[str, AfterValidator(_check_id)]
+Endpoint = Annotated[str, AfterValidator(_check_endpoint)]
+
+
+class _Model(BaseModel):
+    """Local files: unknown keys and loose types are errors."""
+
+    model_config = ConfigDict(
+        extra="forbid", strict=True, validate_default=True, allow_inf_nan=False
+    )
+
+
+class CutsConfig(_Model):
+    """Which cuts of the model the runtime may use."""
+
+    max_cut_tensors: int = Field(
+        default=2,
+        ge=1,
+        description="Largest number of tensors a candidate cut may carry (DAG cuts).",
+    )
+    names: list[str] | None = Field(
+        default=None,
+        min_length=1,
+        description="Restrict candidate cuts to those after these tensors; null: every cut found.",
+    )
+
+
+class RegistryConfig(_Model):
+    """Where the registry is and how it runs."""
+
+    id: Id = Field(default="registry", description="The registry's id (its liveliness token).")
+    endpoint: Endpoint = Field(
+        default=DEFAULT_REGISTRY_ENDPOINT,
+        description="Where every daemon and CLI connects to meet the fleet (the registry's "
+        "router).",
+    )
+    listen: list[Endpoint] = Field(
+        default_factory=lambda: [f"tcp/0.0.0.0:{DEFAULT_REGISTRY_PORT}"],
+        min_length=1,
+        description="Endpoints the embedded Zenoh router listens on.",
+    )
+    db: str | None = Field(
+        default=None,
+        description="sqlite file of the routing information base; default: <fleet>.rib.sqlite "
+        "next to this file.",
+    )
+    embedded_router: bool = Field(
+        default=True,
+        description="Run a Zenoh router inside the registry (false: one runs elsewhere).",
+    )
+
+
+class FaultConfig(_Model):
+    """Fault injection a cloud daemon starts with (changeable at run time on its ctl key)."""
+
+    delay_ms: float = Field(
+        default=0.0, ge=0, description="Extra delay before each reply, milliseconds."
+    )
+    drop: float = Field(
+        default=0.0, ge=0, le=1, description="Probability of not answering a request at all."
+    )
+    stall: bool = Field(
+        default=False, description="Answer nothing while staying alive (a frozen host)."
+    )
+
+
+# Fields that only mean something for one role: setting them on the other is an error.
+_CLOUD_ONLY = frozenset({"workers", "queue", "fault"})
+_ROBOT_ONLY = frozenset({"source", "fps", "uplink_mbit"})
+_SOURCE = re.compile(r"^(synthetic(:.*)?|video:.+|camera:\d+)$")
+
+
+class MachineConfig(_Model):
+    """One machine of the fleet: a cloud deployment or a robot, with its overrides."""
+
+    role: Role = Field(description="'cloud' (serves suffixes) or 'robot' (runs the frame loop).")
+    listen: list[Endpoint] = Field(
+        default_factory=list,
+        description="Zenoh endpoints this machine listens on; peers reach it there directly, so "
+        "they must be reachable from the other machines. Empty: zenoh.listen.",
+    )
+    connect: list[Endpoint] = Field(
+        default_factory=list,
+        description="Extra endpoints to connect to, besides the registry endpoint and "
+        "zenoh.connect.",
+    )
+    shared_memory: bool | None = Field(
+        default=None, description="Override zenoh.shared_memory for this machine."
+    )
+    providers: list[str] = Field(
+        default_factory=lambda: ["CPUExecutionProvider"],
+        min_length=1,
+        description="onnxruntime execution providers, in order of preference.",
+    )
+    threads: int = Field(
+        default=0,
+        ge=0,
+        description="onnxruntime intra-op threads per session; 0: onnxruntime's default.",
+    )
+    workers: int = Field(
+        default=1, ge=1, description="Cloud: inference workers running in parallel."
+    )
+    queue: int = Field(
+        default=4, ge=0, description="Cloud: requests waiting for a worker before answering 'busy'."
+    )
+    fault: FaultConfig = Field(
+        default_factory=FaultConfig, description="Cloud: fault injection at start."
+    )
+    source: str = Field(
+        default="synthetic",
+        description="Robot: frame source: synthetic[:OPTIONS], video:PATH or camera:INDEX.",
+    )
+    fps: float | None = Field(
+        default=None,
+        gt=0,
+        description="Robot: frames per second; null: as fast as frames complete.",
+    )
+    uplink_mbit: float | None = Field(
+        default=None,
+        gt=0,
+        description="Robot: pace the uplink to this many Mbit/s in the application (emulation).",
+    )
+
+    @model_validator(mode="after")
+    def _role_fields(self) -> MachineConfig:
+        foreign = (_ROBOT_ONLY if self.role == "cloud" else _CLOUD_ONLY) & self.model_fields_set
+        if foreign:
+            other = "robot" if self.role == "cloud" else "cloud"
+            raise ValueError(
+                f"{', '.join(sorted(foreign))}: only for {other} machines (role is {self.role!r})"
+            )
+        if not _SOURCE.match(self.source):
+            raise ValueError(
+                f"source: {self.source!r} is not a frame source; expected synthetic, "
+                "video:PATH or camera:INDEX"
+            )
+        return self
+
+
+class LatencyBoundConfig(_Model):
+    """The latency bound the scheduler keeps (FogROS2-LS): `stat` of the last `window` frames'
+    latencies must stay at or below `seconds`."""
+
+    stat: LatencyStat = Field(
+        default="median", description="Statistic of the window compared to the bound."
+    )
+    seconds: float = Field(gt=0, description="The bound, seconds.")
+    window: int = Field(default=20, ge=1, description="Frames in the sliding window.")
+    hysteresis_s: float = Field(
+        default=1.0,
+        ge=0,
+        description="How long a violation must hold before the robot is moved, seconds.",
+    )
+    better_margin: float = Field(
+        default=0.2,
+        ge=0,
+        description="Move a robot that meets its bound only to a deployment predicted better by "
+        "this fraction (0.2: 20% lower latency).",
+    )
+
+    @model_validator(mode="before")
+    @classmethod
+    def _fogros_shorthand(cls, data: Any) -> Any:
+        # FogROS2-LS writes `latency_bound: {median: 0.3}`; accept it as stat + seconds.
+        if isinstance(data, dict) and "stat" not in data and "seconds" not in data:
+            stats = [k for k in data if k in LATENCY_STATS]
+            if len(stats) == 1:
+                stat = stats[0]
+                rest = {k: v for k, v in data.items() if k != stat}
+                return {**rest, "stat": stat, "seconds": data[stat]}
+        return data
+
+
+class PolicyConfig(_Model):
+    """The split policy a robot runs."""
+
+    kind: str = Field(
+        default="elastic",
+        min_length=1,
+        description="Policy name: elastic, robot, cloud, static:<k>, neurosurgeon, ans...",
+    )
+    params: dict[str, Any] = Field(
+        default_factory=dict, description="Policy parameters, checked by the policy itself."
+    )
+
+
+class ObjectiveConfig(_Model):
+    """Weights of the cost a policy minimises per frame."""
+
+    latency: float = Field(
+        default=1.0, ge=0, description="Weight of end-to-end latency (per second)."
+    )
+    cpu: float = Field(default=0.0, ge=0, description="Weight of robot CPU time (per CPU second).")
+    energy: float = Field(default=0.0, ge=0, description="Weight of robot energy (per joule).")
+    bytes: float = Field(
+        default=0.0, ge=0, description="Weight of bytes sent and received (per MB)."
+    )
+    power: dict[str, Any] = Field(
+        default_factory=dict, description="Robot power model parameters (watts), free form."
+    )
+
+
+class TlsConfig(_Model):
+    """TLS files for `tls/...` endpoints (paths relative to this file)."""
+
+    root_ca: str | None = Field(
+        default=None, description="CA certificate that signed the peers' certs."
+    )
+    cert: str | None = Field(default=None, description="This machine's certificate (PEM).")
+    key: str | None = Field(default=None, description="This machine's private key (PEM).")
+    mtls: bool = Field(
+        default=False, description="Require and present client certificates (mutual TLS)."
+    )
+
+    @model_validator(mode="after")
+    def _pair(self) -> TlsConfig:
+        if (self.cert is None) != (self.key is None):
+            raise ValueError("cert and key go together: give both or neither")
+        if self.mtls and self.cert is None:
+            raise ValueError("mtls needs cert and key")
+        return self
+
+
+class ZenohConfig(_Model):
+    """Zenoh settings shared by every machine (machines may override listen/connect)."""
+
+    mode: Literal["peer", "client"] = Field(
+        default="peer",
+        description="peer: talk to other machines directly (the default); client: everything "
+        "through the router (e.g. a robot behind NAT).",
+    )
+    connect: list[Endpoint] = Field(
+        default_factory=list, description="Endpoints to connect to besides registry.endpoint."
+    )
+    listen: list[Endpoint] = Field(
+        default_factory=list, description="Default listen endpoints of peers; empty: Zenoh's."
+    )
+    lease_ms: int = Field(
+        default=DEFAULT_LEASE_MS,
+        ge=100,
+        description="Link lease: a silent peer (frozen host, cut link) is dropped after this, ms.",
+    )
+    shared_memory: bool = Field(
+        default=True,
+        description="Shared memory between processes of one host (bypasses the network: turn it "
+        "off when shaping traffic between namespaces).",
+    )
+    tls: TlsConfig = Field(default_factory=TlsConfig, description="TLS files.")
+
+
+def _initial_entry(value: Any) -> Any:
+    """A state for every robot, or a map robot -> service|standby (a cloud serving robots
+    differently)."""
+    states = typing.get_args(InitialState)
+    if isinstance(value, str):
+        if value not in states:
+            raise ValueError(f"{value!r} is not a state; expected one of {', '.join(states)}")
+        return value
+    if isinstance(value, dict):
+        for robot, state in value.items():
+            if not isinstance(robot, str) or state not in ("service", "standby"):
+                raise ValueError(
+                    f"per-robot entry {robot!r}: {state!r}; expected <robot id>: service|standby"
+                )
+        return value
+    raise ValueError(
+        f"expected a state ({', '.join(states)}) or a map of robot id to service|standby, "
+        f"got {type(value).__name__}"
+    )
+
+
+InitialEntry = Annotated[str | dict[str, str], BeforeValidator(_initial_entry)]
+
+
+class FleetConfig(_Model):
+    """A fleet: one service, one model, a registry, machines and how robots are served."""
+
+    fleet: Id = Field(
+        default=DEFAULT_FLEET, description="Fleet name, the second chunk of every key."
+    )
+    service: Id = Field(description="Name of the service robots call (in its anycast key).")
+    model: str = Field(
+        min_length=1, description="The ONNX model: a path (relative to this file) or zoo:NAME."
+    )
+    input_shape: list[Annotated[int, Field(ge=1)]] | None = Field(
+        default=None,
+        min_length=1,
+        description="Input shape, fixing the model's dynamic dimensions.",
+    )
+    cuts: CutsConfig = Field(default_factory=CutsConfig, description="Candidate cuts.")
+    registry: RegistryConfig = Field(default_factory=RegistryConfig, description="The registry.")
+    machines: dict[Id, MachineConfig] = Field(
+        default_factory=dict, description="Cloud deployments and robots, by id."
+    )
+    initial_policy: dict[Id, InitialEntry] = Field(
+        default_factory=dict,
+        description="State of each machine at start (FogROS2-LS): robot, service or standby, or "
+        "for a cloud a map robot -> service|standby. Unlisted clouds are standby.",
+    )
+    latency_bound: LatencyBoundConfig = Field(description="The latency bound the scheduler keeps.")
+    deadline_s: float = Field(
+        gt=0, description="Per-frame deadline: past it the robot finishes the frame itself, s."
+    )
+    policy: PolicyConfig = Field(default_factory=PolicyConfig, description="The split policy.")
+    objective: ObjectiveConfig = Field(
+        default_factory=ObjectiveConfig, description="Per-frame cost weights."
+    )
+    zenoh: ZenohConfig = Field(default_factory=ZenohConfig, description="Zenoh settings.")
+    max_payload_bytes: int = Field(
+        default=DEFAULT_MAX_PAYLOAD_BYTES,
+        ge=1024,
+        description="Largest message a daemon decodes; bigger ones get an error reply.",
+    )
+
+    _source: Path | None = PrivateAttr(default=None)
+
+    @model_validator(mode="after")
+    def _cross_checks(self, info: ValidationInfo) -> FleetConfig:
+        if self.zoo_model is not None:
+            validate_id(self.zoo_model, "model: zoo model name")
+        self._check_initial_policy()
+        self._resolve_paths(_base_dir(info))
+        return self
+
+    def _check_initial_policy(self) -> None:
+        known = ", ".join(self.machines) or "none"
+        for machine_id, entry in self.initial_policy.items():
+            machine = self.machines.get(machine_id)
+            if machine is None:
+                raise ValueError(
+                    f"initial_policy: unknown machine {machine_id!r}; known machines: {known}"
+                )
+            if machine.role == "robot" and entry != "robot":
+                raise ValueError(
+                    f"initial_policy.{machine_id}: a robot's state is 'robot', not {entry!r}"
+                )
+            if machine.role == "cloud" and entry == "robot":
+                raise ValueError(
+                    f"initial_policy.{machine_id}: a cloud is 'service' or 'standby', not 'robot'"
+                )
+            if isinstance(entry, dict):
+                for robot in entry:
+                    if robot not in self.robot_ids:
+                        raise ValueError(
+                            f"initial_policy.{machine_id}: {robot!r} is not a robot of this "
+                            f"fleet; robots: {', '.join(self.robot_ids) or 'none'}"
+                        )
+        for robot in self.robot_ids:
+            serving = [d for d in self.cloud_ids if self.initial_state(d, robot) == "service"]
+            if len(serving) != 1:
+                found = ", ".join(serving) if serving else "none"
+                raise ValueError(
+                    f"initial_policy: robot {robot!r} needs exactly one cloud in service at "
+                    f"start, found {found}"
+                )
+
+    def _resolve_paths(self, base: Path) -> None:
+        def resolve(value: str | None) -> str | None:
+            return None if value is None else str((base / Path(value).expanduser()).resolve())
+
+        if not self.model.startswith(ZOO_PREFIX):
+            self.model = str(resolve(self.model))
+        self.registry.db = resolve(self.registry.db or f"{self.fleet}.rib.sqlite")
+        tls = self.zenoh.tls
+        tls.root_ca, tls.cert, tls.key = resolve(tls.root_ca), resolve(tls.cert), resolve(tls.key)
+        for machine in self.machines.values():
+            if machine.source.startswith("video:"):
+                machine.source = f"video:{resolve(machine.source[len('video:') :])}"
+
+    # -- helpers -----------------------------------------------------------------------------------
+    @property
+    def source_path(self) -> Path | None:
+        """The file this config was loaded from (None if built in memory)."""
+        return self._source
+
+    @property
+    def robot_ids(self) -> list[str]:
+        """Robot machine ids, in file order."""
+        return [i for i, m in self.machines.items() if m.role == "robot"]
+
+    @property
+    def cloud_ids(self) -> list[str]:
+        """Cloud machine (deployment) ids, in file order."""
+        return [i for i, m in self.machines.items() if m.role == "cloud"]
+
+    @property
+    def zoo_model(self) -> str | None:
+        """The zoo model name for `model: zoo:NAME`, else None."""
+        return self.model[len(ZOO_PREFIX) :] if self.model.startswith(ZOO_PREFIX) else None
+
+    @property
+    def model_path(self) -> Path | None:
+        """The model file (absolute) when `model` is a path, else None."""
+        return None if self.zoo_model is not None else Path(self.model)
+
+    @property
+    def db_path(self) -> Path:
+        """The registry's sqlite file (absolute)."""
+        return Path(self.registry.db or f"{self.fleet}.rib.sqlite")
+
+    def machine(self, machine_id: str, role: Role | None = None) -> MachineConfig:
+        """The machine `machine_id`; UserError listing the known ids if there is none (or if it
+        does not have `role`)."""
+        where = str(self._source) if self._source else "the fleet config"
+        machine = self.machines.get(machine_id)
+        if machine is None:
+            known = ", ".join(self.machines) or "none"
+            raise UserError(f"no machine {machine_id!r} in {where}; known machines: {known}")
+        if role is not None and machine.role != role:
+            same = ", ".join(i for i, m in self.machines.items() if m.role == role) or "none"
+            raise UserError(
+                f"{machine_id!r} is a {machine.role} machine in {where}, not a {role}; "
+                f"{role} machines: {same}"
+            )
+        return machine
+
+    def initial_state(self, deployment: str, robot: str) -> str:
+        """'service' or 'standby': the state of `deployment` for `robot` at start."""
+        entry = self.initial_policy.get(deployment, "standby")
+        if isinstance(entry, dict):
+            return entry.get(robot, "standby")
+        return entry
+
+    def initial_service(self, robot: str) -> str | None:
+        """The deployment serving `robot` at start (None when the fleet has no cloud for it)."""
+        for deployment in self.cloud_ids:
+            if self.initial_state(deployment, robot) == "service":
+                return deployment
+        return None
+
+
+def _base_dir(info: ValidationInfo) -> Path:
+    context = info.context if isinstance(info.context, dict) else {}
+    base = context.get("base_dir")
+    return Path(base) if base is not None else Path.cwd()
+
+
+# -- loading ---------------------------------------------------------------------------------------
+class _StrictLoader(yaml.SafeLoader):
+    """SafeLoader that refuses duplicate keys (PyYAML keeps the last one silently)."""
+
+
+def _no_duplicates(loader: _StrictLoader, node: yaml.MappingNode, deep: bool = False) -> Any:
+    seen: set[Any] = set()
+    for key_node, _ in node.value:
+        key = loader.construct_object(key_node, deep=deep)
+        if isinstance(key, typing.Hashable) and key in seen:
+            mark = key_node.start_mark
+            raise yaml.constructor.ConstructorError(None, None, f"duplicate key {key!r}", mark)
+        seen.add(key)
+    return loader.construct_mapping(node, deep=deep)
+
+
+_StrictLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _no_duplicates)
+
+
+def load_fleet(path: str | Path) -> FleetConfig:
+    """Read and check a fleet.yaml; UserError (one line, file and field) on any problem."""
+    path = Path(path)
+    name = str(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise UserError(f"{name}: no such file (create one with `elasticfog init DIR`)") from None
+    except IsADirectoryError:
+        raise UserError(f"{name}: is a directory, expected a fleet.yaml file") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise UserError(f"{name}: cannot read: {exc}") from None
+    try:
+        data = yaml.load(text, Loader=_StrictLoader)  # a SafeLoader subclass
+    except yaml.YAMLError as exc:
+        raise UserError(f"{name}: invalid YAML: {_yaml_problem(exc)}") from None
+    return fleet_from_dict(data, source=path)
+
+
+def fleet_from_dict(data: Any, *, source: str | Path | None = None) -> FleetConfig:
+    """Check an already-parsed fleet mapping; relative paths are relative to `source`'s folder
+    (the working directory without a source)."""
+    name = str(source) if source is not None else "fleet config"
+    if data is None:
+        raise UserError(f"{name}: the file is empty; expected a mapping with service, model, ...")
+    if not isinstance(data, dict):
+        raise UserError(f"{name}: expected a mapping at the top level, got {type(data).__name__}")
+    base = Path(source).resolve().parent if source is not None else Path.cwd()
+    try:
+        config = FleetConfig.model_validate(data, context={"base_dir": base})
+    except ValidationError as exc:
+        raise UserError(f"{name}: {format_validation_error(exc)}") from None
+    config._source = Path(source) if source is not None else None
+    return config
+
+
+def _yaml_problem(exc: yaml.YAMLError) -> str:
+    mark = getattr(exc, "problem_mark", None)
+    problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+    where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
+    return f"{where}{problem}"
+
+
+def format_validation_error(exc: ValidationError) -> str:
+    """Pydantic errors as one line: `field.path: problem; other.path: problem`."""
+    parts = []
+    errors = exc.errors(include_url=False)
+    for error in errors[:MAX_ERRORS_SHOWN]:
+        loc = tuple(error["loc"])
+        message = str(error["msg"]).removeprefix("Value error, ").removeprefix("Assertion failed, ")
+        if error["type"] == "extra_forbidden":
+            message = _unknown_key_message(loc)
+        elif error["type"] == "missing":
+            message = "required key is missing"
+        path = _format_loc(loc)
+        parts.append(f"{path}: {message}" if path else message)
+    if len(errors) > MAX_ERRORS_SHOWN:
+        parts.append(f"and {len(errors) - MAX_ERRORS_SHOWN} more")
+    return "; ".join(parts)
+
+
+def _format_loc(loc: tuple[Any, ...]) -> str:
+    out = ""
+    for part in loc:
+        if isinstance(part, int):
+            out += f"[{part}]"
+        elif part == "[key]":
+            out += " (key)"
+        else:
+            out += f".{part}" if out else str(part)
+    return out
+
+
+def _unknown_key_message(loc: tuple[Any, ...]) -> str:
+    known = _known_keys(loc[:-1])
+    if not known:
+        return "unknown key"
+    close = difflib.get_close_matches(str(loc[-1]), known, n=1, cutoff=0.6)
+    if close:
+        return f"unknown key; did you mean {close[0]!r}?"
+    return f"unknown key; known keys here: {', '.join(known)}"
+
+
+def _known_keys(loc: tuple[Any, ...]) -> list[str]:
+    """Field names of the model found at `loc` (walking FleetConfig's annotations)."""
+    current: Any = FleetConfig
+    index = 0
+    while index <= len(loc):
+        current = _unwrap(current)
+        if isinstance(current, type) and issubclass(current, BaseModel):
+            if index == len(loc):
+                return list(current.model_fields)
+            field = current.model_fields.get(loc[index]) if isinstance(loc[index], str) else None
+            if field is None:
+                return []
+            current, index = field.annotation, index + 1
+        elif typing.get_origin(current) in (dict, list) and index < len(loc):
+            current, index = typing.get_args(current)[-1], index + 1
+        else:
+            return []
+    return []
+
+
+def _unwrap(annotation: Any) -> Any:
+    """X | None -> X; Annotated[X, ...] -> X."""
+    while True:
+        origin = typing.get_origin(annotation)
+        if origin is Annotated:
+            annotation = typing.get_args(annotation)[0]
+        elif origin in (Union, types.UnionType):
+            members = [a for a in typing.get_args(annotation) if a is not type(None)]
+            if len(members) != 1:
+                return annotation
+            annotation = members[0]
+        else:
+            return annotation

@@ -1,0 +1,116 @@
+"""Named decode errors and the machine-readable error codes carried by error replies.
+
+Every way a payload can be wrong has its own `WireError` subclass with a stable `code`, so a
+queryable can turn any decode failure into an `ErrorReply(code, reason)` without a traceback and
+keep serving. `WireError` is a ValueError: code that only cares about "bad input" can catch that.
+The application-level codes (unknown cut, wrong model digest, stale epoch...) are not raised by the
+codec; daemons put them in their error replies so every peer reads the same vocabulary.
+"""
+
+from __future__ import annotations
+
+import enum
+from typing import ClassVar
+
+
+class ErrorCode(str, enum.Enum):
+    """Machine-readable reason of an error reply (the wire carries the string value)."""
+
+    # Raised by the codec.
+    MALFORMED = "malformed"
+    SCHEMA_VERSION = "schema_version"
+    TRAILING_BYTES = "trailing_bytes"
+    TOO_LARGE = "too_large"
+    UNKNOWN_TYPE = "unknown_type"
+    UNEXPECTED_TYPE = "unexpected_type"
+    MISSING_FIELD = "missing_field"
+    WRONG_TYPE = "wrong_type"
+    BAD_VALUE = "bad_value"
+    BAD_DTYPE = "bad_dtype"
+    SHAPE_MISMATCH = "shape_mismatch"
+    # Used by daemons in their replies.
+    UNKNOWN_CUT = "unknown_cut"
+    MODEL_DIGEST = "model_digest"
+    NOT_SERVING = "not_serving"
+    DEADLINE_EXPIRED = "deadline_expired"
+    STALE_EPOCH = "stale_epoch"
+    PROTOCOL_VERSION = "protocol_version"
+    REFUSED = "refused"
+    INTERNAL = "internal"
+
+
+class WireError(ValueError):
+    """A payload that cannot be decoded (or a message that cannot be encoded); `str()` is the
+    reason, one line naming the problem."""
+
+    code: ClassVar[ErrorCode] = ErrorCode.MALFORMED
+
+    def __init__(self, reason: str) -> None:
+        super().__init__(reason)
+        self.reason = reason
+
+
+class MalformedPayload(WireError):
+    """Not msgpack, not a map at the top level, or invalid UTF-8."""
+
+    code = ErrorCode.MALFORMED
+
+
+class UnknownSchemaVersion(WireError):
+    """The envelope's schema version is missing or not one this build reads."""
+
+    code = ErrorCode.SCHEMA_VERSION
+
+
+class TrailingBytes(WireError):
+    """Bytes left over after the message."""
+
+    code = ErrorCode.TRAILING_BYTES
+
+
+class PayloadTooLarge(WireError):
+    """The payload is bigger than the configured limit (checked before unpacking)."""
+
+    code = ErrorCode.TOO_LARGE
+
+
+class UnknownMessageType(WireError):
+    """The envelope names a message type this build does not know."""
+
+    code = ErrorCode.UNKNOWN_TYPE
+
+
+class UnexpectedMessageType(WireError):
+    """A known message type, but not one this key accepts."""
+
+    code = ErrorCode.UNEXPECTED_TYPE
+
+
+class MissingField(WireError):
+    """A required field is absent."""
+
+    code = ErrorCode.MISSING_FIELD
+
+
+class WrongFieldType(WireError):
+    """A field has the wrong type (e.g. a string where an integer belongs)."""
+
+    code = ErrorCode.WRONG_TYPE
+
+
+class InvalidValue(WireError):
+    """A field has the right type but an impossible value (negative frame, drop rate above 1...)."""
+
+    code = ErrorCode.BAD_VALUE
+
+
+class BadDtype(WireError):
+    """A tensor's dtype is not on the allow-list."""
+
+    code = ErrorCode.BAD_DTYPE
+
+
+class ShapeMismatch(WireError):
+    """A tensor's shape does not match its byte count (or is not a list of sizes)."""
+
+    code = ErrorCode.SHAPE_MISMATCH

@@ -1,0 +1,45 @@
+"""Messages a robot sends to the deployment serving it, on its anycast service key
+(`keys.svc_infer`). The deployment answers with a message of `cloud_to_robot`."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+
+from common.wire.codec import Message, register
+
+
+@register
+@dataclass(frozen=True, slots=True, kw_only=True)
+class InferRequest(Message):
+    """Run the suffix after cut `cut` of the model `model_digest` on `tensors` (the cut's tensors
+    by name) and reply within `deadline_s` of `sent_at`.
+
+    `deadline_s` is a budget, not a time of day: hosts' clocks are not synchronised, so the
+    deployment measures it from the request's arrival (a request that waited in its queue longer
+    than its budget is not computed: the robot has already finished the frame itself).
+    `sent_at` is the robot's wall clock at sending, carried for telemetry only. `epoch` is the
+    route epoch the robot believes in (0 before it heard of any route).
+    """
+
+    TYPE: ClassVar[str] = "infer_request"
+    robot: str
+    frame: int
+    model_digest: str
+    cut: int
+    tensors: dict[str, np.ndarray]
+    deadline_s: float
+    sent_at: float
+    epoch: int = 0
+
+    def __post_init__(self) -> None:
+        self._check_ids("robot")
+        self._check_non_negative("frame", "cut", "epoch")
+        self._check_finite("deadline_s", "sent_at")
+        self._check_positive("deadline_s")
+        if not self.model_digest:
+            raise self._invalid("model_digest", "must not be empty")
+        if not self.tensors:
+            raise self._invalid("tensors", "at least one tensor is needed")

@@ -1,0 +1,127 @@
+"""What a robot publishes for anyone to read: a record per frame on `keys.tele`, and probe reports
+on `keys.tele_probe`.
+
+`TelemetryRecord.to_jsonl()` is the object the robot writes per frame with `--telemetry FILE.jsonl`
+(the fields in JSONL_FIELDS, in that order).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+from common.wire.codec import Message, register
+
+# The action label of "pure robot" (run the whole model locally); offloading at cut k is
+# action_label(k).
+ACTION_ROBOT = "P"
+_CUT_PREFIX = "cut:"
+
+# The per-frame JSONL object, in this order (the `--telemetry` contract of `elasticfog robot`).
+JSONL_FIELDS = (
+    "frame",
+    "action",
+    "bytes_up",
+    "bytes_down",
+    "prefix_s",
+    "transfer_s",
+    "cloud_s",
+    "suffix_local_s",
+    "latency_s",
+    "robot_cpu_s",
+    "energy_j",
+    "deployment",
+    "fallback",
+    "reason",
+)
+
+
+def action_label(cut: int | None) -> str:
+    """ "P" for pure robot (cut None), "cut:<k>" for offloading after cut k."""
+    if cut is None:
+        return ACTION_ROBOT
+    if cut < 0:
+        raise ValueError(f"cut index must be >= 0, got {cut}")
+    return f"{_CUT_PREFIX}{cut}"
+
+
+def parse_action(label: str) -> int | None:
+    """The cut index of an action label (None for "P"); ValueError for anything else."""
+    if label == ACTION_ROBOT:
+        return None
+    if label.startswith(_CUT_PREFIX) and label[len(_CUT_PREFIX) :].isdigit():
+        return int(label[len(_CUT_PREFIX) :])
+    raise ValueError(f"not an action label: {label!r} (expected 'P' or 'cut:<k>')")
+
+
+@register
+@dataclass(frozen=True, slots=True, kw_only=True)
+class TelemetryRecord(Message):
+    """One frame's story. Times are seconds: `prefix_s` on the robot, `transfer_s` the network
+    share of the round trip (round trip minus `cloud_s`), `cloud_s` the deployment's queue and
+    compute time, `suffix_local_s` the suffix run on the robot when it finished the frame itself,
+    `latency_s` end to end. `fallback` is true when the robot finished the frame itself after
+    offloading (busy, error, timeout: `reason` says which); `deployment` answered (None if none).
+    `at` is the robot's wall clock when the frame completed."""
+
+    TYPE: ClassVar[str] = "telemetry"
+    robot: str
+    frame: int
+    action: str
+    bytes_up: int
+    bytes_down: int
+    prefix_s: float
+    transfer_s: float
+    cloud_s: float
+    suffix_local_s: float
+    latency_s: float
+    robot_cpu_s: float
+    energy_j: float
+    deployment: str | None
+    fallback: bool
+    reason: str | None
+    epoch: int = 0
+    at: float = 0.0
+
+    def __post_init__(self) -> None:
+        self._check_ids("robot", "deployment")
+        self._check_non_negative("frame", "bytes_up", "bytes_down", "epoch")
+        try:
+            parse_action(self.action)
+        except ValueError as exc:
+            raise self._invalid("action", str(exc)) from None
+
+    @property
+    def cut(self) -> int | None:
+        """The cut of this frame's action (None for pure robot)."""
+        return parse_action(self.action)
+
+    def to_jsonl(self) -> dict[str, Any]:
+        """The `--telemetry` JSONL object (JSONL_FIELDS, in order)."""
+        return {name: getattr(self, name) for name in JSONL_FIELDS}
+
+
+@register
+@dataclass(frozen=True, slots=True, kw_only=True)
+class ProbeReport(Message):
+    """A robot's probe of one deployment: round trip `rtt_s` carrying `up_bytes` and `down_bytes`,
+    the deployment's load and capacity from its reply, and `expected_latency_s`, the robot's
+    estimate of its per-frame latency through that deployment (None when it cannot tell).
+    `ok` false (with `reason`) when the probe got no valid reply in time."""
+
+    TYPE: ClassVar[str] = "probe_report"
+    robot: str
+    deployment: str
+    ok: bool
+    at: float
+    rtt_s: float | None = None
+    up_bytes: int = 0
+    down_bytes: int = 0
+    load: int | None = None
+    capacity: int | None = None
+    expected_latency_s: float | None = None
+    reason: str | None = None
+
+    def __post_init__(self) -> None:
+        self._check_ids("robot", "deployment")
+        self._check_non_negative("rtt_s", "up_bytes", "down_bytes", "expected_latency_s")
