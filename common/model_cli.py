@@ -1,7 +1,307 @@
-"""Commands of this package (filled in as the package grows)."""
+"""``elasticfog model ...``: split, check and profile ONNX models; export the model zoo.
+
+Each command parses its options and calls one function of common.partition, common.profiler or
+common.zoo, imported inside the command so that other commands do not pay for onnx/torch
+imports. ``--json`` prints plain JSON on stdout (the contract other tools read); otherwise a
+rich table. Bad input is one line on stderr and exit code 2, never a traceback.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, TypeVar
 
 import typer
+from rich.console import Console
+from rich.table import Table
+
+from common.errors import UserError
+
+F = TypeVar("F", bound=Callable[..., Any])
+
+model_app = typer.Typer(
+    name="model",
+    help="Split, check and profile ONNX models (a file or zoo:NAME).",
+    no_args_is_help=True,
+)
+zoo_app = typer.Typer(
+    help="Models defined in code: seeded, exported to ONNX.", no_args_is_help=True
+)
+model_app.add_typer(zoo_app, name="zoo")
+
+MODEL_HELP = "ONNX file or zoo:NAME (see `elasticfog model zoo list`)."
+CUTS_HELP = "'auto', or cuts separated by commas; join the tensors of one cut with '+' (a,b+c)."
+# Table width when stdout is not a terminal: long tensor names stay on one line in logs.
+PIPE_WIDTH = 200
+SHAPE_HELP = "Input shape for dynamic dimensions: 3x240x320 (first input) or NAME=1x3x240x320,..."
 
 
 def register(app: typer.Typer) -> None:
-    """Add this package's commands to the root app."""
+    """Add the `model` command group to the root app."""
+    app.add_typer(model_app, name="model")
+
+
+def _user_errors(fn: F) -> F:
+    """Print a UserError as one line on stderr and exit 2 (commands never show a traceback)."""
+
+    @functools.wraps(fn)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        try:
+            return fn(*args, **kwargs)
+        except UserError as exc:
+            Console(stderr=True).print(
+                f"[red]error:[/red] {exc}", highlight=False, soft_wrap=True, markup=True
+            )
+            raise typer.Exit(exc.exit_code) from None
+
+    return wrapper  # type: ignore[return-value]
+
+
+def _print_json(data: Any) -> None:
+    typer.echo(json.dumps(data, indent=2))
+
+
+def _fmt_bytes(n: int) -> str:
+    if n >= 1 << 20:
+        return f"{n / (1 << 20):.2f} MiB"
+    if n >= 1 << 10:
+        return f"{n / (1 << 10):.1f} KiB"
+    return f"{n} B"
+
+
+def _fmt_mflops(n: int) -> str:
+    return f"{n / 1e6:.1f}"
+
+
+def _console() -> Console:
+    """Stdout console; when stdout is not a terminal (logs, pipes) tables get room not to wrap."""
+    return Console(width=None if sys.stdout.isatty() else PIPE_WIDTH)
+
+
+def _cuts_table(manifest: dict[str, Any], title: str) -> Table:
+    table = Table(title=title, title_justify="left")
+    table.add_column("cut", justify="right")
+    table.add_column("bytes", justify="right", no_wrap=True)
+    table.add_column("robot MFLOP", justify="right")
+    table.add_column("cloud MFLOP", justify="right")
+    table.add_column("verified")
+    table.add_column("max abs err", justify="right", no_wrap=True)
+    table.add_column("tensors", overflow="fold")
+    for cut in manifest["cuts"]:
+        err = cut["max_abs_err"]
+        table.add_row(
+            str(cut["index"]),
+            _fmt_bytes(cut["bytes"]),
+            _fmt_mflops(cut["prefix_flops"]),
+            _fmt_mflops(cut["suffix_flops"]),
+            "yes" if cut["verified"] else "no",
+            "-" if err is None else f"{err:.2g}",
+            " + ".join(cut["tensors"]),
+        )
+    return table
+
+
+def _print_partition(manifest: dict[str, Any], where: str) -> None:
+    from common.partition import DOMINATED_PREFIX
+
+    console = _console()
+    title = f"{manifest['model']}  sha256 {manifest['digest'][:12]}  ({where})"
+    console.print(_cuts_table(manifest, title))
+    excluded = manifest.get("excluded", [])
+    dominated = [e for e in excluded if e["reason"].startswith(DOMINATED_PREFIX)]
+    if dominated:
+        console.print(
+            f"{len(dominated)} cut(s) left out: another cut sends fewer bytes for the same "
+            "robot FLOPs (--all-cuts keeps them)",
+            highlight=False,
+        )
+    for item in excluded:
+        if item in dominated:
+            continue
+        shown = " + ".join(item["tensors"]) or "-"
+        console.print(f"excluded {shown}: {item['reason']}", highlight=False, soft_wrap=True)
+
+
+def _require_cuts(manifest: dict[str, Any], where: str) -> None:
+    if not manifest["cuts"]:
+        raise UserError(f"no cut of {manifest['model']} passed verification (see {where})")
+
+
+@model_app.command("split")
+@_user_errors
+def split_cmd(
+    model: str = typer.Argument(..., help=MODEL_HELP),
+    out: Path = typer.Option(..., "--out", help="Directory for manifest.json and the sub-models."),
+    cuts: str = typer.Option("auto", "--cuts", help=CUTS_HELP),
+    max_cut_tensors: int = typer.Option(
+        2, "--max-cut-tensors", help="At most this many tensors cross an automatic cut."
+    ),
+    input_shape: str | None = typer.Option(None, "--input-shape", help=SHAPE_HELP),
+    verify: bool = typer.Option(True, "--verify/--no-verify", help="Check prefix∘suffix = full."),
+    all_cuts: bool = typer.Option(
+        False, "--all-cuts", help="Keep automatic cuts that another cut beats (fewer bytes)."
+    ),
+    as_json: bool = typer.Option(False, "--json", help="Print manifest.json instead of a table."),
+) -> None:
+    """Cut a model at every candidate point and write prefix/suffix models to --out."""
+    from common.partition import parse_cuts, parse_input_shape, split_model
+
+    part = split_model(
+        model,
+        out,
+        cuts=parse_cuts(cuts),
+        max_cut_tensors=max_cut_tensors,
+        input_shape=parse_input_shape(input_shape),
+        verify=verify,
+        prune=not all_cuts,
+    )
+    manifest = part.manifest()
+    if as_json:
+        _print_json(manifest)
+    else:
+        _print_partition(manifest, f"{out}/manifest.json")
+    _require_cuts(manifest, str(out / "manifest.json"))
+
+
+@model_app.command("check")
+@_user_errors
+def check_cmd(
+    model: str = typer.Argument(..., help=MODEL_HELP),
+    cuts: str = typer.Option("auto", "--cuts", help=CUTS_HELP),
+    max_cut_tensors: int = typer.Option(
+        2, "--max-cut-tensors", help="At most this many tensors cross an automatic cut."
+    ),
+    input_shape: str | None = typer.Option(None, "--input-shape", help=SHAPE_HELP),
+    as_json: bool = typer.Option(False, "--json", help="Print the manifest as JSON."),
+) -> None:
+    """Check that a model can be split here: list its verified cuts (split kept in the cache)."""
+    from common.partition import load_partition, parse_cuts, parse_input_shape
+
+    part = load_partition(
+        model,
+        parse_cuts(cuts),
+        max_cut_tensors,
+        parse_input_shape(input_shape),
+    )
+    manifest = part.manifest()
+    if as_json:
+        _print_json(manifest)
+    else:
+        _print_partition(manifest, str(part.dir))
+    _require_cuts(manifest, str(part.dir / "manifest.json"))
+
+
+@model_app.command("profile")
+@_user_errors
+def profile_cmd(
+    model: str = typer.Argument(..., help=MODEL_HELP),
+    runs: int = typer.Option(20, "--runs", help="Timed runs per measurement (median reported)."),
+    threads: int | None = typer.Option(
+        None, "--threads", help="onnxruntime intra-op threads (default: all cores)."
+    ),
+    cuts: str = typer.Option("auto", "--cuts", help=CUTS_HELP),
+    max_cut_tensors: int = typer.Option(
+        2, "--max-cut-tensors", help="At most this many tensors cross an automatic cut."
+    ),
+    input_shape: str | None = typer.Option(None, "--input-shape", help=SHAPE_HELP),
+    fresh: bool = typer.Option(False, "--fresh", help="Measure again even if a profile is cached."),
+    as_json: bool = typer.Option(False, "--json", help="Print the profile as JSON."),
+) -> None:
+    """Time every cut's prefix and suffix on this host (cached by model digest)."""
+    from common.partition import parse_cuts, parse_input_shape
+    from common.profiler import profile_model
+
+    profile = profile_model(
+        model,
+        runs=runs,
+        threads=threads,
+        input_shape=parse_input_shape(input_shape),
+        progress=not as_json,
+        cuts=parse_cuts(cuts),
+        max_cut_tensors=max_cut_tensors,
+        refresh=fresh,
+    )
+    if as_json:
+        _print_json(profile)
+        return
+    table = Table(
+        title=f"{model}  sha256 {profile['digest'][:12]}  full model {profile['full_ms']:.2f} ms",
+        title_justify="left",
+    )
+    table.add_column("cut", justify="right")
+    for name in ("bytes", "robot ms", "cloud ms", "robot MFLOP", "cloud MFLOP"):
+        table.add_column(name, justify="right", no_wrap=True)
+    table.add_column("tensors", overflow="fold")
+    for cut in profile["cuts"]:
+        table.add_row(
+            str(cut["index"]),
+            _fmt_bytes(cut["bytes"]),
+            f"{cut['prefix_ms']:.2f}",
+            f"{cut['suffix_ms']:.2f}",
+            _fmt_mflops(cut["prefix_flops"]),
+            _fmt_mflops(cut["suffix_flops"]),
+            " + ".join(cut["tensors"]),
+        )
+    _console().print(table)
+
+
+@zoo_app.command("list")
+@_user_errors
+def zoo_list_cmd(
+    as_json: bool = typer.Option(False, "--json", help="Print the list as JSON."),
+) -> None:
+    """List the zoo models."""
+    from common.zoo import DEFAULT_INPUT_SHAPE, DEFAULT_ZOO_MODEL, ZOO_MODELS, format_shape
+
+    rows = [
+        {"name": m.name, "description": m.description, "default": m.name == DEFAULT_ZOO_MODEL}
+        for m in ZOO_MODELS.values()
+    ]
+    if as_json:
+        _print_json(rows)
+        return
+    table = Table(title=f"model zoo (default input {format_shape(DEFAULT_INPUT_SHAPE)})")
+    table.add_column("name")
+    table.add_column("description")
+    for row in rows:
+        name = f"zoo:{row['name']}" + (" (default)" if row["default"] else "")
+        table.add_row(name, str(row["description"]))
+    _console().print(table)
+
+
+@zoo_app.command("export")
+@_user_errors
+def zoo_export_cmd(
+    name: str = typer.Argument(..., help="Zoo model name (vgg, resnet, mobilenet)."),
+    out: Path = typer.Option(..., "--out", help="ONNX file to write."),
+    input_shape: str = typer.Option("3x240x320", "--input-shape", help="Input size as CxHxW."),
+    as_json: bool = typer.Option(False, "--json", help="Print what was written as JSON."),
+) -> None:
+    """Export a zoo model to an ONNX file (seeded weights: the same file every time)."""
+    from common import zoo
+    from common.models import file_digest, zoo_shape
+
+    name = name.removeprefix("zoo:")
+    zoo.get(name)  # unknown names fail before torch is imported
+    shape = zoo_shape(zoo.parse_shape(input_shape))
+    if out.is_dir():
+        raise UserError(f"--out {out} is a directory; give a file name such as {name}.onnx")
+    zoo.export(name, out, shape)
+    info = {
+        "name": name,
+        "path": str(out),
+        "digest": file_digest(out),
+        "input_shape": [1, *shape],
+    }
+    if as_json:
+        _print_json(info)
+    else:
+        _console().print(
+            f"wrote {out} (zoo:{name}, input 1x{zoo.format_shape(shape)}, "
+            f"sha256 {info['digest'][:12]})",
+            highlight=False,
+        )

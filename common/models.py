@@ -1,0 +1,93 @@
+"""Naming a model: an ONNX file path or ``zoo:NAME``, resolved to a file and its sha256 digest.
+
+The digest identifies the model between robot and cloud (requests carry it) and keys every cache
+entry (exported zoo models, partitions, profiles) under the user cache directory.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import platformdirs
+
+from common.errors import UserError
+
+CACHE_DIR_ENV = "ELASTICFOG_CACHE_DIR"
+ZOO_PREFIX = "zoo:"
+_DIGEST_CHUNK_BYTES = 1 << 20
+
+
+@dataclass(frozen=True)
+class ModelRef:
+    """A resolved model: the ONNX file, its sha256 digest and a short name for tables and logs."""
+
+    path: Path
+    digest: str
+    name: str
+    spec: str
+
+
+def cache_dir() -> Path:
+    """The user cache directory (``ELASTICFOG_CACHE_DIR`` overrides it); created if missing."""
+    override = os.environ.get(CACHE_DIR_ENV)
+    root = Path(override) if override else Path(platformdirs.user_cache_dir("elasticfog"))
+    try:
+        root.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UserError(f"cannot create cache directory {root}: {exc.strerror}") from None
+    return root
+
+
+def file_digest(path: Path) -> str:
+    """sha256 of a file's bytes, as hex."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while chunk := f.read(_DIGEST_CHUNK_BYTES):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def resolve_model(spec: str | Path, input_shape: tuple[int, ...] | None = None) -> ModelRef:
+    """Resolve ``spec`` (an ONNX file or ``zoo:NAME``) to a file on disk and its digest.
+
+    A zoo model is exported once per name and input shape (C, H, W; a leading batch dimension
+    of 1 is accepted) into the cache directory and reused afterwards. For a file, ``input_shape``
+    is not used here: the partitioner applies it to the model's dynamic dimensions.
+    """
+    text = str(spec).strip()
+    if not text:
+        raise UserError("empty model name: give an ONNX file or zoo:NAME")
+    if text.startswith(ZOO_PREFIX):
+        return _resolve_zoo(text, text[len(ZOO_PREFIX) :], input_shape)
+    path = Path(text).expanduser()
+    if not path.exists():
+        raise UserError(f"model file not found: {text}")
+    if not path.is_file():
+        raise UserError(f"model path is not a file: {text}")
+    return ModelRef(path=path, digest=file_digest(path), name=path.stem, spec=text)
+
+
+def _resolve_zoo(spec: str, name: str, input_shape: tuple[int, ...] | None) -> ModelRef:
+    from common import zoo  # the zoo module imports torch only when it exports
+
+    entry = zoo.get(name)
+    shape = zoo_shape(input_shape)
+    path = cache_dir() / "zoo" / f"{entry.name}-{zoo.format_shape(shape)}.onnx"
+    if not path.is_file():
+        zoo.export(entry.name, path, shape)
+    return ModelRef(path=path, digest=file_digest(path), name=entry.name, spec=spec)
+
+
+def zoo_shape(input_shape: tuple[int, ...] | None) -> tuple[int, int, int]:
+    """A zoo input shape as (C, H, W): the default, or the given one without its batch of 1."""
+    from common import zoo
+
+    if input_shape is None:
+        return zoo.DEFAULT_INPUT_SHAPE
+    shape = tuple(int(d) for d in input_shape)
+    if len(shape) == 4 and shape[0] == 1:
+        shape = shape[1:]
+    return zoo.check_input_shape(shape)

@@ -1,0 +1,274 @@
+"""onnxruntime sessions for a split model: the full model and every cut's prefix and suffix.
+
+The robot daemon and the cloud daemon both hold one :class:`SplitModel`. A model with K cuts needs
+2K+1 sessions; loaded naively each would hold its own copy of the weights. Here the weights are read
+once from the split's ``weights.bin`` into one buffer, and every session is handed the same
+``OrtValue`` per initializer through ``SessionOptions.add_initializer``, so resident weights stay
+near one copy whatever K is.
+
+Two onnxruntime behaviours decide the session options (measured with onnxruntime 1.31):
+- the NCHWc layout transformer of ``ORT_ENABLE_ALL`` re-reads convolution weights from the model
+  file into a private reordered copy, so sharing needs ``ORT_ENABLE_EXTENDED``;
+- weight pre-packing (MatMul/Gemm) makes a private packed copy per session, so it is disabled.
+``optimization="all"`` trades that memory for the faster NCHWc kernels (each session then holds
+its own convolution weights).
+Each session's CPU memory arena is off by default for the same reason: an arena keeps the
+session's peak activations resident, which would grow with K.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import onnx
+import onnxruntime as ort
+from onnx import helper, numpy_helper
+
+from common.partition import Partition, TensorSpec, load_partition
+
+Optimization = Literal["extended", "all"]
+_LEVELS = {
+    "extended": ort.GraphOptimizationLevel.ORT_ENABLE_EXTENDED,
+    "all": ort.GraphOptimizationLevel.ORT_ENABLE_ALL,
+}
+_ORT_LOG_ERROR = 3
+
+
+class SharedWeights:
+    """The split's weights, read once: one numpy buffer and one OrtValue view per initializer."""
+
+    def __init__(self, partition: Partition) -> None:
+        full = onnx.load(str(partition.full), load_external_data=False)
+        external: dict[str, tuple[int, int, np.dtype, tuple[int, ...]]] = {}
+        inline_bytes = 0
+        for t in full.graph.initializer:
+            if t.data_location == onnx.TensorProto.EXTERNAL:
+                info = {e.key: e.value for e in t.external_data}
+                dtype = np.dtype(helper.tensor_dtype_to_np_dtype(t.data_type))
+                external[t.name] = (
+                    int(info.get("offset", 0)),
+                    int(info["length"]),
+                    dtype,
+                    tuple(int(d) for d in t.dims),
+                )
+            else:
+                inline_bytes += numpy_helper.to_array(t).nbytes
+        # np.fromfile gives a writable buffer; the OrtValues below are views into it (no copy).
+        self._buffer = (
+            np.fromfile(partition.weights, dtype=np.uint8)
+            if external
+            else np.zeros(0, dtype=np.uint8)
+        )
+        self.arrays: dict[str, np.ndarray] = {}
+        self.values: dict[str, ort.OrtValue] = {}
+        for name, (offset, length, dtype, dims) in external.items():
+            count = length // dtype.itemsize
+            array = np.frombuffer(self._buffer, dtype=dtype, count=count, offset=offset)
+            array = array.reshape(dims)
+            self.arrays[name] = array
+            self.values[name] = ort.OrtValue.ortvalue_from_numpy(array)
+        self.nbytes = sum(a.nbytes for a in self.arrays.values()) + inline_bytes
+
+
+class SplitModel:
+    """Runs a split model: the whole of it, or a cut's prefix (robot) and suffix (cloud).
+
+    ``partition_or_spec`` is a :class:`Partition` or anything :func:`load_partition` accepts
+    (a file path or ``zoo:NAME``; split with default options, from the cache when possible).
+    Sessions are built at construction unless ``lazy`` is true; either way they share one copy
+    of the weights. Methods are safe to call from several threads.
+
+    ``arena`` turns on onnxruntime's CPU memory arena: slightly faster runs, but every session
+    then keeps its peak activation memory (hundreds of MB over a few dozen cuts at 240x320).
+    """
+
+    def __init__(
+        self,
+        partition_or_spec: Partition | str | Path,
+        providers: Sequence[str] = ("CPUExecutionProvider",),
+        threads: int | None = None,
+        *,
+        optimization: Optimization = "extended",
+        lazy: bool = False,
+        arena: bool = False,
+    ) -> None:
+        if isinstance(partition_or_spec, Partition):
+            self.partition = partition_or_spec
+        else:
+            self.partition = load_partition(partition_or_spec)
+        if optimization not in _LEVELS:
+            raise ValueError(f"optimization must be one of {', '.join(_LEVELS)}")
+        self.providers = list(providers)
+        self.threads = threads
+        self.optimization: Optimization = optimization
+        self.arena = arena
+        self.weights = SharedWeights(self.partition)
+        self._lock = threading.Lock()
+        self._full: ort.InferenceSession | None = None
+        self._prefix: dict[int, ort.InferenceSession] = {}
+        self._suffix: dict[int, ort.InferenceSession] = {}
+        if not lazy:
+            self.build_all()
+
+    # -- facts --
+
+    @property
+    def digest(self) -> str:
+        return self.partition.digest
+
+    @property
+    def input_names(self) -> list[str]:
+        return list(self.partition.inputs)
+
+    @property
+    def output_names(self) -> list[str]:
+        return list(self.partition.outputs)
+
+    @property
+    def num_cuts(self) -> int:
+        return len(self.partition.cuts)
+
+    @property
+    def weight_bytes(self) -> int:
+        """Bytes of the model's weights (initializers), counted once."""
+        return self.weights.nbytes
+
+    def input_specs(self) -> list[TensorSpec]:
+        return [self.partition.specs[n] for n in self.partition.inputs]
+
+    def cut_tensor_specs(self, k: int) -> list[TensorSpec]:
+        """Name, dtype and shape of every tensor crossing cut ``k`` (what the cloud receives)."""
+        return self.partition.cut_specs(k)
+
+    # -- running --
+
+    def run_full(self, feeds: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """The whole model on this host: model inputs → model outputs."""
+        session = self._full_session()
+        return self._run(session, feeds, "the full model")
+
+    def run_prefix(self, k: int, feeds: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """The robot's part of cut ``k``: model inputs → the cut's tensors, by name.
+
+        Model inputs that cross the cut (all of them for cut 0) are passed through as given.
+        """
+        cut = self.partition.cut(k)
+        out: dict[str, np.ndarray] = {}
+        if cut.prefix is not None:
+            out = self._run(self._prefix_session(k), feeds, f"prefix of cut {k}")
+        inputs = set(self.partition.inputs)
+        missing = [t for t in cut.tensors if t in inputs and t not in feeds]
+        if missing:
+            raise ValueError(f"prefix of cut {k}: missing model input(s) {', '.join(missing)}")
+        for name in cut.tensors:
+            if name in inputs:
+                out[name] = np.asarray(feeds[name])
+        return {name: out[name] for name in cut.tensors}
+
+    def run_suffix(
+        self,
+        k: int,
+        tensors: Mapping[str, np.ndarray],
+        feeds: Mapping[str, np.ndarray] | None = None,
+    ) -> dict[str, np.ndarray]:
+        """The cloud's part of cut ``k``: the cut's tensors → model outputs.
+
+        A model input the suffix still needs may come in ``tensors`` or in ``feeds``.
+        """
+        cut = self.partition.cut(k)
+        given: dict[str, np.ndarray] = {}
+        missing = []
+        for name in cut.tensors:
+            if name in tensors:
+                given[name] = tensors[name]
+            elif feeds is not None and name in feeds:
+                given[name] = feeds[name]
+            else:
+                missing.append(name)
+        if missing:
+            raise ValueError(f"suffix of cut {k}: missing tensor(s) {', '.join(missing)}")
+        return self._run(self._suffix_session(k), given, f"suffix of cut {k}")
+
+    def build_all(self) -> None:
+        """Build every session now (startup cost paid once, nothing built on the frame path)."""
+        self._full_session()
+        for k, cut in enumerate(self.partition.cuts):
+            if cut.prefix is not None:
+                self._prefix_session(k)
+            self._suffix_session(k)
+
+    def release(self, k: int) -> None:
+        """Drop cut ``k``'s sessions (they are rebuilt on next use)."""
+        with self._lock:
+            self._prefix.pop(k, None)
+            self._suffix.pop(k, None)
+
+    def close(self) -> None:
+        """Drop every session; the object can still be used and rebuilds them lazily."""
+        with self._lock:
+            self._full = None
+            self._prefix.clear()
+            self._suffix.clear()
+
+    def __enter__(self) -> SplitModel:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # -- sessions --
+
+    def _run(
+        self, session: ort.InferenceSession, feeds: Mapping[str, np.ndarray], what: str
+    ) -> dict[str, np.ndarray]:
+        names = [i.name for i in session.get_inputs()]
+        missing = [n for n in names if n not in feeds]
+        if missing:
+            raise ValueError(f"{what}: missing input(s) {', '.join(missing)}")
+        outputs = [o.name for o in session.get_outputs()]
+        values = session.run(outputs, {n: feeds[n] for n in names})
+        return dict(zip(outputs, values, strict=True))
+
+    def _full_session(self) -> ort.InferenceSession:
+        with self._lock:
+            if self._full is None:
+                self._full = self._session(self.partition.full)
+            return self._full
+
+    def _prefix_session(self, k: int) -> ort.InferenceSession:
+        cut = self.partition.cut(k)
+        with self._lock:
+            session = self._prefix.get(k)
+            if session is None:
+                assert cut.prefix is not None
+                session = self._prefix[k] = self._session(cut.prefix)
+            return session
+
+    def _suffix_session(self, k: int) -> ort.InferenceSession:
+        cut = self.partition.cut(k)
+        with self._lock:
+            session = self._suffix.get(k)
+            if session is None:
+                assert cut.suffix is not None
+                session = self._suffix[k] = self._session(cut.suffix)
+            return session
+
+    def _session(self, path: Path) -> ort.InferenceSession:
+        opts = ort.SessionOptions()
+        opts.log_severity_level = _ORT_LOG_ERROR
+        opts.graph_optimization_level = _LEVELS[self.optimization]
+        if self.threads:
+            opts.intra_op_num_threads = self.threads
+            opts.inter_op_num_threads = 1
+        if not self.arena:
+            opts.enable_cpu_mem_arena = False
+        if self.optimization == "extended":
+            opts.add_session_config_entry("session.disable_prepacking", "1")
+        # Every session gets every shared weight; onnxruntime ignores the ones a sub-model lacks.
+        for name, value in self.weights.values.items():
+            opts.add_initializer(name, value)
+        return ort.InferenceSession(str(path), opts, providers=self.providers)

@@ -1,0 +1,160 @@
+"""`elasticfog model ...` through typer's runner: the JSON contracts, tables, and bad input."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner, Result
+
+from common.cli import app
+from common.models import file_digest
+from tests.unit.test_partition import diamond, late_input, make_model, node, save, vi
+
+runner = CliRunner()
+
+
+def invoke(*args: str) -> Result:
+    return runner.invoke(app, ["model", *args])
+
+
+def assert_one_line_error(result: Result, *fragments: str) -> None:
+    assert result.exit_code == 2, result.output
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1, result.stderr
+    assert lines[0].startswith("error: ")
+    for fragment in fragments:
+        assert fragment in lines[0]
+    assert "Traceback" not in result.output
+    assert result.stdout == ""
+
+
+def test_zoo_list_json() -> None:
+    result = invoke("zoo", "list", "--json")
+    assert result.exit_code == 0, result.output
+    rows = json.loads(result.stdout)
+    assert [r["name"] for r in rows] == ["vgg", "resnet", "mobilenet"]
+    assert sum(r["default"] for r in rows) == 1
+
+
+def test_zoo_list_table() -> None:
+    result = invoke("zoo", "list")
+    assert result.exit_code == 0, result.output
+    assert "zoo:resnet" in result.stdout and "(default)" in result.stdout
+
+
+def test_zoo_export(tmp_path: Path) -> None:
+    out = tmp_path / "models" / "vgg.onnx"
+    result = invoke("zoo", "export", "vgg", "--out", str(out), "--input-shape", "3x64x64", "--json")
+    assert result.exit_code == 0, result.output
+    info = json.loads(result.stdout)
+    assert info == {
+        "name": "vgg",
+        "path": str(out),
+        "digest": file_digest(out),
+        "input_shape": [1, 3, 64, 64],
+    }
+
+
+def test_split_json_is_the_manifest(tmp_path: Path) -> None:
+    src = save(diamond(), tmp_path / "m.onnx")
+    out = tmp_path / "split"
+    result = invoke("split", str(src), "--out", str(out), "--json")
+    assert result.exit_code == 0, result.output
+    printed = json.loads(result.stdout)
+    assert printed == json.loads((out / "manifest.json").read_text())
+    assert [c["tensors"] for c in printed["cuts"]] == [["x"], ["a"], ["a", "b"], ["b", "c"]]
+    assert printed["cuts"][1]["prefix"] == "cut001.prefix.onnx"
+
+
+def test_split_options(tmp_path: Path) -> None:
+    src = save(late_input(), tmp_path / "m.onnx")
+    out = tmp_path / "split"
+    result = invoke("split", str(src), "--out", str(out), "--cuts", "b", "--json")
+    assert result.exit_code == 0, result.output
+    assert [c["tensors"] for c in json.loads(result.stdout)["cuts"]] == [["x", "z"], ["z", "b"]]
+    result = invoke("split", str(src), "--out", str(out), "--max-cut-tensors", "1", "--json")
+    assert [c["tensors"] for c in json.loads(result.stdout)["cuts"]] == [["x", "z"]]
+
+
+def test_split_table(tmp_path: Path) -> None:
+    src = save(diamond(), tmp_path / "m.onnx")
+    result = invoke("split", str(src), "--out", str(tmp_path / "split"))
+    assert result.exit_code == 0, result.output
+    assert "max abs err" in result.stdout
+    assert "a + b" in result.stdout
+
+
+def test_check_zoo_model_table() -> None:
+    result = invoke("check", "zoo:resnet", "--input-shape", "3x64x64")
+    assert result.exit_code == 0, result.output
+    assert "verified" in result.stdout
+    assert "left out" in result.stdout  # dominated cuts are summarised, not listed
+
+
+def test_profile_json(tmp_path: Path) -> None:
+    src = save(diamond(), tmp_path / "m.onnx")
+    result = invoke("profile", str(src), "--runs", "2", "--threads", "1", "--json")
+    assert result.exit_code == 0, result.output
+    prof = json.loads(result.stdout)
+    assert set(prof) == {"digest", "full_ms", "cuts"}
+    assert prof["digest"] == file_digest(src)
+    assert len(prof["cuts"]) == 4
+
+
+def test_profile_table(tmp_path: Path) -> None:
+    src = save(diamond(), tmp_path / "m.onnx")
+    result = invoke("profile", str(src), "--runs", "2")
+    assert result.exit_code == 0, result.output
+    assert "full model" in result.stdout and "robot ms" in result.stdout
+
+
+# ---------------------------------------------------------------------------------------------
+# Bad input: one line on stderr, exit code 2
+
+
+def test_not_an_onnx_file(tmp_path: Path) -> None:
+    src = tmp_path / "notes.onnx"
+    src.write_text("hello\n")
+    assert_one_line_error(invoke("split", str(src), "--out", str(tmp_path / "o")), "not an ONNX")
+
+
+def test_truncated_file(tmp_path: Path) -> None:
+    data = diamond().SerializeToString()
+    src = tmp_path / "half.onnx"
+    src.write_bytes(data[: len(data) // 2])
+    assert_one_line_error(invoke("check", str(src)), "half.onnx", "ONNX model")
+
+
+def test_unknown_tensor_names_are_listed(tmp_path: Path) -> None:
+    src = save(diamond(), tmp_path / "m.onnx")
+    result = invoke("split", str(src), "--out", str(tmp_path / "o"), "--cuts", "a,foo,bar+b")
+    assert_one_line_error(result, "unknown tensor name(s)", "foo, bar")
+
+
+def test_cut_that_does_not_separate(tmp_path: Path) -> None:
+    src = save(diamond(), tmp_path / "m.onnx")
+    result = invoke("split", str(src), "--out", str(tmp_path / "o"), "--cuts", "b")
+    assert_one_line_error(result, "does not separate the inputs from the outputs")
+
+
+def test_unsupported_opset(tmp_path: Path) -> None:
+    model = make_model([node("Relu", ["x"], ["y"])], [vi("x", [1, 4])], [vi("y", [1, 4])], opset=30)
+    src = save(model, tmp_path / "m.onnx")
+    assert_one_line_error(invoke("profile", str(src)), "opset 30")
+
+
+@pytest.mark.parametrize(
+    ("args", "fragments"),
+    [
+        (["check", "missing.onnx"], ["model file not found"]),
+        (["check", "zoo:nope"], ["unknown zoo model 'nope'"]),
+        (["check", "zoo:vgg", "--input-shape", "3xfoo"], ["bad shape"]),
+        (["check", "zoo:vgg", "--max-cut-tensors", "0"], ["--max-cut-tensors"]),
+        (["profile", "zoo:vgg", "--runs", "0"], ["--runs"]),
+        (["zoo", "export", "nope", "--out", "x.onnx"], ["unknown zoo model"]),
+    ],
+)
+def test_bad_arguments(tmp_path: Path, args: list[str], fragments: list[str]) -> None:
+    assert_one_line_error(invoke(*args), *fragments)

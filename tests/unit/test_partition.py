@@ -1,0 +1,572 @@
+"""The partitioner on tiny graphs built with onnx.helper: exact cut sets, sub-models, bad input.
+
+The graph builders here are reused by the split runtime, profiler and CLI tests.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import onnx
+import pytest
+from onnx import TensorProto, helper, numpy_helper
+
+from common import partition as partition_mod
+from common.errors import UserError
+from common.partition import Partition, load_partition, parse_cuts, split_model
+
+OPSET = 17
+# onnx 1.23 stamps IR version 14 by default; onnxruntime 1.31 reads up to 13.
+IR_VERSION = 10
+
+
+def vi(name: str, shape: Sequence[int | str], elem: int = TensorProto.FLOAT) -> onnx.ValueInfoProto:
+    return helper.make_tensor_value_info(name, elem, list(shape))
+
+
+def make_model(
+    nodes: Sequence[onnx.NodeProto],
+    inputs: Sequence[onnx.ValueInfoProto],
+    outputs: Sequence[onnx.ValueInfoProto],
+    initializers: Sequence[onnx.TensorProto] = (),
+    opset: int = OPSET,
+    ir_version: int = IR_VERSION,
+) -> onnx.ModelProto:
+    graph = helper.make_graph(list(nodes), "g", list(inputs), list(outputs), list(initializers))
+    return helper.make_model(
+        graph, opset_imports=[helper.make_opsetid("", opset)], ir_version=ir_version
+    )
+
+
+def save(model: onnx.ModelProto, path: Path) -> Path:
+    path.write_bytes(model.SerializeToString())
+    return path
+
+
+def node(op: str, ins: Sequence[str], outs: Sequence[str], **attrs: Any) -> onnx.NodeProto:
+    return helper.make_node(op, list(ins), list(outs), name=outs[0], **attrs)
+
+
+def chain() -> onnx.ModelProto:
+    """x → Relu → Neg → Add(constant) → y; the Constant node is never a cut position."""
+    k = numpy_helper.from_array(np.full((1, 4), 0.5, np.float32), "k")
+    return make_model(
+        [
+            node("Relu", ["x"], ["a"]),
+            node("Neg", ["a"], ["b"]),
+            helper.make_node("Constant", [], ["k"], value=k),
+            node("Add", ["b", "k"], ["y"]),
+        ],
+        [vi("x", [1, 4])],
+        [vi("y", [1, 4])],
+    )
+
+
+def diamond() -> onnx.ModelProto:
+    """x → a; a → b and a → c; b + c → y."""
+    return make_model(
+        [
+            node("Relu", ["x"], ["a"]),
+            node("Neg", ["a"], ["b"]),
+            node("Abs", ["a"], ["c"]),
+            node("Add", ["b", "c"], ["y"]),
+        ],
+        [vi("x", [1, 4])],
+        [vi("y", [1, 4])],
+    )
+
+
+def residual() -> onnx.ModelProto:
+    """A residual block: a skips over b, c and is added back in d."""
+    return make_model(
+        [
+            node("Relu", ["x"], ["a"]),
+            node("Neg", ["a"], ["b"]),
+            node("Abs", ["b"], ["c"]),
+            node("Add", ["a", "c"], ["d"]),
+            node("Relu", ["d"], ["y"]),
+        ],
+        [vi("x", [1, 4])],
+        [vi("y", [1, 4])],
+    )
+
+
+def two_inputs() -> onnx.ModelProto:
+    return make_model(
+        [
+            node("Relu", ["x"], ["a"]),
+            node("Neg", ["z"], ["b"]),
+            node("Add", ["a", "b"], ["c"]),
+            node("Abs", ["c"], ["y"]),
+        ],
+        [vi("x", [1, 4]), vi("z", [1, 4])],
+        [vi("y", [1, 4])],
+    )
+
+
+def two_outputs() -> onnx.ModelProto:
+    """y1 is ready early and must still reach the end (the suffix passes it through)."""
+    return make_model(
+        [
+            node("Relu", ["x"], ["a"]),
+            node("Neg", ["a"], ["y1"]),
+            node("Abs", ["a"], ["c"]),
+            node("Sigmoid", ["c"], ["y2"]),
+        ],
+        [vi("x", [1, 4])],
+        [vi("y1", [1, 4]), vi("y2", [1, 4])],
+    )
+
+
+def late_input() -> onnx.ModelProto:
+    """Input z is only used by the last node: every cut carries it."""
+    return make_model(
+        [
+            node("Relu", ["x"], ["a"]),
+            node("Neg", ["a"], ["b"]),
+            node("Add", ["b", "z"], ["y"]),
+        ],
+        [vi("x", [1, 4]), vi("z", [1, 4])],
+        [vi("y", [1, 4])],
+    )
+
+
+def with_if() -> onnx.ModelProto:
+    """An If node whose branches read the outer tensor a (implicit inputs)."""
+    then_g = helper.make_graph(
+        [helper.make_node("Neg", ["a"], ["t_out"], name="t_out")], "then", [], [vi("t_out", [1, 4])]
+    )
+    else_g = helper.make_graph(
+        [helper.make_node("Abs", ["a"], ["e_out"], name="e_out")], "else", [], [vi("e_out", [1, 4])]
+    )
+    return make_model(
+        [
+            node("Relu", ["x"], ["a"]),
+            helper.make_node(
+                "If", ["flag"], ["r"], name="branch", then_branch=then_g, else_branch=else_g
+            ),
+            node("Sigmoid", ["r"], ["y"]),
+        ],
+        [vi("x", [1, 4]), vi("flag", [], TensorProto.BOOL)],
+        [vi("y", [1, 4])],
+    )
+
+
+def matmul_chain(
+    layers: int, dim: int, out_dim: int | None = None, seed: int = 0
+) -> onnx.ModelProto:
+    """x[1,dim] → (MatMul → Relu) × layers; the last MatMul maps to out_dim (default dim)."""
+    rng = np.random.default_rng(seed)
+    nodes, inits = [], []
+    prev = "x"
+    for i in range(layers):
+        cols = out_dim if (out_dim and i == layers - 1) else dim
+        w = (rng.standard_normal((dim, cols)) / np.sqrt(dim)).astype(np.float32)
+        inits.append(numpy_helper.from_array(w, f"W{i}"))
+        nodes.append(node("MatMul", [prev, f"W{i}"], [f"m{i}"]))
+        if i < layers - 1:
+            nodes.append(node("Relu", [f"m{i}"], [f"r{i}"]))
+            prev = f"r{i}"
+    last = nodes[-1].output[0]
+    nodes.append(node("Identity", [last], ["y"]))
+    cols = out_dim or dim
+    return make_model(nodes, [vi("x", [1, dim])], [vi("y", [1, cols])], inits)
+
+
+def cut_sets(part: Partition) -> list[list[str]]:
+    return [c.tensors for c in part.cuts]
+
+
+# ---------------------------------------------------------------------------------------------
+# Exact cut sets
+
+
+@pytest.mark.parametrize(
+    ("build", "max_tensors", "expected"),
+    [
+        (chain, 2, [["x"], ["a"], ["b"]]),
+        (diamond, 2, [["x"], ["a"], ["a", "b"], ["b", "c"]]),
+        (diamond, 1, [["x"], ["a"]]),
+        (residual, 2, [["x"], ["a"], ["a", "b"], ["a", "c"], ["d"]]),
+        (residual, 1, [["x"], ["a"], ["d"]]),
+        (two_inputs, 2, [["x", "z"], ["z", "a"], ["a", "b"], ["c"]]),
+        # cut 0 carries both inputs even when the cap is 1: full offload is always an action
+        (two_inputs, 1, [["x", "z"], ["c"]]),
+        (two_outputs, 2, [["x"], ["a"], ["a", "y1"], ["y1", "c"]]),
+        (two_outputs, 1, [["x"], ["a"]]),
+        (late_input, 2, [["x", "z"], ["z", "a"], ["z", "b"]]),
+        (late_input, 1, [["x", "z"]]),
+        (with_if, 2, [["x", "flag"], ["flag", "a"], ["r"]]),
+    ],
+    ids=lambda v: getattr(v, "__name__", str(v)),
+)
+def test_auto_cuts_are_exact_and_verified(
+    tmp_path: Path, build, max_tensors: int, expected: list[list[str]]
+) -> None:
+    src = save(build(), tmp_path / "m.onnx")
+    part = split_model(src, tmp_path / "split", max_cut_tensors=max_tensors)
+    assert cut_sets(part) == expected
+    assert [c.index for c in part.cuts] == list(range(len(expected)))
+    for cut in part.cuts:
+        assert cut.verified
+        assert cut.max_abs_err is not None and cut.max_abs_err <= 1e-5
+        assert cut.bytes == 16 * sum(1 for t in cut.tensors if t != "flag") + (
+            1 if "flag" in cut.tensors else 0
+        )
+
+
+def test_cut_zero_has_no_prefix_and_later_cuts_have_both_models(tmp_path: Path) -> None:
+    part = split_model(save(diamond(), tmp_path / "m.onnx"), tmp_path / "split")
+    assert part.cuts[0].prefix is None
+    for cut in part.cuts[1:]:
+        assert cut.prefix is not None and cut.prefix.is_file()
+    for cut in part.cuts:
+        assert cut.suffix is not None and cut.suffix.is_file()
+
+
+def test_sub_models_pass_the_checker_and_have_the_cut_as_boundary(tmp_path: Path) -> None:
+    part = split_model(save(residual(), tmp_path / "m.onnx"), tmp_path / "split")
+    for cut in part.cuts:
+        assert cut.suffix is not None
+        onnx.checker.check_model(str(cut.suffix))
+        suffix = onnx.load(str(cut.suffix), load_external_data=False)
+        assert [i.name for i in suffix.graph.input] == cut.tensors
+        assert [o.name for o in suffix.graph.output] == ["y"]
+        if cut.prefix is not None:
+            onnx.checker.check_model(str(cut.prefix))
+            prefix = onnx.load(str(cut.prefix), load_external_data=False)
+            assert [i.name for i in prefix.graph.input] == ["x"]
+            assert [o.name for o in prefix.graph.output] == cut.tensors
+
+
+def test_late_input_is_an_input_of_the_suffix_not_an_output_of_the_prefix(tmp_path: Path) -> None:
+    part = split_model(save(late_input(), tmp_path / "m.onnx"), tmp_path / "split")
+    cut = part.cuts[2]
+    assert cut.tensors == ["z", "b"]
+    assert cut.prefix is not None and cut.suffix is not None
+    prefix = onnx.load(str(cut.prefix), load_external_data=False)
+    suffix = onnx.load(str(cut.suffix), load_external_data=False)
+    assert [o.name for o in prefix.graph.output] == ["b"]
+    assert [i.name for i in prefix.graph.input] == ["x"]
+    assert sorted(i.name for i in suffix.graph.input) == ["b", "z"]
+
+
+def test_constant_nodes_follow_the_side_that_needs_them(tmp_path: Path) -> None:
+    part = split_model(save(chain(), tmp_path / "m.onnx"), tmp_path / "split")
+    assert all("k" not in c.tensors for c in part.cuts)
+    last = part.cuts[-1]
+    assert last.suffix is not None
+    suffix = onnx.load(str(last.suffix), load_external_data=False)
+    assert [n.op_type for n in suffix.graph.node] == ["Constant", "Add"]
+
+
+def test_control_flow_node_is_reported_and_cuts_inside_it_are_excluded(tmp_path: Path) -> None:
+    src = save(with_if(), tmp_path / "m.onnx")
+    auto = split_model(src, tmp_path / "auto")
+    assert any("If node 'branch'" in e.reason for e in auto.excluded)
+
+    part = split_model(src, tmp_path / "user", cuts=["t_out", "a"])
+    # the cut through the subgraph is excluded with a reason; the rest still works
+    assert cut_sets(part) == [["x", "flag"], ["flag", "a"]]
+    assert all(c.verified for c in part.cuts)
+    [inside] = [e for e in part.excluded if e.tensors == ["t_out"]]
+    assert "subgraph" in inside.reason and "branch" in inside.reason
+
+
+# ---------------------------------------------------------------------------------------------
+# Cuts given by name
+
+
+def test_named_cuts_are_sorted_and_cut_zero_is_added(tmp_path: Path) -> None:
+    part = split_model(save(chain(), tmp_path / "m.onnx"), tmp_path / "split", cuts=["b", "a"])
+    assert cut_sets(part) == [["x"], ["a"], ["b"]]
+
+
+def test_named_multi_tensor_cut(tmp_path: Path) -> None:
+    part = split_model(
+        save(diamond(), tmp_path / "m.onnx"), tmp_path / "split", cuts=parse_cuts("b+c")
+    )
+    assert cut_sets(part) == [["x"], ["b", "c"]]
+    assert part.cuts[1].verified
+
+
+def test_named_cut_gains_the_inputs_its_suffix_still_needs(tmp_path: Path) -> None:
+    part = split_model(save(late_input(), tmp_path / "m.onnx"), tmp_path / "split", cuts=["b"])
+    assert cut_sets(part) == [["x", "z"], ["z", "b"]]
+    assert part.cuts[1].verified
+
+
+def test_unknown_tensor_names_are_all_listed(tmp_path: Path) -> None:
+    with pytest.raises(UserError, match=r"unknown tensor name\(s\) in --cuts: nope, zzz"):
+        split_model(
+            save(chain(), tmp_path / "m.onnx"), tmp_path / "split", cuts=["nope", "a", "a+zzz"]
+        )
+
+
+def test_cut_that_does_not_separate_inputs_from_outputs_is_an_error(tmp_path: Path) -> None:
+    # b alone leaves c to be computed from a, which the suffix would have to recompute
+    with pytest.raises(UserError, match="does not separate the inputs from the outputs"):
+        split_model(save(diamond(), tmp_path / "m.onnx"), tmp_path / "split", cuts=["b"])
+
+
+def test_cut_at_the_outputs_is_an_error(tmp_path: Path) -> None:
+    with pytest.raises(UserError, match="at the model outputs"):
+        split_model(save(chain(), tmp_path / "m.onnx"), tmp_path / "split", cuts=["y"])
+
+
+def test_cut_with_a_tensor_not_needed_after_it_is_an_error(tmp_path: Path) -> None:
+    with pytest.raises(UserError, match="a are not used after the cut"):
+        split_model(save(chain(), tmp_path / "m.onnx"), tmp_path / "split", cuts=["a+b"])
+
+
+def test_weights_cannot_be_cut(tmp_path: Path) -> None:
+    with pytest.raises(UserError, match=r"constant tensor.*W0"):
+        split_model(save(matmul_chain(2, 8), tmp_path / "m.onnx"), tmp_path / "s", cuts=["W0"])
+
+
+@pytest.mark.parametrize("text", ["", "a,,b", " , "])
+def test_bad_cuts_option(text: str) -> None:
+    with pytest.raises(UserError, match="--cuts"):
+        parse_cuts(text)
+
+
+# ---------------------------------------------------------------------------------------------
+# Pruning and FLOPs
+
+
+def test_cut_beaten_by_a_later_one_with_the_same_flops_is_pruned(tmp_path: Path) -> None:
+    src = save(matmul_chain(2, 8, out_dim=2), tmp_path / "m.onnx")
+    part = split_model(src, tmp_path / "split")
+    # m0 and r0 carry the same bytes after the same MatMul: only the later one stays
+    assert cut_sets(part) == [["x"], ["r0"], ["m1"]]
+    [dominated] = part.excluded
+    assert dominated.tensors == ["m0"] and dominated.reason.startswith("dominated by r0")
+    # prefix: 1x8 @ 8x8 = 2*8*8 FLOPs; suffix: 1x8 @ 8x2 = 2*8*2
+    assert (part.cuts[1].prefix_flops, part.cuts[1].suffix_flops) == (128, 32)
+    assert (part.cuts[0].prefix_flops, part.cuts[0].suffix_flops) == (0, 160)
+
+    everything = split_model(src, tmp_path / "all", prune=False)
+    assert cut_sets(everything) == [["x"], ["m0"], ["r0"], ["m1"]]
+
+
+def test_conv_and_gemm_flops(tmp_path: Path) -> None:
+    rng = np.random.default_rng(1)
+    w = numpy_helper.from_array(rng.standard_normal((4, 2, 3, 3)).astype(np.float32), "w")
+    g = numpy_helper.from_array(rng.standard_normal((100, 5)).astype(np.float32), "g")
+    model = make_model(
+        [
+            node("Conv", ["x", "w"], ["c"], pads=[1, 1, 1, 1]),
+            node("Relu", ["c"], ["r"]),
+            node("Flatten", ["r"], ["f"]),
+            node("Gemm", ["f", "g"], ["y"]),
+        ],
+        [vi("x", [1, 2, 5, 5])],
+        [vi("y", [1, 5])],
+        [w, g],
+    )
+    part = split_model(save(model, tmp_path / "m.onnx"), tmp_path / "split", prune=False)
+    conv = 2 * (4 * 5 * 5) * (2 * 3 * 3)  # output elements x MACs per element
+    gemm = 2 * 5 * 100
+    assert part.cuts[0].suffix_flops == conv + gemm
+    by_tensors = {tuple(c.tensors): c for c in part.cuts}
+    assert by_tensors[("c",)].prefix_flops == conv
+    assert by_tensors[("f",)].suffix_flops == gemm
+
+
+# ---------------------------------------------------------------------------------------------
+# Verification
+
+
+def test_cut_that_fails_verification_is_excluded_with_the_reason(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from common.split_runtime import SplitModel
+
+    real = SplitModel.run_suffix
+
+    def off_by_a_bit(self, k, tensors, feeds=None):
+        out = real(self, k, tensors, feeds)
+        if self.partition.cuts[k].tensors == ["a", "b"]:
+            out = {n: v + np.float32(1e-3) for n, v in out.items()}
+        return out
+
+    monkeypatch.setattr(SplitModel, "run_suffix", off_by_a_bit)
+    part = split_model(save(diamond(), tmp_path / "m.onnx"), tmp_path / "split")
+    assert cut_sets(part) == [["x"], ["a"], ["b", "c"]]
+    assert [c.index for c in part.cuts] == [0, 1, 2]
+    [bad] = part.excluded
+    assert bad.tensors == ["a", "b"]
+    assert "verification failed" in bad.reason and "tolerance 1e-05" in bad.reason
+    names = sorted(p.name for p in (tmp_path / "split").glob("*.onnx"))
+    assert not [n for n in names if n.startswith("cand")]
+    assert "cut003.suffix.onnx" not in names
+
+
+def test_no_verify_marks_cuts_unverified(tmp_path: Path) -> None:
+    part = split_model(save(diamond(), tmp_path / "m.onnx"), tmp_path / "split", verify=False)
+    assert len(part.cuts) == 4
+    assert all(not c.verified and c.max_abs_err is None for c in part.cuts)
+
+
+# ---------------------------------------------------------------------------------------------
+# Manifest and cache
+
+
+def test_manifest_is_the_cli_contract_and_loads_back(tmp_path: Path) -> None:
+    out = tmp_path / "split"
+    part = split_model(save(two_outputs(), tmp_path / "m.onnx"), out)
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest == part.manifest()
+    assert {"model", "digest", "inputs", "outputs", "cuts"} <= manifest.keys()
+    assert manifest["inputs"] == ["x"] and manifest["outputs"] == ["y1", "y2"]
+    for cut in manifest["cuts"]:
+        assert {"index", "tensors", "bytes", "prefix", "suffix", "verified", "max_abs_err"} <= (
+            cut.keys()
+        )
+        assert (out / cut["suffix"]).is_file()
+        assert cut["prefix"] is None or (out / cut["prefix"]).is_file()
+    assert Partition.load(out).manifest() == manifest
+
+
+def test_split_again_into_the_same_directory_leaves_no_stale_files(tmp_path: Path) -> None:
+    out = tmp_path / "split"
+    split_model(save(residual(), tmp_path / "m.onnx"), out)
+    split_model(save(chain(), tmp_path / "m2.onnx"), out)
+    suffixes = sorted(p.name for p in out.glob("*.suffix.onnx"))
+    assert suffixes == ["cut000.suffix.onnx", "cut001.suffix.onnx", "cut002.suffix.onnx"]
+
+
+def test_load_partition_reads_the_cache_the_second_time(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    src = save(residual(), tmp_path / "m.onnx")
+    first = load_partition(src)
+    assert (first.dir / "manifest.json").is_file()
+
+    def must_not_split(*args: object, **kwargs: object) -> None:
+        raise AssertionError("split again instead of reading the cache")
+
+    monkeypatch.setattr(partition_mod._Partitioner, "run", must_not_split)
+    again = load_partition(str(src))
+    assert again.dir == first.dir
+    assert again.manifest() == first.manifest()
+    # other options are another cache entry
+    with pytest.raises(AssertionError, match="split again"):
+        load_partition(src, max_cut_tensors=1)
+
+
+def test_broken_cache_entry_is_split_again(tmp_path: Path) -> None:
+    first = load_partition(save(residual(), tmp_path / "m.onnx"))
+    suffix = first.cuts[2].suffix
+    assert suffix is not None
+    suffix.unlink()
+    again = load_partition(tmp_path / "m.onnx")
+    assert again.dir == first.dir
+    assert suffix.is_file()
+
+
+def test_cache_entry_follows_the_model_digest(tmp_path: Path) -> None:
+    src = tmp_path / "m.onnx"
+    first = load_partition(save(diamond(), src))
+    second = load_partition(save(residual(), src))
+    assert first.digest != second.digest
+    assert first.dir != second.dir
+    assert cut_sets(second)[-1] == ["d"]
+
+
+# ---------------------------------------------------------------------------------------------
+# Input shapes
+
+
+def dynamic(dims: Sequence[int | str]) -> onnx.ModelProto:
+    return make_model(
+        [node("Relu", ["x"], ["a"]), node("Neg", ["a"], ["y"])], [vi("x", dims)], [vi("y", dims)]
+    )
+
+
+def test_dynamic_batch_becomes_one(tmp_path: Path) -> None:
+    part = split_model(save(dynamic(["N", 4]), tmp_path / "m.onnx"), tmp_path / "split")
+    assert part.specs["x"].shape == (1, 4)
+    assert part.specs["a"].shape == (1, 4)
+
+
+def test_other_dynamic_dimensions_need_an_input_shape(tmp_path: Path) -> None:
+    src = save(dynamic([1, "L"]), tmp_path / "m.onnx")
+    with pytest.raises(UserError, match=r"dynamic dimension L at axis 1.*--input-shape"):
+        split_model(src, tmp_path / "split")
+    part = split_model(src, tmp_path / "split", input_shape=(6,))  # batch left out
+    assert part.specs["a"].shape == (1, 6)
+    assert part.cuts[1].bytes == 24
+    part = split_model(src, tmp_path / "split", input_shape={"x": (1, 3)})
+    assert part.specs["y"].shape == (1, 3)
+
+
+@pytest.mark.parametrize(
+    ("shape", "message"),
+    [
+        ((2, 6), "axis 0 is fixed at 1"),
+        ((1, 2, 3), "has 3 dimensions but input 'x' has 2"),
+        ({"q": (1, 2)}, "unknown input.*q"),
+    ],
+)
+def test_bad_input_shapes(tmp_path: Path, shape: object, message: str) -> None:
+    src = save(dynamic([1, "L"]), tmp_path / "m.onnx")
+    with pytest.raises(UserError, match=message):
+        split_model(src, tmp_path / "split", input_shape=shape)  # type: ignore[arg-type]
+
+
+# ---------------------------------------------------------------------------------------------
+# Bad files
+
+
+def test_not_an_onnx_file(tmp_path: Path) -> None:
+    src = tmp_path / "notes.onnx"
+    src.write_text("this is not a model\n")
+    with pytest.raises(UserError, match="is not an ONNX model"):
+        split_model(src, tmp_path / "split")
+
+
+def test_truncated_file(tmp_path: Path) -> None:
+    data = matmul_chain(2, 16).SerializeToString()
+    src = tmp_path / "cut.onnx"
+    src.write_bytes(data[: len(data) // 2])
+    with pytest.raises(UserError, match="ONNX model") as err:
+        split_model(src, tmp_path / "split")
+    assert "\n" not in str(err.value)
+
+
+def test_empty_file(tmp_path: Path) -> None:
+    src = tmp_path / "empty.onnx"
+    src.write_bytes(b"")
+    with pytest.raises(UserError, match="is not an ONNX model"):
+        split_model(src, tmp_path / "split")
+
+
+def test_missing_file(tmp_path: Path) -> None:
+    with pytest.raises(UserError, match="model file not found"):
+        split_model(tmp_path / "nope.onnx", tmp_path / "split")
+
+
+def test_ir_version_newer_than_onnxruntime(tmp_path: Path) -> None:
+    model = make_model([node("Relu", ["x"], ["y"])], [vi("x", [1, 4])], [vi("y", [1, 4])])
+    model.ir_version = 14
+    with pytest.raises(UserError, match=r"onnxruntime cannot run.*IR version: 14") as err:
+        split_model(save(model, tmp_path / "m.onnx"), tmp_path / "split")
+    assert "onnxruntime_src" not in str(err.value)
+
+
+def test_opset_newer_than_onnxruntime(tmp_path: Path) -> None:
+    model = make_model([node("Relu", ["x"], ["y"])], [vi("x", [1, 4])], [vi("y", [1, 4])], opset=30)
+    with pytest.raises(UserError, match=r"onnxruntime cannot run.*[Oo]pset 30") as err:
+        split_model(save(model, tmp_path / "m.onnx"), tmp_path / "split")
+    assert "onnxruntime_src" not in str(err.value)
+
+
+def test_out_dir_that_is_a_file(tmp_path: Path) -> None:
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(UserError, match="not a directory"):
+        split_model(save(chain(), tmp_path / "m.onnx"), tmp_path / "file")
