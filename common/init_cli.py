@@ -18,7 +18,7 @@ from common.errors import UserError
 from common.keys import DEFAULT_FLEET, validate_id
 
 FLEET_FILE = "fleet.yaml"
-DEFAULT_MODEL = "zoo:vgg"
+DEFAULT_MODEL = "zoo:resnet"
 DEFAULT_SERVICE = "vision"
 
 # Values are JSON-quoted (valid YAML), so a fleet named `yes` or `123` stays a string.

@@ -33,7 +33,7 @@ def test_writes_a_commented_single_host_fleet_that_loads(tmp_path: Path) -> None
     assert config.robot_ids == ["robot-1"]
     assert config.initial_state("edge-1", "robot-1") == "service"
     assert config.initial_state("edge-2", "robot-1") == "standby"
-    assert config.model == "zoo:vgg"
+    assert config.model == "zoo:resnet"
     assert config.latency_bound.seconds > 0
     assert config.deadline_s > 0
     # Single host: every machine listens on loopback only.
