@@ -1,0 +1,136 @@
+"""Baseline policies: robot, cloud, static:K, neurosurgeon and the simulator's oracle.
+
+- `robot`: always P (the whole model on the robot).
+- `cloud`: always the lowest cut (cut 0: send the raw input), the node-level full offload.
+- `static:K`: always cut K.
+- `neurosurgeon`: the profile's costs (scaled by the robot's measured speed, as Neurosurgeon
+  profiles the device it runs on) plus a transfer model — RTT and uplink bandwidth as EWMAs of
+  recent transfers, cloud speed from the server-reported compute time — and the argmin of the
+  predicted cost, with no exploration: once it settles on P it stops seeing transfers.
+- `oracle`: the argmin of the true expected costs, which only the simulator knows.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from common.errors import UserError
+from robotd.policies.base import (
+    BYTES_PER_MB,
+    PURE_ROBOT,
+    Action,
+    CutTable,
+    Decision,
+    FrameContext,
+    Outcome,
+    Policy,
+)
+from robotd.policies.objective import Objective
+from robotd.policies.params import NeurosurgeonParams
+from robotd.policies.robotcost import RobotCostModel
+
+BITS_PER_BYTE = 8
+MBIT = 1e6
+MS_PER_S = 1000.0
+# Transfer times are clamped to this before dividing, so a noisy sample cannot divide by zero.
+MIN_TRANSFER_S = 1e-4
+
+
+class FixedPolicy(Policy):
+    """Always the same action."""
+
+    def __init__(self, cuts: CutTable, action: Action, name: str) -> None:
+        super().__init__(cuts)
+        cuts.position(action)  # raises UserError for a cut the profile lacks
+        self._decision = Decision(action)
+        self.name = name
+
+    def decide(self, ctx: FrameContext) -> Decision:
+        return self._decision
+
+
+class OraclePolicy(Policy):
+    """The action with the least true expected cost; needs the simulator's ground truth."""
+
+    name = "oracle"
+
+    def decide(self, ctx: FrameContext) -> Decision:
+        if ctx.expected_costs is None:
+            raise UserError("policy oracle needs the true costs, which only the simulator has")
+        best = int(np.argmin(np.asarray(ctx.expected_costs)))
+        return Decision(self.cuts.action_at(best), predicted_cost=float(ctx.expected_costs[best]))
+
+
+class NeurosurgeonPolicy(Policy):
+    """Profiled costs plus bandwidth/RTT estimated from recent transfers; no exploration."""
+
+    name = "neurosurgeon"
+
+    def __init__(self, cuts: CutTable, params: NeurosurgeonParams, objective: Objective) -> None:
+        super().__init__(cuts)
+        self.params = params
+        self.objective = objective
+        self._robot = RobotCostModel(cuts, objective, params)
+        self._position = {index: i for i, index in enumerate(cuts.indices)}
+        self._bytes_cost = objective.bytes * cuts.bytes / BYTES_PER_MB
+        self.rtt_s = params.rtt_ms / MS_PER_S
+        # Seconds per byte: averaging the inverse keeps one slow sample from dominating.
+        self.s_per_byte = BITS_PER_BYTE / (params.uplink_mbit * MBIT)
+        self.cloud_speedup = params.cloud_speedup
+
+    def predicted_costs(self) -> np.ndarray:
+        """Predicted objective cost of every action, cuts then P."""
+        cuts = self.cuts
+        compute = cuts.suffix_s / self.cloud_speedup
+        transfer = self.rtt_s + cuts.bytes * self.s_per_byte
+        cloud = self.objective.wait_rate * (transfer + compute) + self.objective.radio_rate * (
+            transfer
+        )
+        offload = self._robot.prefix_cost + self._bytes_cost + cloud
+        return np.append(offload, self._robot.full_cost)
+
+    def decide(self, ctx: FrameContext) -> Decision:
+        self._robot.tick()
+        costs = self.predicted_costs()
+        best = int(costs.argmin())
+        return Decision(self.cuts.action_at(best), predicted_cost=float(costs[best]))
+
+    def observe(self, decision: Decision, outcome: Outcome) -> None:
+        cuts = self.cuts
+        if decision.action == PURE_ROBOT:
+            self._robot.observe(outcome.prefix_s, cuts.full_s)
+            return
+        j = self._position[int(decision.action)]
+        self._robot.observe(outcome.prefix_s, float(cuts.prefix_s[j]))
+        if outcome.local_s is not None:
+            self._robot.observe(outcome.local_s, float(cuts.suffix_s[j]))
+        w = self.params.ewma
+        if outcome.cloud_s is not None:
+            compute = outcome.cloud_compute_s
+            if compute is not None and compute > 0 and cuts.suffix_s[j] > 0:
+                speedup = float(cuts.suffix_s[j]) / compute
+                self.cloud_speedup += w * (speedup - self.cloud_speedup)
+            if compute is None:
+                compute = float(cuts.suffix_s[j]) / self.cloud_speedup
+            transfer = max(outcome.cloud_s - compute, MIN_TRANSFER_S)
+        elif outcome.waited_s is not None:
+            transfer = outcome.waited_s  # the transfer took at least this long
+        else:
+            return
+        size = float(cuts.bytes[j])
+        if size <= self.params.small_transfer_bytes:
+            self.rtt_s += w * (transfer - self.rtt_s)
+        else:
+            sample = max(transfer - self.rtt_s, MIN_TRANSFER_S) / size
+            self.s_per_byte += w * (sample - self.s_per_byte)
+
+    def state(self) -> dict[str, Any]:
+        return {
+            "policy": self.name,
+            "rtt_ms": self.rtt_s * MS_PER_S,
+            "uplink_mbit": BITS_PER_BYTE / self.s_per_byte / MBIT,
+            "cloud_speedup": self.cloud_speedup,
+            "robot_speed_ratio": self._robot.ratio,
+        }

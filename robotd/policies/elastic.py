@@ -1,0 +1,284 @@
+"""ElasticAction (policy `elastic`) and μLinUCB from Autodidactic Neurosurgeon (policy `ans`).
+
+Both estimate the cloud-side cost y of each offloading action a as α̂ᵀv_a, with the context
+v_a = [MB sent, share of the model left to the cloud, 1] (so α̂ learns seconds per MB, the cloud's
+time for the whole model and the fixed round-trip cost), and choose
+
+    a_t = argmin_a  E_a^c + α̂ᵀv_a − β·E_P·sqrt((1−σ_t)·v_aᵀQ⁻¹v_a),   P scored by E_P^c,
+
+where E^c is the robot-side cost (`RobotCostModel`), σ_t the key-frame weight of the frame's
+entropy and β is relative to the pure-robot cost E_P so one default fits fast and slow robots.
+On forced-sampling frames the choice is restricted to offloading actions. Only offloaded frames
+update the regression.
+
+`elastic` adds what ElasticROS adds to μLinUCB:
+- change detection: `change_frames` residuals in a row, same sign, each off by more than
+  `change_tolerance` of the prediction, on actions the model knows (their prediction rests on
+  about `known_samples` observations or more), start a parameter-update period. Old evidence is
+  dropped (Q, p are reset and the misses that revealed the change are replayed) and the actions
+  are restricted in one direction: slower than predicted → only actions sending no more data
+  than the one that missed (and P); faster → only actions sending at least as much. The period
+  ends after `fit_frames` fitting predictions in a row. A run starts in such a period (nothing is
+  known yet), unrestricted.
+- hedging: an exploring frame — one whose action differs from what the estimates alone would
+  choose, because it is a forced frame or because its confidence bonus won — and every offloaded
+  frame of an update period, is also computed on the robot and served by the faster path;
+  exploration then costs CPU and bandwidth, not latency. Offloaded frames are also
+  hedged when the robot has not timed a local run for `robot_probe_frames` frames, so a robot that
+  got faster again is noticed even while it only sends raw input.
+- confirmation: after a single miss the next frame is a forced frame (so it samples the cloud,
+  hedged if the policy would not otherwise offload), and a change is confirmed within
+  `change_frames` frames rather than `change_frames` forced intervals.
+
+A frame the cloud did not answer teaches y = the time the robot waited (its deadline): a dead or
+congested route then looks expensive instead of unknown, and the miss feeds change detection.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from robotd.policies.base import (
+    BYTES_PER_MB,
+    PURE_ROBOT,
+    CutTable,
+    Decision,
+    FrameContext,
+    Outcome,
+    Policy,
+)
+from robotd.policies.objective import Objective
+from robotd.policies.params import AnsParams, ElasticParams
+from robotd.policies.ridge import RidgeEstimator
+from robotd.policies.robotcost import MIN_TIMED_S, RobotCostModel
+from robotd.policies.schedule import ForcedSchedule
+
+# Relative residuals are taken against at least this prediction (objective units), so a
+# near-zero prediction does not turn every residual into a miss.
+MIN_PREDICTION = 1e-3
+# A failed attempt with no reported wait is charged this multiple of its prediction.
+UNKNOWN_WAIT_FACTOR = 2.0
+
+
+class ElasticPolicy(Policy):
+    """ElasticAction; with change detection, restriction and hedging off it is μLinUCB (`ans`)."""
+
+    name = "elastic"
+
+    def __init__(
+        self, cuts: CutTable, params: ElasticParams, objective: Objective, name: str = "elastic"
+    ) -> None:
+        super().__init__(cuts)
+        self.name = name
+        self.params = params
+        self.objective = objective
+        mb = cuts.bytes / BYTES_PER_MB
+        share = cuts.suffix_s / cuts.full_s
+        self.contexts = np.column_stack([mb, share, np.ones(cuts.size)])
+        self._ridge = RidgeEstimator(self.contexts, params.gamma)
+        self._robot = RobotCostModel(cuts, objective, params)
+        self._bytes_cost = objective.bytes * mb
+        self._schedule = ForcedSchedule(
+            params.forced_schedule,
+            params.forced_start_frames,
+            params.forced_exponent,
+            params.forced_every_frames,
+        )
+        self._position = {index: i for i, index in enumerate(cuts.indices)}
+        self._untimed = cuts.prefix_s < MIN_TIMED_S
+        self._known_width = 1.0 / math.sqrt(params.known_samples)
+        self._key_factor = math.sqrt(1.0 - params.sigma_key)
+        self._nonkey_factor = math.sqrt(1.0 - params.sigma_nonkey)
+        self._frame = 0
+        # Direction restriction: None means every cut is allowed.
+        self._mask: np.ndarray | None = None
+        self._p_allowed = True
+        # A run starts in an (unrestricted) update period when change detection is on.
+        self._updating = params.change_detection
+        self._period_frames = 0
+        self._fits = 0
+        self._streak: list[tuple[int, float]] = []
+        self._streak_sign = 0
+        self._confirm = False
+        self.update_periods = 0
+        self._base = np.empty(cuts.size)
+        self._bonus = np.empty(cuts.size)
+        self._refresh()
+
+    # -- decisions -------------------------------------------------------------------------
+
+    def decide(self, ctx: FrameContext) -> Decision:
+        n = self._frame
+        self._frame = n + 1
+        self._robot.tick()
+        params = self.params
+        factor = self._key_factor if ctx.entropy >= params.key_entropy else self._nonkey_factor
+        base = self._base if self._mask is None else np.where(self._mask, self._base, np.inf)
+        scores = base - factor * self._bonus
+        j = int(scores.argmin())
+        p_cost = self._robot.full_cost
+        regular_p = self._p_allowed and p_cost <= scores[j]
+        forced = self._confirm or self._schedule.is_forced(n)
+        self._confirm = False
+        if regular_p and not forced:
+            return Decision(PURE_ROBOT, updating=self._updating, predicted_cost=p_cost)
+        hedge = False
+        if params.hedge:
+            # Exploring = serving something else than the estimates alone would choose.
+            g = int(base.argmin())
+            greedy = -1 if self._p_allowed and p_cost <= base[g] else g
+            hedge = greedy != j or self._updating or self._needs_probe(j)
+        return Decision(
+            self.cuts.indices[j],
+            hedge=hedge,
+            forced=forced,
+            updating=self._updating,
+            predicted_cost=float(self._base[j]),
+        )
+
+    def _needs_probe(self, j: int) -> bool:
+        """Hedge to time the robot: cut j runs nothing measurable there, and the robot's speed is
+        stale or a surprising measurement awaits confirmation."""
+        if not self._untimed[j] or self.params.robot_probe_frames == 0:
+            return False
+        robot = self._robot
+        return robot.suspect or robot.frames_since_timed >= self.params.robot_probe_frames
+
+    # -- learning --------------------------------------------------------------------------
+
+    def observe(self, decision: Decision, outcome: Outcome) -> None:
+        cuts = self.cuts
+        if decision.action == PURE_ROBOT:
+            self._robot.observe(outcome.prefix_s, cuts.full_s)
+            self._refresh()
+            return
+        j = self._position[int(decision.action)]
+        self._robot.observe(outcome.prefix_s, float(cuts.prefix_s[j]))
+        if outcome.local_s is not None:
+            self._robot.observe(outcome.local_s, float(cuts.suffix_s[j]))
+        if outcome.cloud_s is not None:
+            target = self.objective.cloud_part(outcome.cloud_s, outcome.cloud_compute_s)
+        elif outcome.waited_s is not None:
+            target = self.objective.cloud_part(outcome.waited_s, None)
+        else:
+            target = UNKNOWN_WAIT_FACTOR * max(float(self._ridge.pred[j]), MIN_PREDICTION)
+        if self.params.change_detection:
+            self._track(j, target)
+        else:
+            self._ridge.update(j, target)
+        self._refresh()
+
+    def _track(self, j: int, target: float) -> None:
+        """Update the regression and the change detector with one cloud-side observation."""
+        params = self.params
+        pred = float(self._ridge.pred[j])
+        residual = target - pred
+        tolerance = params.change_tolerance * max(abs(pred), MIN_PREDICTION)
+        if self._updating:
+            self._ridge.update(j, target)
+            self._period_frames += 1
+            self._fits = self._fits + 1 if abs(residual) <= tolerance else 0
+            if self._fits >= params.fit_frames or self._period_frames >= params.max_update_frames:
+                self._leave_update()
+            return
+        sign = 1 if residual > 0 else -1
+        # Only an action the model knows well can reveal a change; a surprise on an action still
+        # being explored is ordinary learning.
+        known = self._ridge.width[j] <= self._known_width
+        if known and abs(residual) > tolerance:
+            if sign != self._streak_sign:
+                self._streak.clear()
+                self._streak_sign = sign
+            self._streak.append((j, target))
+            if len(self._streak) >= params.change_frames:
+                self._enter_update(j, sign)
+                return
+            self._confirm = params.confirm_misses
+        else:
+            self._streak.clear()
+            self._streak_sign = 0
+        self._ridge.update(j, target)
+
+    def _enter_update(self, j: int, sign: int) -> None:
+        """Start a parameter-update period after the action in column j missed repeatedly."""
+        misses = list(self._streak)
+        self._streak.clear()
+        self._streak_sign = 0
+        # Old evidence describes the old conditions; the misses are the first of the new ones.
+        self._ridge.reset()
+        for row, y in misses:
+            self._ridge.update(row, y)
+        if self.params.direction_restriction:
+            anchor = self.cuts.bytes[j]
+            if sign > 0:
+                self._mask = self.cuts.bytes <= anchor
+                self._p_allowed = True
+            else:
+                self._mask = self.cuts.bytes >= anchor
+                self._p_allowed = False
+        self._updating = True
+        self._period_frames = 0
+        self._fits = 0
+        self.update_periods += 1
+
+    def _leave_update(self) -> None:
+        self._updating = False
+        self._mask = None
+        self._p_allowed = True
+        self._fits = 0
+
+    def _refresh(self) -> None:
+        """Cache the parts of the score that change only when something is observed."""
+        self._base = self._robot.prefix_cost + self._bytes_cost + self._ridge.pred
+        self._bonus = (self.params.beta * self._robot.full_cost) * self._ridge.width
+
+    # -- introspection ---------------------------------------------------------------------
+
+    def sigma(self, entropy: float) -> float:
+        """σ of a frame: the step function of its normalized entropy (key frames explore less)."""
+        p = self.params
+        return p.sigma_key if entropy >= p.key_entropy else p.sigma_nonkey
+
+    @property
+    def updating(self) -> bool:
+        """True inside a parameter-update period."""
+        return self._updating
+
+    def allowed_actions(self) -> list[int | str]:
+        """Actions the direction restriction currently allows (all of them outside a period)."""
+        cuts = [
+            index
+            for i, index in enumerate(self.cuts.indices)
+            if self._mask is None or bool(self._mask[i])
+        ]
+        return [*cuts, PURE_ROBOT] if self._p_allowed else list(cuts)
+
+    def predicted_cloud_cost(self) -> dict[int, float]:
+        """α̂ᵀv_a for every cut (objective units)."""
+        return {index: float(self._ridge.pred[i]) for i, index in enumerate(self.cuts.indices)}
+
+    def state(self) -> dict[str, Any]:
+        return {
+            "policy": self.name,
+            "frame": self._frame,
+            "alpha": [float(a) for a in self._ridge.alpha],
+            "samples": self._ridge.samples,
+            "updating": self._updating,
+            "update_periods": self.update_periods,
+            "robot_speed_ratio": self._robot.ratio,
+        }
+
+
+def elastic_params_for_ans(params: AnsParams) -> ElasticParams:
+    """The ElasticAction parameters that make it μLinUCB: no detection, restriction or hedging."""
+    return ElasticParams(
+        **params.model_dump(),
+        change_detection=False,
+        direction_restriction=False,
+        hedge=False,
+        confirm_misses=False,
+        robot_probe_frames=0,
+    )

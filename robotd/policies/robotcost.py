@@ -1,0 +1,73 @@
+"""The robot-side cost E^c of every action, learned online from measured robot times.
+
+The profile gives the shape (how the model's time splits across cuts; the robot daemon profiles
+on the robot itself); the robot's measurements give the scale. Every timed run (a prefix, a local
+suffix, the whole model) updates one EWMA of the robot's speed relative to the profile, so a CPU
+drop seen on any action raises the estimate of all of them at once. Two measurements in a row that
+miss the estimate by more than a tolerance in the same direction make it jump to them: a change of
+CPU availability is adopted in two timed frames instead of an EWMA's slow convergence, and the
+EWMA itself can stay smooth.
+"""
+
+from __future__ import annotations
+
+from robotd.policies.base import CutTable, FloatArray
+from robotd.policies.objective import Objective
+from robotd.policies.params import RobotCostParams
+
+# Runs shorter than this on the profiling host carry too little signal to time (cut 0's prefix).
+MIN_TIMED_S = 2e-4
+
+
+class RobotCostModel:
+    """Robot compute cost per action (objective units), from the profile and measured times."""
+
+    def __init__(self, cuts: CutTable, objective: Objective, params: RobotCostParams) -> None:
+        self._cuts = cuts
+        self._rate = objective.robot_rate
+        self._ewma = params.robot_ewma
+        self._tolerance = params.robot_change_tolerance
+        # Relative speed: measured / profiled seconds. None until the first measurement.
+        self.ratio: float | None = None
+        self._suspect_sign = 0
+        self._suspect_ratio = 0.0
+        self.frames_since_timed = 0
+        self.prefix_cost: FloatArray = cuts.prefix_s * self._rate
+        self.full_cost = cuts.full_s * self._rate
+
+    @property
+    def scale(self) -> float:
+        """Robot seconds per profiled second (1 until something was timed)."""
+        return 1.0 if self.ratio is None else self.ratio
+
+    @property
+    def suspect(self) -> bool:
+        """True when the last timed run missed the estimate and awaits confirmation."""
+        return self._suspect_sign != 0
+
+    def tick(self) -> None:
+        """Count a frame; timed runs reset the count (used to decide when to probe)."""
+        self.frames_since_timed += 1
+
+    def observe(self, measured_s: float | None, profiled_s: float) -> None:
+        """Learn from a run that took `measured_s` on the robot and `profiled_s` when profiled."""
+        if measured_s is None or measured_s <= 0 or profiled_s < MIN_TIMED_S:
+            return
+        self.frames_since_timed = 0
+        sample = measured_s / profiled_s
+        if self.ratio is None:
+            self.ratio = sample
+        else:
+            miss = sample / self.ratio - 1.0
+            sign = 0 if abs(miss) <= self._tolerance else (1 if miss > 0 else -1)
+            if sign != 0 and sign == self._suspect_sign:
+                # Second miss in the same direction: the robot changed; adopt the new speed.
+                self.ratio = 0.5 * (sample + self._suspect_ratio)
+                self._suspect_sign = 0
+            elif sign != 0:
+                self._suspect_sign, self._suspect_ratio = sign, sample
+            else:
+                self._suspect_sign = 0
+                self.ratio += self._ewma * (sample - self.ratio)
+        self.prefix_cost = self._cuts.prefix_s * (self._rate * self.ratio)
+        self.full_cost = self._cuts.full_s * self._rate * self.ratio
