@@ -231,6 +231,7 @@ class LatencyBoundConfig(_Model):
     better_margin: float = Field(
         default=0.2,
         ge=0,
+        lt=1,
         description="Move a robot that meets its bound only to a deployment predicted better by "
         "this fraction (0.2: 20% lower latency).",
     )

@@ -32,6 +32,10 @@ from typing import Any
 
 from common.errors import UserError
 
+# One definition of a deployment's state per robot: the wire's (re-exported here for the RIB's
+# callers).
+from common.wire.registry import DeploymentState
+
 SCHEMA_VERSION = 1
 # Events are kept for inspection, not forever: older rows are pruned past this count.
 EVENTS_KEEP = 10_000
@@ -94,14 +98,6 @@ CREATE INDEX events_robot ON events (robot, seq);
 _TABLES = frozenset({"deployments", "deployment_states", "robots", "routes", "profiles", "events"})
 
 
-class DeploymentState(str, Enum):
-    """A deployment's state for one robot (FogROS2-LS state machine)."""
-
-    STANDBY = "standby"
-    SERVICE = "service"
-    DRAINING = "draining"
-
-
 class EventKind(str, Enum):
     """What an event row records."""
 
@@ -117,6 +113,7 @@ class EventKind(str, Enum):
     PUBLISH_FAILED = "publish_failed"
     SWITCH_FAILED = "switch_failed"
     EPOCH_RAISED = "epoch_raised"
+    REGISTRATION_REFUSED = "registration_refused"
 
 
 @dataclass(frozen=True)

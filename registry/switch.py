@@ -11,72 +11,38 @@ Order of operations (the anycast invariant: each request is computed by exactly 
    candidates that did not ack get `standby` too, so a late `service` cannot leave two deployments
    serving.
 
-Epochs only grow. A deployment accepts `service(e)` only when e is newer than every epoch it has
-seen for the robot and `standby(e)` when e is at least that; it answers with its epoch. A reply
-whose epoch, robot, deployment or state does not match the request is a stale ack and is ignored.
-A refusal that names a newer epoch (the RIB was restored from an older file) raises the RIB's epoch
-past it and retries that deployment once.
+Epochs only grow. A deployment refuses a request whose epoch is lower than the one it holds for
+the robot and answers with its state and epoch; the same epoch again is idempotent, which is how a
+restarted registry re-asserts a restored route (`reassert`). A reply whose epoch, robot,
+deployment or state does not match the request is a stale ack and is ignored. A refusal that names
+a newer epoch (the RIB was restored from an older file) raises the RIB's epoch past it and retries
+that deployment once.
 
-The transport is abstract (`SwitchTransport`): the registry daemon plugs Zenoh in (queries on
-`ef/<fleet>/dep/<id>/ctl`, a publication on `ef/<fleet>/route/<robot>`); tests plug in a fake. One
-`Switcher` is driven by one thread (the scheduler's); the RIB serializes its own writes.
+The messages are the wire's (`CtlRequest`, `CtlReply`, `RouteChange` of common/wire/registry.py),
+so there is one definition of each. The transport is abstract (`SwitchTransport`): the registry
+daemon plugs Zenoh in (registry/transport.py: queries on `ef/<fleet>/dep/<id>/ctl`, a publication
+on `ef/<fleet>/route/<robot>`); tests plug in a fake. One `Switcher` is driven by one thread (the
+registry's control loop); the RIB serializes its own writes.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from dataclasses import asdict, dataclass
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from enum import Enum
-from typing import Any, Protocol
+from typing import Protocol
 
-from registry.rib import DeploymentState, EventKind, Rib
+from common.wire.registry import CtlOp, CtlReply, CtlRequest, DeploymentState, RouteChange
+from registry.rib import EventKind, Rib
 from registry.scheduler import Decision, Scheduler
 
 CTL_TIMEOUT_S = 0.5
+DEFAULT_SENDER = "registry"
+STANDBY_REASON = "another deployment serves the robot"
 
-
-@dataclass(frozen=True)
-class CtlRequest:
-    """Put `robot`'s state on a deployment to `state` under `epoch`."""
-
-    robot: str
-    state: DeploymentState
-    epoch: int
-
-    def to_dict(self) -> dict[str, Any]:
-        """Plain data for the wire codec."""
-        return {
-            "robot": self.robot,
-            "state": DeploymentState(self.state).value,
-            "epoch": self.epoch,
-        }
-
-
-@dataclass(frozen=True)
-class CtlReply:
-    """A deployment's answer to a `CtlRequest`: its state and epoch for the robot now."""
-
-    deployment: str
-    robot: str
-    state: DeploymentState | None
-    epoch: int
-    ok: bool = True
-    error: str = ""
-
-
-@dataclass(frozen=True)
-class RouteChange:
-    """What the registry publishes on the robot's route key after a switch."""
-
-    robot: str
-    deployment: str | None
-    epoch: int
-    reason: str
-    previous: str | None
-
-    def to_dict(self) -> dict[str, Any]:
-        """Plain data for the wire codec."""
-        return asdict(self)
+# The state a deployment acknowledges for each request it can be sent here.
+_ACKED_STATE = {CtlOp.SERVICE: DeploymentState.SERVICE, CtlOp.STANDBY: DeploymentState.STANDBY}
 
 
 class TransportError(Exception):
@@ -142,13 +108,22 @@ class Switcher:
     """Runs the switch protocol over a transport, persisting every step in the RIB."""
 
     def __init__(
-        self, rib: Rib, transport: SwitchTransport, *, ctl_timeout_s: float = CTL_TIMEOUT_S
+        self,
+        rib: Rib,
+        transport: SwitchTransport,
+        *,
+        ctl_timeout_s: float = CTL_TIMEOUT_S,
+        sender: str = DEFAULT_SENDER,
+        clock: Callable[[], float] = time.time,
     ) -> None:
         if not ctl_timeout_s > 0:
             raise ValueError(f"ctl_timeout_s must be > 0, got {ctl_timeout_s!r}")
         self.rib = rib
         self.transport = transport
         self.ctl_timeout_s = ctl_timeout_s
+        self.sender = sender
+        # Wall clock of published route changes (`RouteChange.at`), like the RIB's times.
+        self._clock = clock
 
     def apply(self, decision: Decision) -> SwitchResult:
         """Carry out a scheduler decision; a decision about a route that changed meanwhile is
@@ -185,7 +160,7 @@ class Switcher:
                 continue
             tried.add(deployment)
             epoch = self.rib.reserve_epoch(robot)
-            answer = self._request(deployment, CtlRequest(robot, DeploymentState.SERVICE, epoch))
+            answer = self._request(deployment, self._ctl(CtlOp.SERVICE, robot, epoch, reason))
             if answer.newer_epoch is not None:
                 attempts.append(Attempt(deployment, epoch, answer.outcome, answer.detail))
                 epoch = self.rib.reserve_epoch(robot, at_least=answer.newer_epoch + 1)
@@ -196,9 +171,7 @@ class Switcher:
                     epoch=epoch,
                     reason=f"{deployment} knows epoch {answer.newer_epoch}",
                 )
-                answer = self._request(
-                    deployment, CtlRequest(robot, DeploymentState.SERVICE, epoch)
-                )
+                answer = self._request(deployment, self._ctl(CtlOp.SERVICE, robot, epoch, reason))
             attempts.append(Attempt(deployment, epoch, answer.outcome, answer.detail))
             if answer.outcome is Outcome.ACKED:
                 return self._commit(robot, previous, deployment, epoch, reason, failed, attempts)
@@ -214,6 +187,64 @@ class Switcher:
             robot, route.epoch if route else 0, previous, reason, failed, attempts
         )
 
+    def reassert(self, robot: str, *, reason: str = "restore") -> SwitchResult:
+        """Re-send `service` at the route's own epoch to the deployment the RIB routes `robot` to.
+
+        A restarted registry confirms its restored routes this way, and a cloud daemon restarted
+        while the registry was away (it starts in standby) declares the service key again; a
+        deployment already serving at that epoch just acknowledges. A refusal (the deployment
+        holds that epoch or a newer one in another state, e.g. the RIB file is older than its
+        memory) moves the route to a fresh epoch past it on the same deployment, persisted and
+        published. `changed` is true only then; the last attempt's outcome tells whether the
+        route is confirmed.
+        """
+        route = self.rib.route(robot)
+        if route is None or route.deployment is None:
+            epoch = route.epoch if route else 0
+            return SwitchResult(robot, None, None, epoch, False, "no route to restore")
+        deployment, epoch = route.deployment, route.epoch
+        answer = self._request(deployment, self._ctl(CtlOp.SERVICE, robot, epoch, reason))
+        attempts = [Attempt(deployment, epoch, answer.outcome, answer.detail)]
+        if answer.outcome is Outcome.REFUSED:
+            newer = answer.newer_epoch
+            epoch = self.rib.reserve_epoch(robot, at_least=newer + 1 if newer is not None else 0)
+            if newer is not None:
+                self.rib.record_event(
+                    EventKind.EPOCH_RAISED,
+                    robot=robot,
+                    deployment=deployment,
+                    epoch=epoch,
+                    reason=f"{deployment} knows epoch {newer}",
+                )
+            answer = self._request(deployment, self._ctl(CtlOp.SERVICE, robot, epoch, reason))
+            attempts.append(Attempt(deployment, epoch, answer.outcome, answer.detail))
+            if answer.outcome is Outcome.ACKED:
+                self.rib.set_route(robot, deployment, epoch, reason)
+                self._publish(self._change(robot, deployment, epoch, reason))
+                return SwitchResult(
+                    robot, deployment, deployment, epoch, True, reason, tuple(attempts)
+                )
+        if answer.outcome is Outcome.ACKED:
+            return SwitchResult(
+                robot, deployment, deployment, epoch, False, reason, tuple(attempts)
+            )
+        self.rib.record_event(
+            EventKind.ACK_FAILED,
+            robot=robot,
+            deployment=deployment,
+            epoch=epoch,
+            reason=f"{reason}: {answer.outcome.value}: {answer.detail}",
+        )
+        return SwitchResult(
+            robot, deployment, deployment, route.epoch, False, reason, tuple(attempts)
+        )
+
+    def fence(self, robot: str, deployment: str, *, at_least: int = 0) -> None:
+        """Put `deployment` in standby for `robot` at the highest epoch issued (or `at_least`,
+        the epoch the deployment says it holds): repairs a deployment found serving a robot the
+        RIB routes elsewhere (e.g. one that missed its standby while unreachable)."""
+        self._standby(robot, deployment, max(self.rib.issued_epoch(robot), at_least))
+
     # -- steps ---------------------------------------------------------------------------------
     def _commit(
         self,
@@ -226,7 +257,7 @@ class Switcher:
         attempts: list[Attempt],
     ) -> SwitchResult:
         self.rib.set_route(robot, deployment, epoch, reason)
-        self._publish(RouteChange(robot, deployment, epoch, reason, previous))
+        self._publish(self._change(robot, deployment, epoch, reason))
         for old in [previous, *failed]:
             if old is not None and old != deployment:
                 self._standby(robot, old, epoch)
@@ -247,7 +278,7 @@ class Switcher:
             epoch = self.rib.reserve_epoch(robot)
             why = f"{reason}: no deployment acknowledged" if attempts else reason
             self.rib.set_route(robot, None, epoch, why)
-            self._publish(RouteChange(robot, None, epoch, why, previous))
+            self._publish(self._change(robot, None, epoch, why))
             for dep in [previous, *failed]:
                 self._standby(robot, dep, epoch)
             return SwitchResult(robot, previous, None, epoch, True, why, tuple(attempts))
@@ -271,7 +302,7 @@ class Switcher:
             # Nothing to tell a dead deployment; a restarted one starts with every robot in standby.
             self.rib.set_deployment_state(deployment, robot, DeploymentState.STANDBY, epoch)
             return
-        answer = self._request(deployment, CtlRequest(robot, DeploymentState.STANDBY, epoch))
+        answer = self._request(deployment, self._ctl(CtlOp.STANDBY, robot, epoch, STANDBY_REASON))
         if answer.outcome is Outcome.ACKED:
             self.rib.set_deployment_state(deployment, robot, DeploymentState.STANDBY, epoch)
         else:
@@ -296,6 +327,14 @@ class Switcher:
                 reason=str(exc),
             )
 
+    def _ctl(self, op: CtlOp, robot: str, epoch: int, reason: str) -> CtlRequest:
+        return CtlRequest(op=op, robot=robot, epoch=epoch, sender=self.sender, reason=reason)
+
+    def _change(self, robot: str, deployment: str | None, epoch: int, reason: str) -> RouteChange:
+        return RouteChange(
+            robot=robot, deployment=deployment, epoch=epoch, reason=reason, at=self._clock()
+        )
+
     def _request(self, deployment: str, request: CtlRequest) -> _Answer:
         try:
             reply = self.transport.send_ctl(deployment, request, self.ctl_timeout_s)
@@ -316,10 +355,11 @@ class Switcher:
                     f"refused epoch {request.epoch}: deployment knows epoch {reply.epoch}",
                     newer_epoch=reply.epoch,
                 )
-            return _Answer(Outcome.REFUSED, reply.error or "refused")
+            return _Answer(Outcome.REFUSED, reply.reason or "refused")
+        expected = _ACKED_STATE[request.op]
         state = reply.state.value if isinstance(reply.state, Enum) else reply.state
-        if state != request.state.value:
-            return _Answer(Outcome.STALE, f"ack for state {state}, expected {request.state.value}")
+        if state != expected.value:
+            return _Answer(Outcome.STALE, f"ack for state {state}, expected {expected.value}")
         if reply.epoch != request.epoch:
             return _Answer(Outcome.STALE, f"ack for epoch {reply.epoch}, expected {request.epoch}")
         return _Answer(Outcome.ACKED, "")

@@ -1,7 +1,478 @@
-"""Commands of this package (filled in as the package grows)."""
+"""`elasticfog routes|deployments|robots|events|watch`: the registry's routing state, queried over
+Zenoh from any host that can reach the registry.
+
+Each command opens a Zenoh *client* session to the registry's endpoint (`registry.endpoint` of
+`--config F`, or `--connect ENDPOINT` with `--fleet NAME`), queries one read-only view
+(`ef/<fleet>/rib/<view>`) and prints it as a table, or as plain JSON on stdout with `--json` (a
+list of row objects). `watch` redraws a live table of the robots (their deployment, its state,
+the epoch, the latency window against the bound, the cut chosen) until Ctrl-C.
+
+An unreachable endpoint, or a router where no registry answers within `--timeout`, is one line
+naming the endpoint on stderr and exit code 2; so is a refusal from the registry.
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import threading
+import time
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass
+from datetime import datetime
+from pathlib import Path
+from typing import Any
 
 import typer
+import zenoh
+from pydantic import TypeAdapter, ValidationError
+from rich.console import Console, Group
+from rich.live import Live
+from rich.table import Table
+from rich.text import Text
+
+from common import keys
+from common.config import Endpoint, FleetConfig, load_fleet
+from common.errors import UserError
+from common.session import open_session, zenoh_error_text
+from common.wire import ErrorReply, WireError, decode, to_jsonable
+from common.wire.registry import (
+    RIB_VIEW_REPLIES,
+    DeploymentRow,
+    EventRow,
+    ProfileRow,
+    RibQuery,
+    RobotRow,
+    RouteRow,
+)
+
+VIEW_TIMEOUT_S = 3.0
+# How long a client keeps trying to reach the endpoint (a registry restarting is back within it;
+# a refused connection is not worth minutes of retries).
+CONNECT_TIMEOUT_S = 1.0
+WATCH_INTERVAL_S = 1.0
+DEFAULT_EVENTS = 50
+MAX_VIEW_BYTES = 16 * 1024 * 1024
+DIGEST_SHOWN_CHARS = 12
+
+_ENDPOINT = TypeAdapter(Endpoint)
+
+
+@dataclass(frozen=True)
+class Target:
+    """Where the registry is: its endpoint and fleet (and the fleet file, for TLS settings)."""
+
+    endpoint: str
+    fleet: str
+    cfg: FleetConfig | None = None
+
+
+def resolve_target(config: Path | None, connect: str | None, fleet: str | None = None) -> Target:
+    """The registry to ask: `--connect` wins over the file's endpoint; the fleet name comes from
+    `--fleet`, else the file, else `default`. UserError when neither is given or one is bad."""
+    cfg = load_fleet(config) if config is not None else None
+    if connect is not None:
+        try:
+            endpoint = _ENDPOINT.validate_python(connect)
+        except ValidationError as exc:
+            problem = exc.errors(include_url=False)[0]["msg"].removeprefix("Value error, ")
+            raise UserError(f"--connect: {problem}") from None
+    elif cfg is not None:
+        endpoint = cfg.registry.endpoint
+    else:
+        raise UserError("give --config FILE (the fleet file) or --connect ENDPOINT")
+    name = fleet if fleet is not None else (cfg.fleet if cfg is not None else keys.DEFAULT_FLEET)
+    keys.validate_id(name, "--fleet")
+    return Target(endpoint=endpoint, fleet=name, cfg=cfg)
+
+
+class RegistryClient:
+    """A client session to the registry's router, for its read-only views. Close it (or use it
+    as a context manager): a session left open at exit hangs the process."""
+
+    def __init__(
+        self,
+        target: Target,
+        *,
+        timeout_s: float = VIEW_TIMEOUT_S,
+        connect_timeout_s: float = CONNECT_TIMEOUT_S,
+    ) -> None:
+        self.target = target
+        self.timeout_s = timeout_s
+        self.session: zenoh.Session = open_session(
+            target.cfg,
+            mode="client",
+            listen=[],
+            connect=[target.endpoint],
+            connect_timeout_s=connect_timeout_s,
+        )
+
+    def __enter__(self) -> RegistryClient:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Close the session."""
+        self.session.close()
+
+    def view(self, name: str, query: RibQuery | None = None) -> tuple[Any, ...]:
+        """The rows of view `name` (keys.RIB_VIEWS); UserError naming the endpoint when no
+        registry answers in time or it refuses."""
+        key = keys.rib(self.target.fleet, name)
+        expected = RIB_VIEW_REPLIES[name]
+        where = f"the registry of fleet {self.target.fleet!r} at {self.target.endpoint}"
+        payload = query.to_wire() if query is not None else None
+        try:
+            replies = self.session.get(key, payload=payload, timeout=self.timeout_s)
+            for reply in replies:
+                if reply.ok is None:
+                    continue
+                message = decode(
+                    reply.ok.payload.to_bytes(),
+                    expect=(expected, ErrorReply),
+                    max_bytes=MAX_VIEW_BYTES,
+                )
+                if isinstance(message, ErrorReply):
+                    raise UserError(f"{where} refused the {name} view: {message.reason}")
+                rows: tuple[Any, ...] = message.rows  # type: ignore[attr-defined]
+                return rows
+        except zenoh.ZError as exc:
+            raise UserError(f"cannot query {where}: {zenoh_error_text(exc)}") from None
+        except WireError as exc:
+            raise UserError(f"{where} sent an unreadable {name} view: {exc}") from None
+        raise UserError(
+            f"no reply from {where} within {self.timeout_s:g} s on {key} "
+            "(is `elasticfog registry` running there, for this fleet?)"
+        )
+
+
+def fetch_view(
+    target: Target, name: str, query: RibQuery | None = None, *, timeout_s: float = VIEW_TIMEOUT_S
+) -> tuple[Any, ...]:
+    """One view's rows through a short-lived client session (see `RegistryClient.view`)."""
+    with RegistryClient(target, timeout_s=timeout_s) as client:
+        return client.view(name, query)
+
+
+# -- rendering -------------------------------------------------------------------------------------
+def _clock(ts: float | None) -> str:
+    if ts is None:
+        return "-"
+    return datetime.fromtimestamp(ts).strftime("%H:%M:%S")
+
+
+def _ago(ts: float | None, now: float) -> str:
+    if ts is None:
+        return "-"
+    age = max(0.0, now - ts)
+    if age < 120:
+        return f"{age:.0f} s ago"
+    if age < 7200:
+        return f"{age / 60:.0f} min ago"
+    return f"{age / 3600:.0f} h ago"
+
+
+def _ms(seconds: float | None) -> str:
+    return "-" if seconds is None else f"{seconds * 1000:.1f} ms"
+
+
+def _window(row: RobotRow) -> Text:
+    """`<stat> of the window / bound`, red when the bound is broken."""
+    if row.window_stat_s is None or row.bound_s is None:
+        bound = _ms(row.bound_s)
+        return Text(f"- / {bound} {row.bound_stat}", style="dim")
+    broken = row.window_stat_s > row.bound_s
+    text = f"{_ms(row.window_stat_s)} / {_ms(row.bound_s)} {row.bound_stat} (n={row.window_len})"
+    return Text(text, style="red" if broken else "green")
+
+
+def _table(title: str, *columns: str) -> Table:
+    table = Table(title=title, title_justify="left", header_style="bold")
+    for column in columns:
+        table.add_column(column)
+    return table
+
+
+def routes_table(rows: Sequence[RouteRow], now: float) -> Table:
+    """Robot → deployment, epoch, since when and why."""
+    table = _table("routes", "robot", "deployment", "epoch", "since", "reason")
+    for r in rows:
+        table.add_row(
+            r.robot,
+            r.deployment or Text("local", style="yellow"),
+            str(r.epoch),
+            f"{_clock(r.since)} ({_ago(r.since, now)})",
+            r.reason,
+        )
+    return table
+
+
+def deployments_table(rows: Sequence[DeploymentRow], now: float) -> Table:
+    """Deployments: alive, load, per-robot states, model."""
+    table = _table(
+        "deployments", "deployment", "alive", "service", "load", "robots", "model", "last seen"
+    )
+    for d in rows:
+        refused = d.extra.get("refused")
+        if refused:
+            alive: str | Text = Text(f"refused: {refused}", style="red")
+        elif d.alive:
+            alive = Text("draining" if d.extra.get("draining") else "yes", style="green")
+        else:
+            alive = Text("no", style="dim")
+        epochs = d.extra.get("epochs", {})
+        states = ", ".join(
+            f"{robot}: {state.value}@{epochs.get(robot, '?')}"
+            for robot, state in sorted(d.states.items())
+        )
+        table.add_row(
+            d.id,
+            alive,
+            d.service or "-",
+            f"{d.load}/{d.capacity}" if d.capacity else str(d.load),
+            states or "-",
+            (d.model_digest or "-")[:DIGEST_SHOWN_CHARS],
+            _ago(d.last_seen, now),
+        )
+    return table
+
+
+def robots_table(rows: Sequence[RobotRow], now: float, title: str = "robots") -> Table:
+    """Robots: deployment, its state, epoch, latency window against the bound, cut chosen."""
+    table = _table(
+        title,
+        "robot",
+        "alive",
+        "deployment",
+        "state",
+        "epoch",
+        "window vs bound",
+        "cut",
+        "timeouts",
+    )
+    for r in rows:
+        state = str(r.extra.get("state", "-"))
+        style = {"service": "green", "draining": "yellow", "local": "yellow"}.get(state, "")
+        table.add_row(
+            r.id,
+            Text("yes", style="green") if r.alive else Text("no", style="dim"),
+            r.deployment or Text("local", style="yellow"),
+            Text(state, style=style),
+            str(r.epoch),
+            _window(r),
+            r.action or "-",
+            str(r.extra.get("consecutive_timeouts", 0)),
+        )
+    return table
+
+
+def events_table(rows: Sequence[EventRow], now: float) -> Table:
+    """The event log, oldest first."""
+    table = _table("events", "seq", "time", "kind", "robot", "deployment", "epoch", "reason")
+    for e in rows:
+        table.add_row(
+            str(e.seq),
+            _clock(e.at),
+            e.kind,
+            e.robot or "-",
+            e.deployment or "-",
+            "-" if e.epoch is None else str(e.epoch),
+            e.reason,
+        )
+    return table
+
+
+def profiles_table(rows: Sequence[ProfileRow], now: float) -> Table:
+    """Probe profiles per robot × deployment."""
+    table = _table("profiles", "robot", "deployment", "n", "median", "p95", "max", "updated")
+    for p in rows:
+        table.add_row(
+            p.robot,
+            p.deployment,
+            str(p.samples),
+            _ms(p.median_s),
+            _ms(p.p95_s),
+            _ms(p.max_s),
+            _ago(p.updated_at, now),
+        )
+    return table
+
+
+def watch_screen(target: Target, rows: Sequence[RobotRow], error: str | None, now: float) -> Group:
+    """The `watch` screen: a title line and the robots table."""
+    head = Text(f"fleet {target.fleet} at {target.endpoint}  {_clock(now)}", style="bold")
+    if error is not None:
+        head.append(f"  {error}", style="red")
+    return Group(head, robots_table(rows, now, title=""))
+
+
+_TABLES: dict[str, Callable[[Sequence[Any], float], Table]] = {
+    "routes": routes_table,
+    "deployments": deployments_table,
+    "robots": robots_table,
+    "events": events_table,
+    "profiles": profiles_table,
+}
+
+
+# -- commands --------------------------------------------------------------------------------------
+CONFIG_OPTION = typer.Option(
+    None, "--config", "-c", help="The fleet file: its registry.endpoint and fleet name."
+)
+CONNECT_OPTION = typer.Option(
+    None, "--connect", help="The registry's endpoint instead of --config, e.g. tcp/10.0.0.5:7447."
+)
+FLEET_OPTION = typer.Option(
+    None, "--fleet", help="Fleet name with --connect (default: the file's, else 'default')."
+)
+JSON_OPTION = typer.Option(False, "--json", help="Print plain JSON (a list of rows) on stdout.")
+TIMEOUT_OPTION = typer.Option(
+    VIEW_TIMEOUT_S, "--timeout", min=0.1, help="Seconds to wait for the registry's answer."
+)
+
+
+def _show(
+    name: str,
+    config: Path | None,
+    connect: str | None,
+    fleet: str | None,
+    as_json: bool,
+    timeout_s: float,
+    query: RibQuery | None = None,
+) -> None:
+    try:
+        target = resolve_target(config, connect, fleet)
+        rows = fetch_view(target, name, query, timeout_s=timeout_s)
+    except UserError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(exc.exit_code) from None
+    if as_json:
+        typer.echo(json.dumps([to_jsonable(r) for r in rows], indent=2))
+        return
+    console = Console()
+    if not rows:
+        console.print(f"no {name} known to the registry of fleet {target.fleet}")
+        return
+    console.print(_TABLES[name](rows, time.time()))
+
+
+def routes(
+    config: Path | None = CONFIG_OPTION,
+    connect: str | None = CONNECT_OPTION,
+    fleet: str | None = FLEET_OPTION,
+    as_json: bool = JSON_OPTION,
+    timeout: float = TIMEOUT_OPTION,
+) -> None:
+    """Which deployment serves each robot, under which epoch, since when and why."""
+    _show("routes", config, connect, fleet, as_json, timeout)
+
+
+def deployments(
+    config: Path | None = CONFIG_OPTION,
+    connect: str | None = CONNECT_OPTION,
+    fleet: str | None = FLEET_OPTION,
+    as_json: bool = JSON_OPTION,
+    timeout: float = TIMEOUT_OPTION,
+) -> None:
+    """Every deployment the registry knows: alive, load, its state for each robot, its model."""
+    _show("deployments", config, connect, fleet, as_json, timeout)
+
+
+def robots(
+    config: Path | None = CONFIG_OPTION,
+    connect: str | None = CONNECT_OPTION,
+    fleet: str | None = FLEET_OPTION,
+    as_json: bool = JSON_OPTION,
+    timeout: float = TIMEOUT_OPTION,
+) -> None:
+    """Every robot: its deployment and epoch, its latency window against the bound, its cut."""
+    _show("robots", config, connect, fleet, as_json, timeout)
+
+
+def events(
+    config: Path | None = CONFIG_OPTION,
+    connect: str | None = CONNECT_OPTION,
+    fleet: str | None = FLEET_OPTION,
+    as_json: bool = JSON_OPTION,
+    timeout: float = TIMEOUT_OPTION,
+    limit: int = typer.Option(DEFAULT_EVENTS, "--limit", min=1, help="Newest events to show."),
+    robot: str | None = typer.Option(None, "--robot", help="Only this robot's events."),
+) -> None:
+    """The registry's event log (every transition, with its reason), oldest first."""
+    try:
+        query = RibQuery(robot=robot, limit=limit)
+    except WireError as exc:
+        typer.echo(f"error: --robot: {exc}", err=True)
+        raise typer.Exit(2) from None
+    _show("events", config, connect, fleet, as_json, timeout, query)
+
+
+@contextmanager
+def _stop_on_signals(stop: threading.Event) -> Iterator[None]:
+    """SIGINT/SIGTERM set `stop` (the loop ends at its next wait) instead of killing mid-query."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum: int, frame: object) -> None:
+        stop.set()
+
+    previous = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for sig, old in previous.items():
+            signal.signal(sig, old)
+
+
+def watch(
+    config: Path | None = CONFIG_OPTION,
+    connect: str | None = CONNECT_OPTION,
+    fleet: str | None = FLEET_OPTION,
+    interval: float = typer.Option(
+        WATCH_INTERVAL_S, "--interval", min=0.1, help="Seconds between refreshes."
+    ),
+    count: int = typer.Option(
+        0, "--count", min=0, help="Stop after this many refreshes (0: until Ctrl-C)."
+    ),
+    timeout: float = TIMEOUT_OPTION,
+) -> None:
+    """A live table of the robots: deployment, state, epoch, latency window vs bound, cut."""
+    stop = threading.Event()
+    try:
+        target = resolve_target(config, connect, fleet)
+        client = RegistryClient(target, timeout_s=timeout)
+    except UserError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(exc.exit_code) from None
+    with client, _stop_on_signals(stop):
+        try:
+            rows = client.view("robots")
+        except UserError as exc:
+            typer.echo(f"error: {exc}", err=True)
+            raise typer.Exit(exc.exit_code) from None
+        error: str | None = None
+        shown = 0
+        with Live(watch_screen(target, rows, None, time.time()), auto_refresh=False) as live:
+            while True:
+                shown += 1
+                live.update(watch_screen(target, rows, error, time.time()), refresh=True)
+                if (count and shown >= count) or stop.wait(interval):
+                    break
+                try:
+                    rows, error = client.view("robots"), None
+                except UserError as exc:
+                    # Keep the last table; the registry may be restarting.
+                    error = str(exc)
 
 
 def register(app: typer.Typer) -> None:
-    """Add this package's commands to the root app."""
+    """Add `routes`, `deployments`, `robots`, `events` and `watch` to the root app."""
+    app.command("routes")(routes)
+    app.command("deployments")(deployments)
+    app.command("robots")(robots)
+    app.command("events")(events)
+    app.command("watch")(watch)

@@ -200,7 +200,8 @@ class FaultSpec(Struct):
 @dataclass(frozen=True, slots=True, kw_only=True)
 class ProbeReply(Message):
     """A deployment's profile: identity, protocol, what it serves, its state per robot, its load
-    (requests queued or running) against its capacity (workers + queue slots), and the echo."""
+    (requests queued or running) against its capacity (workers + queue slots), and the echo.
+    `epochs` is the epoch it holds per robot, `served` the frames it computed per robot."""
 
     TYPE: ClassVar[str] = "probe_reply"
     deployment: str
@@ -214,6 +215,8 @@ class ProbeReply(Message):
     num_cuts: int = 0
     fault: FaultSpec = field(default_factory=FaultSpec)
     echo: bytes = b""
+    epochs: dict[str, int] = field(default_factory=dict)
+    served: dict[str, int] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self._check_ids("deployment", "service")

@@ -9,20 +9,23 @@ from pathlib import Path
 
 import pytest
 
+from common.wire.registry import CtlOp, CtlReply, CtlRequest, DeploymentState, RouteChange
 from registry.latency import LatencyBound, Stat
-from registry.rib import DeploymentState, Rib
+from registry.rib import Rib
 from registry.scheduler import Decision, Reason, Scheduler
-from registry.switch import (
-    CtlReply,
-    CtlRequest,
-    Outcome,
-    RouteChange,
-    Switcher,
-    TransportError,
-    carry_out,
-)
+from registry.switch import Outcome, Switcher, TransportError, carry_out
 
 ROBOT = "robot-1"
+_STATE = {CtlOp.SERVICE: DeploymentState.SERVICE, CtlOp.STANDBY: DeploymentState.STANDBY}
+
+
+def _route(robot: str, deployment: str | None, epoch: int, reason: str) -> tuple[object, ...]:
+    return (robot, deployment, epoch, reason)
+
+
+def _published(transport: FakeTransport) -> list[tuple[object, ...]]:
+    """What was published, without the wall-clock stamp."""
+    return [(c.robot, c.deployment, c.epoch, c.reason) for c in transport.published]
 
 
 @dataclass
@@ -39,32 +42,52 @@ class FakeDeployment:
     states: dict[str, DeploymentState] = field(default_factory=dict)
 
     def handle(self, req: CtlRequest) -> CtlReply | None:
-        if self.service_only and req.state is not DeploymentState.SERVICE:
+        if self.service_only and req.op is not CtlOp.SERVICE:
             return self._apply(req, "ack")
         return self._apply(req, self.mode)
 
+    def _reply(
+        self,
+        req: CtlRequest,
+        state: DeploymentState | None,
+        epoch: int,
+        *,
+        ok: bool = True,
+        reason: str = "",
+    ) -> CtlReply:
+        return CtlReply(
+            ok=ok,
+            deployment=self.name,
+            op=req.op,
+            robot=req.robot,
+            epoch=epoch,
+            state=state,
+            reason=reason,
+        )
+
     def _apply(self, req: CtlRequest, mode: str) -> CtlReply | None:
+        assert req.robot is not None
         if mode == "timeout":
             return None
         if mode == "error":
             raise TransportError(f"no route to {self.name}")
         if mode == "refuse":
-            return CtlReply(self.name, req.robot, req.state, req.epoch, ok=False, error="busy")
+            return self._reply(req, _STATE[req.op], req.epoch, ok=False, reason="busy")
         known = self.epochs.get(req.robot, 0)
-        fresh = req.epoch > known if req.state is DeploymentState.SERVICE else req.epoch >= known
+        fresh = req.epoch > known if req.op is CtlOp.SERVICE else req.epoch >= known
         if not fresh:
             # Like a cloud daemon: a refusal reports its own state and epoch for the robot.
             state = self.states.get(req.robot)
-            return CtlReply(self.name, req.robot, state, known, ok=False, error="stale epoch")
+            return self._reply(req, state, known, ok=False, reason="stale epoch")
         self.epochs[req.robot] = req.epoch
-        self.states[req.robot] = req.state
+        self.states[req.robot] = _STATE[req.op]
         if mode == "lost_reply":
             return None
         if mode == "stale":
-            return CtlReply(self.name, req.robot, req.state, req.epoch - 1)
+            return self._reply(req, _STATE[req.op], req.epoch - 1)
         if mode == "wrong_state":
-            return CtlReply(self.name, req.robot, DeploymentState.DRAINING, req.epoch)
-        return CtlReply(self.name, req.robot, req.state, req.epoch)
+            return self._reply(req, DeploymentState.DRAINING, req.epoch)
+        return self._reply(req, _STATE[req.op], req.epoch)
 
 
 class FakeTransport:
@@ -83,7 +106,7 @@ class FakeTransport:
 
     def send_ctl(self, deployment: str, request: CtlRequest, timeout_s: float) -> CtlReply | None:
         assert timeout_s > 0
-        self.log.append(("ctl", deployment, request.state.value, request.epoch, self._route_now()))
+        self.log.append(("ctl", deployment, request.op.value, request.epoch, self._route_now()))
         return self.deployments[deployment].handle(request)
 
     def publish_route(self, change: RouteChange) -> None:
@@ -126,7 +149,8 @@ def test_order_service_ack_then_persist_then_publish_then_old_standby(rib: Rib) 
         ("publish", "b", 2, ("b", 2)),  # published after the route is persisted
         ("ctl", "a", "standby", 2, ("b", 2)),  # the old one steps down last
     ]
-    assert transport.published == [RouteChange(ROBOT, "b", 2, "bound_violation", "a")]
+    assert _published(transport) == [_route(ROBOT, "b", 2, "bound_violation")]
+    assert transport.published[0].at > 0
     states = {s.deployment: (s.state, s.epoch) for s in rib.deployment_states(robot=ROBOT)}
     assert states == {"a": (DeploymentState.STANDBY, 2), "b": (DeploymentState.SERVICE, 2)}
     assert deps["a"].states[ROBOT] is DeploymentState.STANDBY
@@ -187,7 +211,14 @@ def test_ack_for_another_robot_is_ignored(rib: Rib) -> None:
     _serve_a(rib, deps, transport)
 
     def confused(req: CtlRequest) -> CtlReply:
-        return CtlReply("b", "robot-2", req.state, req.epoch)
+        return CtlReply(
+            ok=True,
+            deployment="b",
+            op=req.op,
+            robot="robot-2",
+            epoch=req.epoch,
+            state=DeploymentState.SERVICE,
+        )
 
     deps["b"].handle = confused  # type: ignore[method-assign]
     result = Switcher(rib, transport).switch(ROBOT, ["b", "c"], reason="better")
@@ -220,8 +251,8 @@ def test_no_taker_with_a_dead_old_route_leaves_the_robot_local(rib: Rib) -> None
     assert result.changed and result.deployment is None and result.epoch == 3
     route = rib.route(ROBOT)
     assert route is not None and route.deployment is None and route.epoch == 3
-    assert transport.published == [
-        RouteChange(ROBOT, None, 3, "deployment_lost: no deployment acknowledged", "a")
+    assert _published(transport) == [
+        _route(ROBOT, None, 3, "deployment_lost: no deployment acknowledged")
     ]
 
 
@@ -232,7 +263,7 @@ def test_decision_with_no_target_drops_the_route(rib: Rib) -> None:
         rib.set_deployment_alive(name, False, "token gone")
     result = Switcher(rib, transport).apply(Decision(ROBOT, "a", None, Reason.DEPLOYMENT_LOST))
     assert result.changed and result.deployment is None
-    assert transport.published == [RouteChange(ROBOT, None, 2, "deployment_lost", "a")]
+    assert _published(transport) == [_route(ROBOT, None, 2, "deployment_lost")]
     assert [e[0] for e in transport.log] == ["publish"]  # nobody alive to talk to
 
 
@@ -337,3 +368,58 @@ def test_anycast_invariant_under_random_failures() -> None:
             assert serving == ({routed} if routed else set())
             assert result.epoch >= last_epoch
             last_epoch = result.epoch
+
+
+def test_reassert_resends_service_at_the_same_epoch(rib: Rib) -> None:
+    """A restarted registry confirms its restored route without a new epoch; a deployment that
+    forgot the robot (restarted in standby) serves it again."""
+    transport, deps = _fleet(rib)
+    _serve_a(rib, deps, transport)
+    deps["a"].epochs.clear()
+    deps["a"].states.clear()
+    result = Switcher(rib, transport).reassert(ROBOT)
+    assert not result.changed and (result.deployment, result.epoch) == ("a", 1)
+    assert result.attempts[-1].outcome is Outcome.ACKED
+    assert deps["a"].states[ROBOT] is DeploymentState.SERVICE
+    assert transport.published == []
+
+
+def test_reassert_past_a_newer_epoch_moves_the_route_to_a_fresh_one(rib: Rib) -> None:
+    transport, deps = _fleet(rib)
+    _serve_a(rib, deps, transport)
+    deps["a"].epochs[ROBOT] = 7  # the RIB file is older than the deployment's memory
+    result = Switcher(rib, transport).reassert(ROBOT)
+    assert result.changed and (result.deployment, result.epoch) == ("a", 8)
+    route = rib.route(ROBOT)
+    assert route is not None and (route.deployment, route.epoch) == ("a", 8)
+    assert _published(transport) == [_route(ROBOT, "a", 8, "restore")]
+
+
+def test_reassert_refused_at_the_same_epoch_takes_a_fresh_one(rib: Rib) -> None:
+    # The deployment stood down at the route's epoch (a fence): the same epoch cannot serve.
+    transport, deps = _fleet(rib)
+    _serve_a(rib, deps, transport)
+    deps["a"].states[ROBOT] = DeploymentState.STANDBY
+    result = Switcher(rib, transport).reassert(ROBOT)
+    assert result.changed and (result.deployment, result.epoch) == ("a", 2)
+    assert [a.outcome for a in result.attempts] == [Outcome.REFUSED, Outcome.ACKED]
+    assert deps["a"].states[ROBOT] is DeploymentState.SERVICE
+    assert rib.events(kind="epoch_raised") == []
+
+
+def test_reassert_without_an_answer_is_recorded_and_keeps_the_route(rib: Rib) -> None:
+    transport, deps = _fleet(rib)
+    _serve_a(rib, deps, transport)
+    deps["a"].mode = "timeout"
+    result = Switcher(rib, transport).reassert(ROBOT)
+    assert not result.changed and result.attempts[-1].outcome is Outcome.TIMEOUT
+    assert rib.events(kind="ack_failed")[-1].reason.startswith("restore: timeout")
+
+
+def test_fence_puts_a_stray_server_in_standby(rib: Rib) -> None:
+    transport, deps = _fleet(rib)
+    _serve_a(rib, deps, transport)
+    deps["b"].states[ROBOT] = DeploymentState.SERVICE  # e.g. it missed its standby
+    Switcher(rib, transport).fence(ROBOT, "b")
+    assert deps["b"].states[ROBOT] is DeploymentState.STANDBY
+    assert transport.log[-1][:4] == ("ctl", "b", "standby", 1)
