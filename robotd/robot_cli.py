@@ -1,7 +1,119 @@
-"""Commands of this package (filled in as the package grows)."""
+"""`elasticfog robot`: run the robot daemon of one robot of a fleet.
+
+    elasticfog robot --config fleet.yaml --id robot-1 --frames 100 --telemetry robot-1.jsonl
+
+The command parses its options, loads the fleet file and runs `robotd.daemon.RobotDaemon` until
+`--frames` frames are done or SIGINT/SIGTERM, then prints a summary (`--json`: the same as JSON on
+stdout). Logs go to stderr (level from `ELASTICFOG_LOG_LEVEL`, default INFO). Bad input is one
+line on stderr and exit code 2.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import os
+import sys
+from collections.abc import Iterator
+from pathlib import Path
 
 import typer
+from rich.console import Console
+
+from common.errors import UserError
+
+LOG_LEVEL_ENV = "ELASTICFOG_LOG_LEVEL"
+DEFAULT_LOG_LEVEL = "INFO"
+LOG_FORMAT = "%(asctime)s %(levelname)s %(message)s"
+# The robot daemon's own logger and the shared daemon lifecycle's.
+LOGGERS = ("robotd", "common")
 
 
 def register(app: typer.Typer) -> None:
-    """Add this package's commands to the root app."""
+    """Add `robot` to the root app."""
+    app.command("robot", help="Run a robot: split each frame between the robot and the cloud.")(
+        robot_command
+    )
+
+
+def robot_command(
+    config: Path = typer.Option(..., "--config", help="The fleet file (fleet.yaml)."),
+    robot_id: str = typer.Option(..., "--id", help="This robot's id in the fleet file."),
+    source: str | None = typer.Option(
+        None,
+        "--source",
+        help="synthetic[:key=F,every=N], video:PATH or camera:N; default: the machine's.",
+    ),
+    frames: int | None = typer.Option(
+        None, "--frames", help="Stop after this many frames (default: run until Ctrl-C)."
+    ),
+    fps: float | None = typer.Option(
+        None, "--fps", help="Frames per second; default: the machine's (none: as fast as done)."
+    ),
+    policy: str | None = typer.Option(
+        None,
+        "--policy",
+        help="elastic, ans, neurosurgeon, robot, cloud or static:K; default: the fleet's.",
+    ),
+    telemetry: Path | None = typer.Option(
+        None, "--telemetry", help="Write one JSON object per frame to this file (JSONL)."
+    ),
+    uplink_mbit: float | None = typer.Option(
+        None,
+        "--uplink-mbit",
+        help="Pace requests to this many Mbit/s in the application (single-host emulation).",
+    ),
+    seed: int = typer.Option(0, "--seed", help="Seed of the synthetic frame source."),
+    json_out: bool = typer.Option(False, "--json", help="Print the summary as JSON on stdout."),
+) -> None:
+    """Run the robot daemon; exits 0 after --frames frames or on SIGINT/SIGTERM."""
+    from common.config import load_fleet
+    from robotd.daemon import RobotDaemon, RobotOptions
+
+    with _logging_to_stderr():
+        try:
+            cfg = load_fleet(config)
+            options = RobotOptions(
+                source=source,
+                frames=frames,
+                fps=fps,
+                policy=policy,
+                telemetry=telemetry,
+                uplink_mbit=uplink_mbit,
+                seed=seed,
+            )
+            daemon = RobotDaemon(cfg, robot_id, options)
+            code = daemon.run()
+        except UserError as exc:
+            Console(stderr=True).print(f"[red]error:[/red] {exc}", highlight=False, soft_wrap=True)
+            raise typer.Exit(exc.exit_code) from None
+    if json_out:
+        typer.echo(json.dumps(daemon.summary.to_json()))
+    else:
+        for line in daemon.summary.lines():
+            typer.echo(line)
+    raise typer.Exit(code)
+
+
+@contextlib.contextmanager
+def _logging_to_stderr() -> Iterator[None]:
+    """The daemons' log lines on stderr for the duration of the command (level from
+    ELASTICFOG_LOG_LEVEL); the handler is removed afterwards, so running the command in-process
+    (tests) leaves logging as it was."""
+    level = logging.getLevelName(os.environ.get(LOG_LEVEL_ENV, DEFAULT_LOG_LEVEL).upper())
+    if not isinstance(level, int):
+        level = logging.INFO
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter(LOG_FORMAT))
+    loggers = [logging.getLogger(name) for name in LOGGERS]
+    previous = [lg.level for lg in loggers]
+    for lg in loggers:
+        lg.addHandler(handler)
+        lg.setLevel(level)
+    try:
+        yield
+    finally:
+        for lg, old in zip(loggers, previous, strict=True):
+            lg.removeHandler(handler)
+            lg.setLevel(old)

@@ -1,0 +1,205 @@
+"""The robot's low-rate probes of every deployment, standbys included.
+
+Every `PROBE_INTERVAL_S` the prober sends one `ProbeRequest` to the probe wildcard
+(`dep/*/probe`) with `QueryTarget.ALL` and no consolidation, so every live deployment answers,
+whatever its state. The request carries padding sized like a typical cut (the median of the
+model's cut sizes, capped by `PROBE_MAX_PADDING_BYTES` so that probing stays a small share of a
+slow uplink) and asks for a reply-sized echo; each reply's arrival time gives that deployment's
+round trip for a frame-like transfer. For each reply the robot publishes a `ProbeReport` on
+`tele/<robot>/probe` (the registry builds its probe profiles from them), and a report with
+`ok=false` for every deployment whose liveliness token is up but which did not answer in time.
+
+`expected_latency_s` in a report is the remote part of a frame through that deployment as the
+robot can tell it: the probe's round trip plus the cloud time (queue + compute) the robot's
+recent answered frames reported, the same quantity as a frame's `transfer_s + cloud_s`.
+Probes are not paced by `--uplink-mbit` (the emulation paces frames only).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable, Sequence
+
+import zenoh
+
+from common import keys
+from common.keys import KeyKind, parse_key
+from common.wire import ErrorReply, WireError, decode
+from common.wire.registry import ProbeReply, ProbeRequest
+from common.wire.telemetry import ProbeReport
+
+log = logging.getLogger(__name__)
+
+PROBE_INTERVAL_S = 2.0
+PROBE_TIMEOUT_S = 0.5
+PROBE_MAX_PADDING_BYTES = 64 * 1024
+# The echo asked for: about the size of a classifier's reply.
+PROBE_ECHO_BYTES = 4096
+# Weight of a new answered frame in the moving average of the cloud's queue + compute time.
+CLOUD_TIME_EWMA = 0.2
+
+
+def probe_padding_bytes(cut_bytes: Sequence[int], cap: int = PROBE_MAX_PADDING_BYTES) -> int:
+    """Padding sized like a typical cut: the median of the cut sizes, at most `cap`."""
+    if not cut_bytes:
+        return 0
+    ordered = sorted(int(b) for b in cut_bytes)
+    return min(cap, ordered[len(ordered) // 2])
+
+
+class CloudTime:
+    """Moving average of the cloud's queue + compute time over answered frames (thread-safe)."""
+
+    def __init__(self) -> None:
+        self._value: float | None = None
+        self._lock = threading.Lock()
+
+    def observe(self, seconds: float) -> None:
+        with self._lock:
+            if self._value is None:
+                self._value = seconds
+            else:
+                self._value += CLOUD_TIME_EWMA * (seconds - self._value)
+
+    @property
+    def value(self) -> float | None:
+        with self._lock:
+            return self._value
+
+
+class Prober:
+    """Probes every deployment from its own thread; `start()`, then `stop()` (joins)."""
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        fleet: str,
+        robot: str,
+        *,
+        padding_bytes: int,
+        publish: Callable[[ProbeReport], None],
+        alive_clouds: Callable[[], set[str]],
+        cloud_time: CloudTime,
+        interval_s: float = PROBE_INTERVAL_S,
+        timeout_s: float = PROBE_TIMEOUT_S,
+        max_reply_bytes: int,
+    ) -> None:
+        self._session = session
+        self._fleet = fleet
+        self._robot = robot
+        self._padding = b"\0" * padding_bytes
+        self._publish = publish
+        self._alive_clouds = alive_clouds
+        self._cloud_time = cloud_time
+        self.interval_s = interval_s
+        self.timeout_s = timeout_s
+        self._max_reply_bytes = max_reply_bytes
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.rounds = 0
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._run, name=f"probe-{self._robot}", daemon=True)
+        self._thread.start()
+
+    def stop(self, timeout_s: float = 1.5) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout_s)
+
+    def _run(self) -> None:
+        # Bounded by the stop flag; each round is bounded by the probe timeout.
+        while not self._stop.wait(self.interval_s):
+            try:
+                self.probe_once()
+            except zenoh.ZError as exc:
+                if self._stop.is_set():
+                    return
+                log.warning("probe round failed: %s", exc)
+
+    def probe_once(self) -> list[ProbeReport]:
+        """One round: query every deployment, publish and return the reports."""
+        request = ProbeRequest(
+            sender=self._robot,
+            sent_at=time.time(),
+            echo_bytes=PROBE_ECHO_BYTES,
+            padding=self._padding,
+        )
+        payload = request.to_wire()
+        started = time.perf_counter()
+        replies = self._session.get(
+            keys.dep_probe_all(self._fleet),
+            target=zenoh.QueryTarget.ALL,
+            consolidation=zenoh.ConsolidationMode.NONE,
+            payload=payload,
+            timeout=self.timeout_s,
+            congestion_control=zenoh.CongestionControl.BLOCK,
+        )
+        reports: dict[str, ProbeReport] = {}
+        # The channel ends when every deployment answered or the timeout passed.
+        for reply in replies:
+            arrived = time.perf_counter()
+            report = self._report(reply, arrived - started, len(payload))
+            if report is not None and report.deployment not in reports:
+                reports[report.deployment] = report
+        for deployment in sorted(self._alive_clouds() - set(reports)):
+            reports[deployment] = ProbeReport(
+                robot=self._robot,
+                deployment=deployment,
+                ok=False,
+                at=time.time(),
+                up_bytes=len(payload),
+                reason=f"no probe reply within {self.timeout_s:g} s",
+            )
+        for report in reports.values():
+            self._publish(report)
+        self.rounds += 1
+        return list(reports.values())
+
+    def _report(self, reply: zenoh.Reply, rtt_s: float, up_bytes: int) -> ProbeReport | None:
+        if reply.ok is None:
+            return None  # a Zenoh-level error (e.g. the timeout) names no deployment
+        parts = parse_key(str(reply.ok.key_expr))
+        deployment = parts.id if parts is not None and parts.kind is KeyKind.DEP_PROBE else None
+        data = reply.ok.payload.to_bytes()
+        try:
+            message = decode(data, expect=(ProbeReply, ErrorReply), max_bytes=self._max_reply_bytes)
+        except WireError as exc:
+            if deployment is None:
+                return None
+            return self._failed(deployment, rtt_s, up_bytes, len(data), f"bad probe reply: {exc}")
+        if isinstance(message, ErrorReply):
+            if deployment is None:
+                return None
+            reason = f"probe refused: {message.code}: {message.reason}"
+            return self._failed(deployment, rtt_s, up_bytes, len(data), reason)
+        assert isinstance(message, ProbeReply)
+        cloud = self._cloud_time.value
+        return ProbeReport(
+            robot=self._robot,
+            deployment=message.deployment,
+            ok=True,
+            at=time.time(),
+            rtt_s=rtt_s,
+            up_bytes=up_bytes,
+            down_bytes=len(data),
+            load=message.load,
+            capacity=message.capacity,
+            expected_latency_s=rtt_s + (cloud or 0.0),
+        )
+
+    def _failed(
+        self, deployment: str, rtt_s: float, up_bytes: int, down_bytes: int, reason: str
+    ) -> ProbeReport:
+        return ProbeReport(
+            robot=self._robot,
+            deployment=deployment,
+            ok=False,
+            at=time.time(),
+            rtt_s=rtt_s,
+            up_bytes=up_bytes,
+            down_bytes=down_bytes,
+            reason=reason,
+        )

@@ -1,0 +1,176 @@
+"""Where a frame's story goes: the `--telemetry` JSONL file, the `tele/<robot>` publication and the
+run summary printed at the end.
+
+Each line of the JSONL file is one frame: the contract fields of `common.wire.telemetry`
+(`JSONL_FIELDS`: frame, action, bytes_up, bytes_down, prefix_s, transfer_s, cloud_s,
+suffix_local_s, latency_s, robot_cpu_s, energy_j, deployment, fallback, reason) followed by
+`EXTRA_FIELDS`: `at` (wall clock when the frame completed), `epoch` (the route epoch the robot
+knew), `entropy` (the frame's normalized grey-level entropy), `hedged` (the local suffix ran
+alongside the cloud), `served_by` (`cloud` or `robot`: which result the frame used) and `detail`
+(why the cloud failed, for a person). Lines are flushed as they are written, so a reader can
+follow the file while the robot runs.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections import Counter
+from pathlib import Path
+from typing import IO, Any
+
+import numpy as np
+
+from common.errors import UserError
+from common.wire.telemetry import JSONL_FIELDS, TelemetryRecord, parse_action
+
+EXTRA_FIELDS = ("at", "epoch", "entropy", "hedged", "served_by", "detail")
+SERVED_BY_CLOUD = "cloud"
+SERVED_BY_ROBOT = "robot"
+P95 = 95.0
+ROUND_DIGITS = 6
+
+
+def jsonl_object(
+    record: TelemetryRecord,
+    *,
+    entropy: float,
+    hedged: bool,
+    served_by: str,
+    detail: str = "",
+) -> dict[str, Any]:
+    """The JSONL object of one frame (contract fields first, then EXTRA_FIELDS)."""
+    obj = record.to_jsonl()
+    obj.update(
+        at=record.at,
+        epoch=record.epoch,
+        entropy=round(entropy, ROUND_DIGITS),
+        hedged=hedged,
+        served_by=served_by,
+        detail=detail or None,
+    )
+    return obj
+
+
+class TelemetryFile:
+    """The `--telemetry` JSONL file (truncated at open: one run per file)."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = Path(path)
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._file: IO[str] | None = self.path.open("w", encoding="utf-8")
+        except OSError as exc:
+            raise UserError(f"--telemetry {self.path}: cannot write: {exc.strerror}") from None
+
+    def write(self, obj: dict[str, Any]) -> None:
+        if self._file is None:
+            return
+        self._file.write(json.dumps(obj, allow_nan=False, separators=(",", ":")) + "\n")
+        self._file.flush()
+
+    def close(self) -> None:
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+
+
+class RunSummary:
+    """Counts over the run's frames, for the summary printed at the end."""
+
+    def __init__(self, robot: str) -> None:
+        self.robot = robot
+        self.frames = 0
+        self.answered = 0
+        self.fallbacks = 0
+        self.hedged = 0
+        self.served_by_robot = 0
+        self.reasons: Counter[str] = Counter()
+        self.by_deployment: Counter[str] = Counter()
+        self.actions: Counter[str] = Counter()
+        self.latencies: list[float] = []
+        self.started_at: float | None = None
+        self.ended_at: float | None = None
+
+    def add(self, record: TelemetryRecord, *, hedged: bool, served_by: str) -> None:
+        self.frames += 1
+        self.actions[record.action] += 1
+        if record.deployment is not None and not record.fallback:
+            self.answered += 1
+            self.by_deployment[record.deployment] += 1
+        if record.fallback:
+            self.fallbacks += 1
+            self.reasons[record.reason or "unknown"] += 1
+        if hedged:
+            self.hedged += 1
+        if served_by == SERVED_BY_ROBOT:
+            self.served_by_robot += 1
+        if math.isfinite(record.latency_s):
+            self.latencies.append(record.latency_s)
+
+    def to_json(self) -> dict[str, Any]:
+        """`{robot, frames, answered, fallbacks, fallback_reasons, by_deployment, actions, hedged,
+        served_by_robot, mean_latency_s, p95_latency_s, fps}`."""
+        lat = np.asarray(self.latencies, dtype=np.float64)
+        mean = float(lat.mean()) if lat.size else None
+        p95 = float(np.percentile(lat, P95)) if lat.size else None
+        duration = (
+            self.ended_at - self.started_at
+            if self.started_at is not None and self.ended_at is not None
+            else None
+        )
+        fps = self.frames / duration if duration and duration > 0 else None
+        return {
+            "robot": self.robot,
+            "frames": self.frames,
+            "answered": self.answered,
+            "fallbacks": self.fallbacks,
+            "fallback_reasons": dict(self.reasons.most_common()),
+            "by_deployment": dict(sorted(self.by_deployment.items())),
+            "actions": dict(sorted(self.actions.items(), key=lambda kv: _action_key(kv[0]))),
+            "hedged": self.hedged,
+            "served_by_robot": self.served_by_robot,
+            "mean_latency_s": _round(mean),
+            "p95_latency_s": _round(p95),
+            "fps": _round(fps),
+        }
+
+    def lines(self) -> list[str]:
+        """The summary for a person, a few lines."""
+        s = self.to_json()
+
+        def ms(value: float | None) -> str:
+            return "n/a" if value is None else f"{value * 1000:.1f} ms"
+
+        reasons = ", ".join(f"{k} {v}" for k, v in s["fallback_reasons"].items()) or "none"
+        deployments = ", ".join(f"{k} {v}" for k, v in s["by_deployment"].items()) or "none"
+        actions = ", ".join(f"{k} {v}" for k, v in s["actions"].items()) or "none"
+        rate = "" if s["fps"] is None else f" ({s['fps']:.1f} frames/s)"
+        return [
+            f"{self.robot}: {s['frames']} frames{rate}",
+            f"  answered by the cloud: {s['answered']} ({deployments})",
+            f"  finished on the robot after offloading: {s['fallbacks']} ({reasons})",
+            f"  hedged: {s['hedged']}, served by the robot's own result: {s['served_by_robot']}",
+            f"  actions: {actions}",
+            f"  latency: mean {ms(s['mean_latency_s'])}, p95 {ms(s['p95_latency_s'])}",
+        ]
+
+
+def _round(value: float | None) -> float | None:
+    return None if value is None else round(value, ROUND_DIGITS)
+
+
+def _action_key(label: str) -> tuple[int, int]:
+    cut = parse_action(label)
+    return (1, 0) if cut is None else (0, cut)
+
+
+__all__ = [
+    "EXTRA_FIELDS",
+    "JSONL_FIELDS",
+    "SERVED_BY_CLOUD",
+    "SERVED_BY_ROBOT",
+    "RunSummary",
+    "TelemetryFile",
+    "jsonl_object",
+]
