@@ -1,0 +1,775 @@
+"""The cloud daemon: serves model suffixes to robots, with one standby/service state per robot.
+
+Lifecycle (`common.daemon.Daemon`: startup -> main loop -> shutdown, in reverse order):
+
+1. Load the fleet's model split from the partition cache (`load_partition`; split on first use)
+   and warm one onnxruntime suffix session per cut by running it once. Every session shares one
+   copy of the weights (`SplitModel`), so memory stays flat in the number of cuts.
+2. Start the bounded worker pool and the timer thread (delayed replies, held queries).
+3. Open a Zenoh peer session: it connects to the registry's endpoint and listens on the machine's
+   own. An unreachable registry does not stop a peer from opening (Zenoh keeps retrying in the
+   background, backing off from 1 s to 4 s): the daemon says so, naming the endpoint, and serves
+   meanwhile. A client session cannot open without the registry: that is retried here with
+   backoff until it opens or the daemon is stopped.
+4. Declare `dep/<id>/probe` (answered in every state) and `dep/<id>/ctl`.
+5. Declare the liveliness token `alive/cloud/<id>`: from now on the registry may use us.
+
+Every robot starts in standby: only a ctl `service(robot, epoch)` from the registry declares the
+robot's anycast key `svc/<service>/<robot>/infer` (complete=True), and the ack is sent only after
+the declaration; `standby` undeclares it, then acks. The epoch rules are in `cloudd.state`.
+
+Threads: Zenoh runs each queryable's callback on a thread of its own. Callbacks only decode,
+check and admit a request, then return; suffixes run on the worker pool, which answers "busy" at
+once when it is full. Bad input of any kind gets an error reply naming the problem and one
+WARNING line (rate-limited), never a traceback; the daemon keeps serving.
+
+Stopping: SIGINT (or `stop()`) stops at once: the token goes first, then the service keys, then
+in-flight requests finish (bounded) and the session is closed explicitly. SIGTERM (or
+`stop(drain=True)`) drains first: every robot in service becomes `draining`, the registry is asked
+on `reg/drain` to move them, and once it answers (or after DRAIN_TIMEOUT_S without an answer) the
+daemon stops as above, well within 2 s.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import signal
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import zenoh
+
+from cloudd.faults import FaultInjector, describe
+from cloudd.state import RobotState, StateTable, Verdict
+from cloudd.validate import check_request
+from cloudd.workers import DelayedActions, WorkerPool
+from common import keys
+from common.config import FleetConfig, MachineConfig
+from common.daemon import Daemon
+from common.errors import UserError
+from common.partition import TensorSpec, load_partition, ort_reason
+from common.session import open_session, zenoh_error_text, zenoh_settings
+from common.split_runtime import SplitModel
+from common.wire import ErrorCode, ErrorReply, WireError, decode, error_reply
+from common.wire.cloud_to_robot import BusyReply, InferReply
+from common.wire.registry import (
+    CAP_CTL,
+    CAP_FAULT_INJECTION,
+    CAP_INFER,
+    CAP_PROBE,
+    PROTOCOL_VERSION,
+    CtlOp,
+    CtlReply,
+    CtlRequest,
+    DeploymentState,
+    DrainReply,
+    DrainRequest,
+    FaultSpec,
+    ProbeReply,
+    ProbeRequest,
+)
+from common.wire.robot_to_cloud import InferRequest
+
+log = logging.getLogger(__name__)
+
+CAPABILITIES = (CAP_INFER, CAP_PROBE, CAP_CTL, CAP_FAULT_INJECTION)
+
+DRAIN_TIMEOUT_S = 1.2
+"""How long a draining daemon waits for the registry to move its robots before exiting anyway
+(the daemon promises to stop within 2 s of SIGTERM)."""
+
+INFLIGHT_WAIT_S = 0.4
+"""How long shutdown lets admitted requests finish before closing the session."""
+
+HOLD_UNANSWERED_S = 30.0
+"""How long a query left unanswered on purpose (drop, stall) is held before it is let go: longer
+than any querier waits, so it sees a timeout, as it would for a lost message or a frozen host."""
+
+OPEN_RETRY_FIRST_S = 0.5
+OPEN_RETRY_MAX_S = 8.0
+"""Backoff between attempts to open a client session while the registry is unreachable."""
+
+WARN_BURST = 50
+WARN_WINDOW_S = 10.0
+"""Bad-input warnings logged per window; the rest are counted and summarized (a flood of garbage
+must not flood the log)."""
+
+
+def _payload(query: zenoh.Query) -> bytes:
+    payload = query.payload
+    return b"" if payload is None else payload.to_bytes()
+
+
+class CloudDaemon(Daemon):
+    """One deployment of the fleet's service: `CloudDaemon(cfg, "edge-1").run()`.
+
+    `fault` overrides the machine's configured fault injection at start; `drop_seed` seeds the
+    drop decisions (tests). `ready` is set once the daemon serves (its token is declared).
+    """
+
+    name = "cloud"
+
+    def __init__(
+        self,
+        cfg: FleetConfig,
+        deployment: str,
+        *,
+        fault: FaultSpec | None = None,
+        drop_seed: int | None = None,
+    ) -> None:
+        super().__init__()
+        self.cfg = cfg
+        self.deployment = deployment
+        self.machine: MachineConfig = cfg.machine(deployment, role="cloud")
+        self.name = f"cloud {deployment}"
+        if fault is None:
+            fault = FaultSpec(**self.machine.fault.model_dump())
+        self.faults = FaultInjector(fault, seed=drop_seed)
+        self.ready = threading.Event()
+        self.registry_seen = threading.Event()
+        self.drained = threading.Event()
+
+        self._lock = threading.Lock()
+        self._states = StateTable(cfg.robot_ids)
+        self._served: dict[str, int] = {}
+        self._unanswered: set[str] = set()  # robots in service not answered since they entered
+        self._service_queryables: dict[str, Any] = {}
+        self._closing = False
+        self._drain_on_exit = False
+
+        self._model: SplitModel | None = None
+        self._cut_specs: list[list[TensorSpec]] = []
+        self._pool: WorkerPool | None = None
+        self._timer: DelayedActions | None = None
+        self._session: zenoh.Session | None = None
+        self._control_queryables: list[Any] = []
+        self._registry_watch: Any = None
+        self._token: Any = None
+
+        self._probe_key = keys.dep_probe(cfg.fleet, deployment)
+        self._ctl_key = keys.dep_ctl(cfg.fleet, deployment)
+        self._warn_lock = threading.Lock()
+        self._warn_window_start = 0.0
+        self._warn_count = 0
+        self._warn_suppressed = 0
+
+    # -- public ----------------------------------------------------------------------------
+    @property
+    def model(self) -> SplitModel:
+        """The loaded split model (after startup)."""
+        if self._model is None:
+            raise RuntimeError("the model is loaded in startup()")
+        return self._model
+
+    def stop(self, drain: bool = False) -> None:
+        """Ask the daemon to stop (thread-safe); with `drain`, as on SIGTERM."""
+        if drain:
+            self._drain_on_exit = True
+        super().stop()
+
+    def states(self) -> dict[str, RobotState]:
+        """Every known robot's state and epoch here."""
+        with self._lock:
+            return self._states.snapshot()
+
+    def served(self) -> dict[str, int]:
+        """Frames computed and answered, per robot."""
+        with self._lock:
+            return dict(self._served)
+
+    def profile(self, echo_bytes: int = 0) -> ProbeReply:
+        """What a probe is answered with."""
+        with self._lock:
+            snapshot = self._states.snapshot()
+            served = dict(self._served)
+        states = {robot: st.state for robot, st in snapshot.items()}
+        model = self._model
+        pool = self._pool
+        return ProbeReply(
+            deployment=self.deployment,
+            protocol_version=PROTOCOL_VERSION,
+            capabilities=CAPABILITIES,
+            service=self.cfg.service,
+            model_digest=model.digest if model is not None else "",
+            states=states,
+            load=pool.load if pool is not None else 0,
+            capacity=pool.capacity if pool is not None else 0,
+            num_cuts=len(self._cut_specs),
+            fault=self.faults.get(),
+            echo=bytes(echo_bytes),
+            epochs={robot: st.wire_epoch for robot, st in snapshot.items()},
+            served=served,
+        )
+
+    # -- lifecycle -------------------------------------------------------------------------
+    def startup(self) -> None:
+        try:
+            self._load_model()
+            if self.should_exit.is_set():
+                return
+            self._pool = WorkerPool(
+                self.machine.workers, self.machine.queue, name=f"{self.deployment}-worker"
+            )
+            self._timer = DelayedActions(name=f"{self.deployment}-timer")
+            self._timer.start()
+            self._session = self._open_session()
+            if self._session is None:
+                return  # stopped while waiting for the registry
+            session = self._session
+            self._control_queryables = [
+                session.declare_queryable(
+                    self._probe_key, self._guard(self._probe_key, self._on_probe)
+                ),
+                session.declare_queryable(self._ctl_key, self._guard(self._ctl_key, self._on_ctl)),
+            ]
+            self._registry_watch = session.liveliness().declare_subscriber(
+                keys.alive_registries(self.cfg.fleet), self._on_registry_token, history=True
+            )
+            self._token = session.liveliness().declare_token(
+                keys.alive_cloud(self.cfg.fleet, self.deployment)
+            )
+        except BaseException:
+            self.shutdown()
+            raise
+        self.ready.set()
+        pool = self._pool
+        log.info(
+            "%s: ready: service %r, %d cuts warm, %d workers + %d queue slots, faults: %s",
+            self.deployment,
+            self.cfg.service,
+            len(self._cut_specs),
+            pool.workers,
+            pool.capacity - pool.workers,
+            describe(self.faults.get()),
+        )
+
+    def main_loop(self) -> None:
+        self.should_exit.wait()
+        if self._drain_on_exit or self.stop_signal == signal.SIGTERM:
+            self._drain()
+
+    def shutdown(self) -> None:
+        """Release everything startup acquired, in reverse order; safe to call twice."""
+        self.ready.clear()
+        with self._lock:
+            self._closing = True
+            service = list(self._service_queryables.values())
+            self._service_queryables.clear()
+        # The token first: the registry reroutes at once instead of waiting for a timeout.
+        for resource in [self._token, self._registry_watch, *service, *self._control_queryables]:
+            if resource is not None:
+                try:
+                    resource.undeclare()
+                except Exception as exc:  # the session may already be gone
+                    log.debug("%s: undeclare failed: %s", self.deployment, exc)
+        self._token = None
+        self._registry_watch = None
+        self._control_queryables = []
+        if self._pool is not None:
+            if not self._pool.shutdown(INFLIGHT_WAIT_S):
+                log.warning(
+                    "%s: %d request(s) still running after %.1f s; closing anyway",
+                    self.deployment,
+                    self._pool.load,
+                    INFLIGHT_WAIT_S,
+                )
+            self._pool = None
+        if self._timer is not None:
+            self._timer.flush_and_stop()  # delayed replies go out now; held queries are let go
+            self._timer = None
+        if self._session is not None:
+            session, self._session = self._session, None
+            try:
+                session.close()
+            except Exception as exc:
+                log.debug("%s: closing the session failed: %s", self.deployment, exc)
+        if self._model is not None:
+            self._model.close()
+        log.info("%s: stopped", self.deployment)
+
+    # -- startup steps ---------------------------------------------------------------------
+    def _load_model(self) -> None:
+        cfg = self.cfg
+        shape = tuple(cfg.input_shape) if cfg.input_shape else None
+        started = time.monotonic()
+        log.info("%s: loading %s", self.deployment, cfg.model)
+        partition = load_partition(
+            cfg.model, cfg.cuts.names or "auto", cfg.cuts.max_cut_tensors, shape
+        )
+        model = SplitModel(
+            partition,
+            providers=self.machine.providers,
+            threads=self.machine.threads or None,
+            lazy=True,
+        )
+        self._model = model
+        cut_specs = [model.cut_tensor_specs(k) for k in range(model.num_cuts)]
+        # Build and run every suffix once now: nothing is built on the frame path, and the first
+        # frame of each cut costs what later ones do.
+        for k, specs in enumerate(cut_specs):
+            if self.should_exit.is_set():
+                return
+            zeros = {s.name: np.zeros(s.shape, dtype=s.dtype) for s in specs}
+            try:
+                model.run_suffix(k, zeros)
+            except Exception as exc:
+                raise UserError(
+                    f"{cfg.model}: cannot run the suffix of cut {k} with providers "
+                    f"{', '.join(self.machine.providers)}: {ort_reason(exc)}"
+                ) from None
+        self._cut_specs = cut_specs
+        log.info(
+            "%s: model %s (%s) loaded: %d cuts, %.1f MB of weights, in %.1f s",
+            self.deployment,
+            partition.model,
+            model.digest[:12],
+            model.num_cuts,
+            model.weight_bytes / 1e6,
+            time.monotonic() - started,
+        )
+
+    def _open_session(self) -> zenoh.Session | None:
+        endpoint = self.cfg.registry.endpoint
+        mode = zenoh_settings(self.cfg, machine=self.deployment)["mode"]
+        backoff_s = OPEN_RETRY_FIRST_S
+        attempt = 0
+        while not self.should_exit.is_set():
+            attempt += 1
+            try:
+                session = open_session(self.cfg, machine=self.deployment)
+            except UserError as exc:
+                if mode != "client":
+                    raise  # a peer opens without the registry: this is something else
+                log.warning(
+                    "%s: cannot reach the registry at %s (attempt %d): %s; retrying in %.1f s",
+                    self.deployment,
+                    endpoint,
+                    attempt,
+                    exc,
+                    backoff_s,
+                )
+                if self.should_exit.wait(backoff_s):
+                    return None
+                backoff_s = min(backoff_s * 2, OPEN_RETRY_MAX_S)
+                continue
+            if not list(session.info.routers_zid()):
+                log.warning(
+                    "%s: the registry at %s is not reachable yet; serving probes and ctl "
+                    "meanwhile (Zenoh keeps retrying in the background with backoff)",
+                    self.deployment,
+                    endpoint,
+                )
+            return session
+        return None
+
+    # -- registry --------------------------------------------------------------------------
+    def _on_registry_token(self, sample: zenoh.Sample) -> None:
+        parts = keys.parse_key(str(sample.key_expr))
+        registry = parts.id if parts is not None else str(sample.key_expr)
+        if sample.kind == zenoh.SampleKind.PUT:
+            self.registry_seen.set()
+            log.info("%s: registry %s is up", self.deployment, registry)
+        else:
+            self.registry_seen.clear()
+            log.warning(
+                "%s: registry %s is gone; robots keep their current routes meanwhile",
+                self.deployment,
+                registry,
+            )
+
+    def _drain(self) -> None:
+        """Mark every robot draining and ask the registry to move them; bounded in time."""
+        session = self._session
+        if session is None:
+            return
+        with self._lock:
+            serving = self._states.drain_all()
+        log.info(
+            "%s: draining (serving %s); asking the registry to move them",
+            self.deployment,
+            ", ".join(serving) or "no robot",
+        )
+        request = DrainRequest(deployment=self.deployment, reason="planned shutdown (SIGTERM)")
+        answer: DrainReply | ErrorReply | None = None
+        started = time.monotonic()
+        try:
+            replies = session.get(
+                keys.reg_drain(self.cfg.fleet),
+                payload=request.to_wire(),
+                timeout=DRAIN_TIMEOUT_S,
+            )
+            for reply in replies:
+                if reply.ok is None:
+                    continue
+                try:
+                    message = decode(reply.ok.payload.to_bytes(), expect=(DrainReply, ErrorReply))
+                except WireError as exc:
+                    log.warning("%s: bad drain reply from the registry: %s", self.deployment, exc)
+                    continue
+                assert isinstance(message, (DrainReply, ErrorReply))
+                answer = message
+                break
+        except zenoh.ZError as exc:
+            log.warning("%s: drain request failed: %s", self.deployment, zenoh_error_text(exc))
+        took_ms = (time.monotonic() - started) * 1000
+        with self._lock:
+            left = self._states.serving_robots()
+        if isinstance(answer, DrainReply) and answer.ok:
+            log.info(
+                "%s: the registry moved %s in %.0f ms",
+                self.deployment,
+                ", ".join(answer.moved) or "no robot",
+                took_ms,
+            )
+            self.drained.set()
+        elif answer is not None:
+            reason = answer.reason
+            log.warning("%s: the registry could not move every robot: %s", self.deployment, reason)
+        else:
+            log.warning(
+                "%s: no registry answered the drain request (waited %.0f ms, at most %.1f s); "
+                "exiting anyway",
+                self.deployment,
+                took_ms,
+                DRAIN_TIMEOUT_S,
+            )
+        if left:
+            log.warning("%s: still serving %s at exit", self.deployment, ", ".join(left))
+
+    # -- callbacks -------------------------------------------------------------------------
+    def _guard(
+        self, key: str, handler: Callable[[zenoh.Query], None]
+    ) -> Callable[[zenoh.Query], None]:
+        """A Zenoh callback for the queryable on `key` that never raises: an unexpected error is
+        logged (a bug, with its traceback) and answered."""
+
+        def guarded(query: zenoh.Query) -> None:
+            try:
+                handler(query)
+            except Exception:
+                log.exception("%s: internal error handling a query on %s", self.deployment, key)
+                reply = ErrorReply.make(ErrorCode.INTERNAL, "internal error; see the daemon log")
+                self._send(query, key, reply.to_wire(), 0.0)
+
+        return guarded
+
+    def _warn(self, message: str, *args: object) -> None:
+        """A bad-input warning, rate-limited."""
+        now = time.monotonic()
+        with self._warn_lock:
+            if now - self._warn_window_start > WARN_WINDOW_S:
+                suppressed = self._warn_suppressed
+                self._warn_window_start, self._warn_count, self._warn_suppressed = now, 0, 0
+                if suppressed:
+                    log.warning(
+                        "%s: %d more bad-input warnings were not logged in the last %.0f s",
+                        self.deployment,
+                        suppressed,
+                        WARN_WINDOW_S,
+                    )
+            if self._warn_count >= WARN_BURST:
+                self._warn_suppressed += 1
+                return
+            self._warn_count += 1
+        log.warning(message, *args)
+
+    def _send(
+        self,
+        query: zenoh.Query,
+        key: str,
+        payload: bytes,
+        delay_s: float,
+        on_sent: Callable[[], None] | None = None,
+    ) -> None:
+        """Reply to `query` now or after `delay_s` (fault injection), then finalize it."""
+
+        def send() -> None:
+            try:
+                query.reply(key, payload)
+                if on_sent is not None:
+                    on_sent()
+            except Exception as exc:  # the querier or the session is gone: nothing to do
+                self._warn("%s: reply on %s not sent: %s", self.deployment, key, exc)
+            finally:
+                try:
+                    query.drop()
+                except Exception as exc:
+                    log.debug("%s: query already finalized: %s", self.deployment, exc)
+
+        timer = self._timer
+        if delay_s > 0 and timer is not None:
+            timer.call_later(delay_s, send)
+        else:
+            send()
+
+    def _hold(self, query: zenoh.Query) -> None:
+        """Leave `query` unanswered (drop, stall): the querier sees a timeout."""
+        timer = self._timer
+        if timer is not None:
+            timer.call_later(HOLD_UNANSWERED_S, query.drop)
+
+    def _delay_s(self) -> float:
+        return self.faults.get().delay_ms / 1000.0
+
+    # -- probe -----------------------------------------------------------------------------
+    def _on_probe(self, query: zenoh.Query) -> None:
+        fault = self.faults.get()
+        if fault.stall:
+            self._hold(query)
+            return
+        payload = _payload(query)
+        echo_bytes = 0
+        if payload:  # an empty probe asks for the profile alone
+            try:
+                request = ProbeRequest.from_wire(payload, max_bytes=self.cfg.max_payload_bytes)
+            except WireError as exc:
+                self._warn("%s: bad probe request: %s", self.deployment, exc.reason)
+                self._send(query, self._probe_key, error_reply(exc), fault.delay_ms / 1000.0)
+                return
+            echo_bytes = request.echo_bytes
+        reply = self.profile(echo_bytes)
+        self._send(query, self._probe_key, reply.to_wire(), fault.delay_ms / 1000.0)
+
+    # -- ctl -------------------------------------------------------------------------------
+    def _on_ctl(self, query: zenoh.Query) -> None:
+        try:
+            request = CtlRequest.from_wire(_payload(query), max_bytes=self.cfg.max_payload_bytes)
+        except WireError as exc:
+            self._warn("%s: bad ctl request: %s", self.deployment, exc.reason)
+            self._send(query, self._ctl_key, error_reply(exc), 0.0)
+            return
+        reply = self.control(request)
+        self._send(query, self._ctl_key, reply.to_wire(), 0.0)
+
+    def control(self, request: CtlRequest) -> CtlReply:
+        """Carry out a control request (what the ctl key does) and return the reply."""
+        sender = f" from {request.sender}" if request.sender else ""
+        if request.op is CtlOp.FAULT:
+            assert request.fault is not None  # checked by CtlRequest
+            self.faults.set(request.fault)
+            log.info("%s: fault injection%s: %s", self.deployment, sender, describe(request.fault))
+            return CtlReply(ok=True, deployment=self.deployment, op=request.op)
+        if request.op is CtlOp.DRAIN:
+            return self._ctl_drain(request, sender)
+        assert request.robot is not None  # checked by CtlRequest for service and standby
+        return self._ctl_state(request, request.robot, sender)
+
+    def _ctl_drain(self, request: CtlRequest, sender: str) -> CtlReply:
+        with self._lock:
+            if request.robot is None:
+                moved = self._states.drain_all()
+                state = DeploymentState.DRAINING
+                epoch = 0
+            else:
+                st = self._states.drain_robot(request.robot)
+                moved = [request.robot] if st.serving else []
+                state, epoch = st.state, st.wire_epoch
+        log.info(
+            "%s: drain%s of %s: draining %s",
+            self.deployment,
+            sender,
+            request.robot or "the deployment",
+            ", ".join(moved) or "no robot",
+        )
+        return CtlReply(
+            ok=True,
+            deployment=self.deployment,
+            op=request.op,
+            robot=request.robot,
+            epoch=epoch,
+            state=state,
+        )
+
+    def _ctl_state(self, request: CtlRequest, robot: str, sender: str) -> CtlReply:
+        queryable: Any = None
+        with self._lock:
+            if self._closing:
+                current = self._states.get(robot)
+                return self._ctl_reply(
+                    request, Verdict(False, robot, current, current, "this deployment is stopping")
+                )
+            if request.op is CtlOp.SERVICE:
+                verdict = self._states.decide_service(robot, request.epoch)
+            else:
+                verdict = self._states.decide_standby(robot, request.epoch)
+            self._states.apply(verdict)
+            if verdict.undeclare:
+                queryable = self._service_queryables.pop(robot, None)
+            if verdict.declare:
+                self._unanswered.add(robot)
+        if verdict.declare:
+            try:
+                self._declare_service(robot)
+            except Exception as exc:
+                with self._lock:
+                    self._states.restore(verdict)
+                reason = f"cannot declare the service key of {robot}: {zenoh_error_text(exc)}"
+                log.warning("%s: %s", self.deployment, reason)
+                return self._ctl_reply(
+                    request, Verdict(False, robot, verdict.before, verdict.before, reason)
+                )
+        if queryable is not None:
+            queryable.undeclare()  # before the ack: the registry relies on it being gone
+        if verdict.ok:
+            log.info(
+                "%s: %s %s at epoch %d%s",
+                self.deployment,
+                robot,
+                verdict.after.state.value,
+                verdict.after.epoch,
+                sender,
+            )
+        else:
+            log.warning(
+                "%s: refused %s(%s, epoch %d)%s: %s",
+                self.deployment,
+                request.op.value,
+                robot,
+                request.epoch,
+                sender,
+                verdict.reason,
+            )
+        return self._ctl_reply(request, verdict)
+
+    def _ctl_reply(self, request: CtlRequest, verdict: Verdict) -> CtlReply:
+        return CtlReply(
+            ok=verdict.ok,
+            deployment=self.deployment,
+            op=request.op,
+            robot=verdict.robot,
+            epoch=verdict.after.wire_epoch,
+            state=verdict.after.state,
+            reason=verdict.reason,
+        )
+
+    def _declare_service(self, robot: str) -> None:
+        session = self._session
+        if session is None:
+            raise RuntimeError("no session")
+        key = keys.svc_infer(self.cfg.fleet, self.cfg.service, robot)
+        handler = self._guard(key, functools.partial(self._on_infer, robot, key))
+        queryable = session.declare_queryable(key, handler, complete=True)
+        with self._lock:
+            old = self._service_queryables.pop(robot, None)
+            self._service_queryables[robot] = queryable
+        if old is not None:
+            old.undeclare()
+
+    # -- inference -------------------------------------------------------------------------
+    def _on_infer(self, robot: str, key: str, query: zenoh.Query) -> None:
+        arrived = time.monotonic()
+        fault = self.faults.get()
+        if fault.stall:
+            self._hold(query)
+            return
+        delay_s = fault.delay_ms / 1000.0
+        try:
+            request = InferRequest.from_wire(_payload(query), max_bytes=self.cfg.max_payload_bytes)
+        except WireError as exc:
+            self._warn("%s: bad inference request for %s: %s", self.deployment, robot, exc.reason)
+            self._send(query, key, error_reply(exc), delay_s)
+            return
+        if self.faults.drop_now(fault):
+            self._hold(query)
+            return
+        error = check_request(
+            request, robot=robot, digest=self.model.digest, cut_specs=self._cut_specs
+        )
+        if error is not None:
+            self._warn(
+                "%s: refused frame %d of %s: %s",
+                self.deployment,
+                request.frame,
+                robot,
+                error.reason,
+            )
+            self._send(query, key, error.to_wire(), delay_s)
+            return
+        with self._lock:
+            serving = self._states.get(robot).serving and not self._closing
+        if not serving:
+            # A request that crossed a switch: the robot finishes the frame itself.
+            log.info("%s: frame %d of %s arrived in standby", self.deployment, request.frame, robot)
+            reply = ErrorReply.make(
+                ErrorCode.NOT_SERVING, f"{self.deployment} does not serve {robot} now"
+            )
+            self._send(query, key, reply.to_wire(), delay_s)
+            return
+        pool = self._pool
+        job = functools.partial(self._compute, robot, key, query, request, arrived)
+        if pool is None or not pool.try_submit(job):
+            busy = BusyReply(
+                frame=request.frame,
+                deployment=self.deployment,
+                queued=pool.load if pool is not None else 0,
+                capacity=pool.capacity if pool is not None else 0,
+            )
+            self._send(query, key, busy.to_wire(), delay_s)
+
+    def _compute(
+        self, robot: str, key: str, query: zenoh.Query, request: InferRequest, arrived: float
+    ) -> None:
+        started = time.monotonic()
+        queue_s = started - arrived
+        with self._lock:
+            closing = self._closing
+        error: ErrorReply | None = None
+        if closing:
+            error = ErrorReply.make(ErrorCode.NOT_SERVING, f"{self.deployment} is stopping")
+        elif queue_s > request.deadline_s:
+            # The robot has finished this frame itself by now: computing it helps nobody.
+            error = ErrorReply.make(
+                ErrorCode.DEADLINE_EXPIRED,
+                f"frame {request.frame} waited {queue_s * 1000:.0f} ms for a worker, past its "
+                f"deadline of {request.deadline_s * 1000:.0f} ms",
+            )
+        if error is not None:
+            self._send(query, key, error.to_wire(), self._delay_s())
+            return
+        try:
+            outputs = self.model.run_suffix(request.cut, request.tensors)
+        except Exception as exc:
+            reason = f"suffix of cut {request.cut} failed: {ort_reason(exc)}"
+            log.warning("%s: frame %d of %s: %s", self.deployment, request.frame, robot, reason)
+            self._send(
+                query, key, ErrorReply.make(ErrorCode.INTERNAL, reason).to_wire(), self._delay_s()
+            )
+            return
+        compute_s = time.monotonic() - started
+        with self._lock:
+            epoch = self._states.get(robot).wire_epoch
+        reply = InferReply(
+            frame=request.frame,
+            deployment=self.deployment,
+            epoch=epoch,
+            outputs=outputs,
+            queue_s=queue_s,
+            compute_s=compute_s,
+        )
+        self._send(
+            query,
+            key,
+            reply.to_wire(),
+            self._delay_s(),
+            on_sent=functools.partial(self._count_served, robot, request.frame, epoch),
+        )
+
+    def _count_served(self, robot: str, frame: int, epoch: int) -> None:
+        with self._lock:
+            self._served[robot] = self._served.get(robot, 0) + 1
+            first = robot in self._unanswered
+            self._unanswered.discard(robot)
+        if first:
+            # One line per stay in service: shows that requests reach this deployment and that
+            # its replies go out (a robot that times out against it is then a network problem).
+            log.info(
+                "%s: first frame of %s answered at epoch %d (frame %d)",
+                self.deployment,
+                robot,
+                epoch,
+                frame,
+            )

@@ -1,0 +1,83 @@
+"""Checks an inference request against the model this deployment serves, before any work.
+
+The codec already refused what cannot be a request (garbage, unknown schema version, bad dtype
+names, shape/byte-count mismatch, oversize payload). What is left is whether a well-formed request
+fits *this* model: the robot it names, the model digest, the cut index, and the cut's tensors by
+name, dtype and shape (`SplitModel.cut_tensor_specs`). Each problem is an `ErrorReply` with a code
+and a one-line reason the robot can log; nothing here raises.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+from common.partition import TensorSpec
+from common.wire import ErrorCode, ErrorReply
+from common.wire.robot_to_cloud import InferRequest
+
+DIGEST_SHOWN_CHARS = 12
+
+
+def _names(names: Sequence[str]) -> str:
+    return ", ".join(repr(n) for n in names)
+
+
+def _shape(shape: Sequence[int]) -> str:
+    return "[" + ", ".join(str(d) for d in shape) + "]"
+
+
+def check_request(
+    request: InferRequest,
+    *,
+    robot: str,
+    digest: str,
+    cut_specs: Sequence[Sequence[TensorSpec]],
+) -> ErrorReply | None:
+    """The error reply for `request` arriving on `robot`'s service key, or None if this
+    deployment can compute it. `cut_specs[k]` are the tensors crossing cut k."""
+    if request.robot != robot:
+        return ErrorReply.make(
+            ErrorCode.BAD_VALUE,
+            f"request names robot {request.robot!r} but came on the service key of {robot!r}",
+        )
+    if request.model_digest != digest:
+        return ErrorReply.make(
+            ErrorCode.MODEL_DIGEST,
+            f"model digest {request.model_digest[:DIGEST_SHOWN_CHARS]!r} does not match this "
+            f"deployment's model {digest[:DIGEST_SHOWN_CHARS]!r}: robot and cloud must load the "
+            "same model",
+        )
+    if not 0 <= request.cut < len(cut_specs):
+        return ErrorReply.make(
+            ErrorCode.UNKNOWN_CUT,
+            f"unknown cut {request.cut}: this model has cuts 0..{len(cut_specs) - 1}",
+        )
+    specs = cut_specs[request.cut]
+    expected = [spec.name for spec in specs]
+    missing = [name for name in expected if name not in request.tensors]
+    if missing:
+        return ErrorReply.make(
+            ErrorCode.MISSING_FIELD,
+            f"cut {request.cut} needs tensor(s) {_names(expected)}; missing {_names(missing)}",
+        )
+    extra = [name for name in request.tensors if name not in expected]
+    if extra:
+        return ErrorReply.make(
+            ErrorCode.BAD_VALUE,
+            f"cut {request.cut} takes tensor(s) {_names(expected)}; unexpected {_names(extra)}",
+        )
+    for spec in specs:
+        array = request.tensors[spec.name]
+        if array.dtype.name != spec.dtype:
+            return ErrorReply.make(
+                ErrorCode.BAD_DTYPE,
+                f"tensor {spec.name!r} of cut {request.cut}: dtype {array.dtype.name}, "
+                f"expected {spec.dtype}",
+            )
+        if tuple(array.shape) != tuple(spec.shape):
+            return ErrorReply.make(
+                ErrorCode.SHAPE_MISMATCH,
+                f"tensor {spec.name!r} of cut {request.cut}: shape {_shape(array.shape)}, "
+                f"expected {_shape(spec.shape)}",
+            )
+    return None
