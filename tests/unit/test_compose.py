@@ -1,0 +1,200 @@
+"""The docker-compose demo, checked statically (no Docker engine runs on the build machines).
+
+Parses deploy/docker-compose.yml with PyYAML and checks what `docker compose up` would trip on:
+the services, the build context and Dockerfile (and what it copies), mounted files, the robot's
+NET_ADMIN, and that every command and healthcheck is a real `elasticfog` command line: the
+subcommands and options are parsed by the CLI's own click commands (`make_context`, which checks
+names, types and required options without running anything), with container paths mapped back
+to the files mounted there. The `--id`s must be machines of the mounted fleet file, with the role
+the daemon expects, and the hosts must be the namespace testbed's, so one topology runs in both.
+"""
+
+from __future__ import annotations
+
+import shlex
+from pathlib import Path
+from typing import Any
+
+import pytest
+import typer
+import yaml
+
+from common.config import FleetConfig, load_fleet
+from deploy.testbed import DEFAULT_HOSTS
+
+DEPLOY_DIR = Path(__file__).resolve().parents[2] / "deploy"
+COMPOSE_FILE = DEPLOY_DIR / "docker-compose.yml"
+SERVICES = ("registry", "robot", "edge-1", "edge-2", "cloud-1")
+# Commands a service's shell may run before it execs the daemon (the robot shapes its uplink).
+SHELL_TOOLS = {"tc", "ip"}
+# The daemon each `elasticfog` subcommand runs, and the role its --id must have in the fleet.
+DAEMON_ROLE = {"cloud": "cloud", "robot": "robot"}
+
+
+def _compose() -> dict[str, Any]:
+    data = yaml.safe_load(COMPOSE_FILE.read_text())
+    assert isinstance(data, dict), f"{COMPOSE_FILE} is not a mapping"
+    return data
+
+
+def _service(name: str) -> dict[str, Any]:
+    services = _compose()["services"]
+    assert name in services, f"{COMPOSE_FILE} has no service {name!r}"
+    return dict(services[name])
+
+
+def _bind_mounts(service: dict[str, Any]) -> dict[str, Path]:
+    """Container path → host path for the service's bind mounts (short syntax, ./relative)."""
+    mounts: dict[str, Path] = {}
+    for volume in service.get("volumes", []):
+        source, target = str(volume).split(":")[:2]
+        if source.startswith((".", "/")):
+            mounts[target] = (DEPLOY_DIR / source).resolve()
+    return mounts
+
+
+def _elasticfog_argv(command: list[str]) -> list[str]:
+    """The `elasticfog ...` argv of a service command: direct, or exec'd at the end of `sh -c`."""
+    if command[:1] == ["elasticfog"]:
+        return command
+    assert command[:2] == ["/bin/sh", "-c"] and len(command) == 3, (
+        f"a command is either [elasticfog, ...] or [/bin/sh, -c, SCRIPT], got {command}"
+    )
+    steps = [shlex.split(step) for step in command[2].split("&&")]
+    *setup, last = steps
+    for step in setup:
+        assert step and step[0] in SHELL_TOOLS, f"unexpected setup step {step} in {command}"
+    assert last[:2] == ["exec", "elasticfog"], (
+        f"the script must end with `exec elasticfog ...`: {last}"
+    )
+    return last[1:]
+
+
+def _root_command() -> Any:
+    from common.cli import app  # assembled from every package's entry point
+
+    return typer.main.get_command(app)
+
+
+def _parse_cli(argv: list[str], mounts: dict[str, Path]) -> tuple[str, Any]:
+    """Resolve `elasticfog SUB... OPTIONS` with the real CLI; returns the subcommand and the
+    parsed context (nothing is invoked)."""
+    assert argv[0] == "elasticfog"
+    args = [str(mounts.get(a, a)) for a in argv[1:]]  # container paths → the mounted files
+    command = _root_command()
+    path: list[str] = []
+    while isinstance(getattr(command, "commands", None), dict):  # a command group
+        assert args, f"`{shlex.join(argv)}` stops at a command group"
+        name = args.pop(0)
+        sub = command.commands.get(name)
+        assert sub is not None, (
+            f"`{shlex.join(argv)}`: the CLI has no command `{' '.join([*path, name])}` "
+            f"(it has: {', '.join(sorted(command.commands))})"
+        )
+        command, path = sub, [*path, name]
+    try:
+        ctx = command.make_context(" ".join(["elasticfog", *path]), args)
+    except typer.TyperException as exc:
+        message = exc.format_message() if hasattr(exc, "format_message") else str(exc)
+        pytest.fail(f"`{shlex.join(argv)}` is not a valid command line: {message}")
+    return " ".join(path), ctx
+
+
+def _option_value(ctx: Any, option: str) -> Any:
+    """The parsed value of `option` (whatever the parameter is called in the code)."""
+    for param in ctx.command.params:
+        if option in param.opts and param.name is not None:
+            return ctx.params.get(param.name)
+    pytest.fail(f"`{ctx.info_name}` has no option {option}")
+
+
+def _fleet_for(service: dict[str, Any]) -> FleetConfig:
+    mounts = _bind_mounts(service)
+    configs = [p for t, p in mounts.items() if t.endswith((".yaml", ".yml"))]
+    assert len(configs) == 1, f"expected one mounted fleet file, got {mounts}"
+    return load_fleet(configs[0])
+
+
+def test_compose_has_the_testbed_hosts() -> None:
+    services = _compose()["services"]
+    assert set(services) == set(SERVICES)
+    # The namespace testbed's default hosts are the same, so the fleet file runs in both.
+    assert set(DEFAULT_HOSTS) == set(SERVICES)
+
+
+@pytest.mark.parametrize("name", SERVICES)
+def test_service_builds_from_files_that_exist(name: str) -> None:
+    service = _service(name)
+    build = service["build"]
+    context = (DEPLOY_DIR / build["context"]).resolve()
+    dockerfile = context / build["dockerfile"]
+    assert context.is_dir(), f"{name}: build context {context} is missing"
+    assert dockerfile.is_file(), f"{name}: Dockerfile {dockerfile} is missing"
+    for line in dockerfile.read_text().splitlines():
+        words = line.split()
+        if words[:1] == ["COPY"]:
+            for source in words[1:-1]:
+                assert (context / source).exists(), f"Dockerfile copies missing {source}"
+    for target, source in _bind_mounts(service).items():
+        assert source.exists(), f"{name}: {source} (mounted at {target}) is missing"
+    named = {str(v).split(":")[0] for v in service.get("volumes", [])} - {
+        str(v).split(":")[0] for v in service.get("volumes", []) if str(v).startswith((".", "/"))
+    }
+    assert named <= set(_compose().get("volumes") or {}), f"{name}: undeclared volumes {named}"
+
+
+def test_mounted_fleet_is_valid_and_off_shared_memory() -> None:
+    fleet = _fleet_for(_service("registry"))
+    assert fleet.zenoh.shared_memory is False, "shared memory bypasses the shaped links"
+    for machine in fleet.machines.values():
+        assert machine.shared_memory in (None, False)
+    host = fleet.registry.endpoint.split("/", 1)[1].rsplit(":", 1)[0]
+    assert host in SERVICES, f"registry endpoint {fleet.registry.endpoint} names no service"
+    assert set(fleet.cloud_ids) == {"edge-1", "edge-2", "cloud-1"}
+
+
+@pytest.mark.parametrize("name", SERVICES)
+def test_command_is_a_real_elasticfog_command(name: str) -> None:
+    service = _service(name)
+    mounts = _bind_mounts(service)
+    argv = _elasticfog_argv(list(service["command"]))
+    subcommand, ctx = _parse_cli(argv, mounts)
+    expected = {"registry": "registry", "robot": "robot"}.get(name, "cloud")
+    assert subcommand == expected, f"{name} runs `elasticfog {subcommand}`"
+    if subcommand in DAEMON_ROLE:
+        machine_id = _option_value(ctx, "--id")
+        assert machine_id, f"{name}: `elasticfog {subcommand}` without --id"
+        _fleet_for(service).machine(str(machine_id), DAEMON_ROLE[subcommand])  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("name", SERVICES)
+def test_healthcheck_uses_the_cli(name: str) -> None:
+    service = _service(name)
+    test = list(service["healthcheck"]["test"])
+    assert test[0] == "CMD", f"{name}: healthcheck should be exec form [CMD, elasticfog, ...]"
+    subcommand, ctx = _parse_cli(test[1:], _bind_mounts(service))
+    assert subcommand in {"deployments", "robots", "routes"}
+    assert _option_value(ctx, "--json") is True, f"{name}: healthcheck output is for scripts"
+    for key in ("interval", "timeout", "retries"):
+        assert key in service["healthcheck"], f"{name}: healthcheck without {key}"
+
+
+def test_robot_shapes_its_uplink_with_net_admin() -> None:
+    robot = _service("robot")
+    assert "NET_ADMIN" in robot.get("cap_add", [])
+    script = robot["command"][2]
+    assert "tc qdisc replace dev eth0 root" in script and "htb" in script
+    assert "ROBOT_UPLINK_MBIT" in robot.get("environment", {})
+    for name in SERVICES:
+        if name != "robot":
+            assert "NET_ADMIN" not in _service(name).get("cap_add", [])
+
+
+def test_clouds_and_robot_start_after_their_dependencies_are_healthy() -> None:
+    for name in SERVICES:
+        depends = _service(name).get("depends_on", {})
+        for dependency, condition in depends.items():
+            assert dependency in SERVICES
+            assert condition == {"condition": "service_healthy"}
+    assert "registry" in _service("edge-1")["depends_on"]
+    assert set(_service("robot")["depends_on"]) == {"edge-1", "edge-2", "cloud-1"}
