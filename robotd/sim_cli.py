@@ -2,9 +2,11 @@
 
     elasticfog sim --profile vgg.json --policy elastic --trace deploy/traces/glitch-10-3.yaml
     elasticfog sim --model zoo:vgg --trace deploy/traces/cpu-drop.yaml --compare elastic,ans,robot
+    elasticfog sim --profile vgg.json --policy elastic --param beta=0.3 --param hedge=false ...
 
 The command parses its options and calls the simulator; bad input (a malformed trace or profile,
-an unknown policy) is one line on stderr and exit code 2.
+an unknown policy, a `--param` the policy does not take or a value it rejects) is one line on
+stderr and exit code 2.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ import typer
 from rich.console import Console
 
 from common.errors import UserError
+from robotd.policies import parse_assignments, split_overrides
 from robotd.policies.base import CutTable
 from robotd.sim import SimResult, Simulator, markdown_table, parse_policy_list, plot_results
 from robotd.trace import load_profile, load_trace
@@ -47,6 +50,13 @@ def sim_command(
     compare: str | None = typer.Option(
         None, "--compare", help="Comma-separated policies to run on the same trace and seed."
     ),
+    param: list[str] | None = typer.Option(
+        None,
+        "--param",
+        metavar="KEY=VALUE",
+        help="Override a policy parameter (repeatable), e.g. --param beta=0.3; see "
+        "docs/policies.md. With --compare, each policy takes the keys it has.",
+    ),
     seed: int = typer.Option(0, "--seed", help="Seed of the jitter and entropy draws."),
     json_out: bool = typer.Option(False, "--json", help="Print JSON on stdout."),
     plot: Path | None = typer.Option(
@@ -57,7 +67,7 @@ def sim_command(
 ) -> None:
     """Replay a trace against a policy and report latency, regret and settling."""
     try:
-        _run(trace, model, profile, policy, compare, seed, json_out, plot)
+        _run(trace, model, profile, policy, compare, param or [], seed, json_out, plot)
     except UserError as exc:
         Console(stderr=True).print(f"[red]error:[/red] {exc}", highlight=False, soft_wrap=True)
         raise typer.Exit(UserError.exit_code) from None
@@ -85,17 +95,20 @@ def _run(
     profile: Path | None,
     policy: str | None,
     compare: str | None,
+    params: list[str],
     seed: int,
     json_out: bool,
     plot: Path | None,
 ) -> None:
     if (policy is None) == (compare is None):
         raise UserError("give exactly one of --policy NAME or --compare A,B,...")
+    names = [str(policy)] if compare is None else parse_policy_list(compare)
+    overrides = parse_assignments(params, "--param")
+    params_of = split_overrides(names, overrides, "--param")
     trace, resolved = load_trace(trace_path)
     cuts = _cuts(model, profile, json_out)
     sim = Simulator(cuts, trace, seed=seed, trace_dir=resolved.parent)
-    names = [str(policy)] if compare is None else parse_policy_list(compare)
-    results = [sim.run(name) for name in names]
+    results = [sim.run(name, params_of[name]) for name in names]
     if compare is not None and plot is None:
         plot = DEFAULT_COMPARE_PLOT
     if plot is not None:
@@ -107,19 +120,20 @@ def _run(
         )
         typer.echo(json.dumps(doc))
         return
+    shown = "".join(f", {key}={value}" for key, value in overrides.items())
     if compare is None:
-        typer.echo(_describe(results[0], trace_path, seed))
+        typer.echo(_describe(results[0], trace_path, seed, shown))
     else:
-        typer.echo(f"{trace_path.name}: {results[0].frames} frames, seed {seed}\n")
+        typer.echo(f"{trace_path.name}: {results[0].frames} frames, seed {seed}{shown}\n")
         typer.echo(markdown_table(results))
     if plot is not None:
         typer.echo(f"plot: {plot}")
 
 
-def _describe(result: SimResult, trace_path: Path, seed: int) -> str:
+def _describe(result: SimResult, trace_path: Path, seed: int, shown_params: str) -> str:
     s = result.summary()
     lines = [
-        f"{s['policy']} on {trace_path.name}: {s['frames']} frames, seed {seed}",
+        f"{s['policy']} on {trace_path.name}: {s['frames']} frames, seed {seed}{shown_params}",
         f"  mean latency {s['mean_latency_s']:.3f} s, p95 {s['p95_latency_s']:.3f} s; "
         f"oracle {s['oracle_mean_latency_s']:.3f} s (ratio {s['ratio_to_oracle']:.3f})",
         f"  cumulative regret {s['cumulative_regret']:.2f}",

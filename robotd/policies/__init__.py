@@ -11,7 +11,7 @@ suffix_ms}, ...]}`); `params` and `objective` are plain dicts from the config fi
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 from pydantic import BaseModel
@@ -35,6 +35,8 @@ from robotd.policies.params import (
     ElasticParams,
     NeurosurgeonParams,
     NoParams,
+    check_override,
+    parse_assignments,
     parse_params,
 )
 
@@ -50,7 +52,10 @@ __all__ = [
     "PowerModel",
     "action_label",
     "make_policy",
+    "params_model",
+    "parse_assignments",
     "policy_names",
+    "split_overrides",
 ]
 
 # Policies the real-time robot daemon can run; `oracle` needs the simulator's ground truth.
@@ -61,6 +66,52 @@ SIM_ONLY_POLICIES = ("oracle",)
 def policy_names() -> tuple[str, ...]:
     """Every accepted policy spec (`static:K` stands for any cut index K)."""
     return REAL_TIME_POLICIES + SIM_ONLY_POLICIES
+
+
+def params_model(spec: str) -> type[BaseModel]:
+    """The pydantic model that validates the params of policy `spec`; UserError if unknown."""
+    name = spec.strip().lower() if isinstance(spec, str) else ""
+    models: dict[str, type[BaseModel]] = {
+        "elastic": ElasticParams,
+        "ans": AnsParams,
+        "neurosurgeon": NeurosurgeonParams,
+    }
+    if name in models:
+        return models[name]
+    if name in ("robot", "cloud", "oracle") or name.startswith("static:"):
+        return NoParams
+    raise UserError(f"unknown policy {spec!r}; expected one of {', '.join(policy_names())}")
+
+
+def split_overrides(
+    specs: Sequence[str], overrides: Mapping[str, Any], option: str = "--param"
+) -> dict[str, dict[str, Any]]:
+    """Share parameter overrides (e.g. from `--param KEY=VALUE`) among the policies in `specs`.
+
+    Each policy gets the keys its params model has, validated by that model. With one policy every
+    key must be one of its parameters; with several (a comparison), a key may concern only some
+    of them (`change_tolerance` is elastic's alone) but must concern at least one. UserError, one
+    line naming the option and key, for a key no policy takes or a value that does not fit.
+    """
+    models = {spec: params_model(spec) for spec in specs}
+    if len(specs) == 1:
+        spec = specs[0]
+        check_override(models[spec], overrides, spec, option)
+        return {spec: dict(overrides)}
+    for key in overrides:
+        if not any(key in model.model_fields for model in models.values()):
+            takers = sorted({f for m in models.values() for f in m.model_fields})
+            listed = ", ".join(takers) if takers else "none"
+            raise UserError(
+                f"{option} {key}: none of {', '.join(specs)} has a parameter {key!r} "
+                f"(their parameters: {listed})"
+            )
+    shared: dict[str, dict[str, Any]] = {}
+    for spec, model in models.items():
+        mine = {k: v for k, v in overrides.items() if k in model.model_fields}
+        check_override(model, mine, spec, option)
+        shared[spec] = mine
+    return shared
 
 
 def make_policy(

@@ -50,9 +50,9 @@ from robotd.policies.base import (
     Outcome,
     Policy,
 )
-from robotd.policies.objective import Objective
+from robotd.policies.objective import Objective, cloud_cost
 from robotd.policies.params import AnsParams, ElasticParams
-from robotd.policies.ridge import RidgeEstimator
+from robotd.policies.ridge import RidgeEstimator, quadratic_features
 from robotd.policies.robotcost import MIN_TIMED_S, RobotCostModel
 from robotd.policies.schedule import ForcedSchedule
 
@@ -80,7 +80,8 @@ class ElasticPolicy(Policy):
         self.contexts = np.column_stack([mb, share, np.ones(cuts.size)])
         self._ridge = RidgeEstimator(self.contexts, params.gamma)
         self._robot = RobotCostModel(cuts, objective, params)
-        self._bytes_cost = objective.bytes * mb
+        self._wait_rate = objective.wait_rate
+        self._radio_rate = objective.radio_rate
         self._schedule = ForcedSchedule(
             params.forced_schedule,
             params.forced_start_frames,
@@ -88,13 +89,30 @@ class ElasticPolicy(Policy):
             params.forced_every_frames,
         )
         self._position = {index: i for i, index in enumerate(cuts.indices)}
-        self._untimed = cuts.prefix_s < MIN_TIMED_S
+        self._untimed = (cuts.prefix_s < MIN_TIMED_S).tolist()
         self._known_width = 1.0 / math.sqrt(params.known_samples)
         self._key_factor = math.sqrt(1.0 - params.sigma_key)
         self._nonkey_factor = math.sqrt(1.0 - params.sigma_nonkey)
+        # Per-frame work runs on Python floats and lists: with 16 cuts and d = 3 a numpy call
+        # costs more than the arithmetic it does (docs/policies.md, "Decision cost"). The one
+        # numpy call left gives every action's base cost, quadratic form and prediction at once:
+        #   [V 0 prefix_s bytes_cost; 0 W 0 0; V 0 0 0] @ [α̂; vec Q⁻¹; robot unit cost; 1],
+        # with W_a = vec(v_a v_aᵀ).
+        self._k = k = cuts.size
+        d = self.contexts.shape[1]
+        self._features = np.zeros((3 * k, d + d * d + 2))
+        self._features[:k, :d] = self.contexts
+        self._features[:k, -2] = cuts.prefix_s
+        self._features[:k, -1] = objective.bytes * mb
+        self._features[k : 2 * k, d : d + d * d] = quadratic_features(self.contexts)
+        self._features[2 * k :, :d] = self.contexts
+        self._base_features = self._features[:k]  # all a robot measurement changes
+        self._coef = np.empty(self._features.shape[1])
+        self._prefix_s: list[float] = cuts.prefix_s.tolist()
+        self._suffix_s: list[float] = cuts.suffix_s.tolist()
         self._frame = 0
         # Direction restriction: None means every cut is allowed.
-        self._mask: np.ndarray | None = None
+        self._mask: list[bool] | None = None
         self._p_allowed = True
         # A run starts in an (unrestricted) update period when change detection is on.
         self._updating = params.change_detection
@@ -104,23 +122,33 @@ class ElasticPolicy(Policy):
         self._streak_sign = 0
         self._confirm = False
         self.update_periods = 0
-        self._base = np.empty(cuts.size)
-        self._bonus = np.empty(cuts.size)
-        self._refresh()
+        # Score parts, cut order: base = E^c + bytes cost + α̂ᵀv (inf where restricted away in
+        # `_allowed_base`), width = sqrt(vᵀQ⁻¹v); score = base − sqrt(1−σ)·β·E_P·width, with
+        # `_bonus_scale` = β·E_P; `_pred` = α̂ᵀv.
+        self._base: list[float] = []
+        self._pred: list[float] = []
+        self._allowed_base: list[float] = []
+        self._width: list[float] = []
+        self._bonus_scale = 0.0
+        self._refresh(learned=True)
 
     # -- decisions -------------------------------------------------------------------------
 
     def decide(self, ctx: FrameContext) -> Decision:
         n = self._frame
         self._frame = n + 1
-        self._robot.tick()
+        robot = self._robot
+        robot.tick()
         params = self.params
         factor = self._key_factor if ctx.entropy >= params.key_entropy else self._nonkey_factor
-        base = self._base if self._mask is None else np.where(self._mask, self._base, np.inf)
-        scores = base - factor * self._bonus
-        j = int(scores.argmin())
-        p_cost = self._robot.full_cost
-        regular_p = self._p_allowed and p_cost <= scores[j]
+        base = self._allowed_base
+        c = factor * self._bonus_scale
+        # Equal lengths by construction (strict=True would cost a check every frame).
+        scores = [b - c * w for b, w in zip(base, self._width, strict=False)]
+        best = min(scores)
+        j = scores.index(best)  # the first of equal scores, as argmin would
+        p_cost = robot.full_cost
+        regular_p = self._p_allowed and p_cost <= best
         forced = self._confirm or self._schedule.is_forced(n)
         self._confirm = False
         if regular_p and not forced:
@@ -128,15 +156,15 @@ class ElasticPolicy(Policy):
         hedge = False
         if params.hedge:
             # Exploring = serving something else than the estimates alone would choose.
-            g = int(base.argmin())
-            greedy = -1 if self._p_allowed and p_cost <= base[g] else g
+            cheapest = min(base)
+            greedy = -1 if self._p_allowed and p_cost <= cheapest else base.index(cheapest)
             hedge = greedy != j or self._updating or self._needs_probe(j)
         return Decision(
             self.cuts.indices[j],
             hedge=hedge,
             forced=forced,
             updating=self._updating,
-            predicted_cost=float(self._base[j]),
+            predicted_cost=self._base[j],
         )
 
     def _needs_probe(self, j: int) -> bool:
@@ -150,31 +178,33 @@ class ElasticPolicy(Policy):
     # -- learning --------------------------------------------------------------------------
 
     def observe(self, decision: Decision, outcome: Outcome) -> None:
-        cuts = self.cuts
+        robot = self._robot
         if decision.action == PURE_ROBOT:
-            self._robot.observe(outcome.prefix_s, cuts.full_s)
-            self._refresh()
+            robot.observe(outcome.prefix_s, self.cuts.full_s)
+            self._refresh(learned=False)
             return
         j = self._position[int(decision.action)]
-        self._robot.observe(outcome.prefix_s, float(cuts.prefix_s[j]))
+        robot.observe(outcome.prefix_s, self._prefix_s[j])
         if outcome.local_s is not None:
-            self._robot.observe(outcome.local_s, float(cuts.suffix_s[j]))
+            robot.observe(outcome.local_s, self._suffix_s[j])
         if outcome.cloud_s is not None:
-            target = self.objective.cloud_part(outcome.cloud_s, outcome.cloud_compute_s)
+            target = cloud_cost(
+                self._wait_rate, self._radio_rate, outcome.cloud_s, outcome.cloud_compute_s
+            )
         elif outcome.waited_s is not None:
-            target = self.objective.cloud_part(outcome.waited_s, None)
+            target = cloud_cost(self._wait_rate, self._radio_rate, outcome.waited_s, None)
         else:
-            target = UNKNOWN_WAIT_FACTOR * max(float(self._ridge.pred[j]), MIN_PREDICTION)
+            target = UNKNOWN_WAIT_FACTOR * max(self._pred[j], MIN_PREDICTION)
         if self.params.change_detection:
             self._track(j, target)
         else:
             self._ridge.update(j, target)
-        self._refresh()
+        self._refresh(learned=True)
 
     def _track(self, j: int, target: float) -> None:
         """Update the regression and the change detector with one cloud-side observation."""
         params = self.params
-        pred = float(self._ridge.pred[j])
+        pred = self._pred[j]
         residual = target - pred
         tolerance = params.change_tolerance * max(abs(pred), MIN_PREDICTION)
         if self._updating:
@@ -187,7 +217,7 @@ class ElasticPolicy(Policy):
         sign = 1 if residual > 0 else -1
         # Only an action the model knows well can reveal a change; a surprise on an action still
         # being explored is ordinary learning.
-        known = self._ridge.width[j] <= self._known_width
+        known = self._width[j] <= self._known_width
         if known and abs(residual) > tolerance:
             if sign != self._streak_sign:
                 self._streak.clear()
@@ -212,12 +242,13 @@ class ElasticPolicy(Policy):
         for row, y in misses:
             self._ridge.update(row, y)
         if self.params.direction_restriction:
-            anchor = self.cuts.bytes[j]
+            sizes = self.cuts.bytes
+            anchor = sizes[j]
             if sign > 0:
-                self._mask = self.cuts.bytes <= anchor
+                self._mask = (sizes <= anchor).tolist()
                 self._p_allowed = True
             else:
-                self._mask = self.cuts.bytes >= anchor
+                self._mask = (sizes >= anchor).tolist()
                 self._p_allowed = False
         self._updating = True
         self._period_frames = 0
@@ -230,10 +261,31 @@ class ElasticPolicy(Policy):
         self._p_allowed = True
         self._fits = 0
 
-    def _refresh(self) -> None:
-        """Cache the parts of the score that change only when something is observed."""
-        self._base = self._robot.prefix_cost + self._bytes_cost + self._ridge.pred
-        self._bonus = (self.params.beta * self._robot.full_cost) * self._ridge.width
+    def _refresh(self, learned: bool) -> None:
+        """Recompute the score parts after an observation (`learned`: the regression changed)."""
+        robot = self._robot
+        coef = self._ridge.coefficients()
+        coef += (robot.unit_cost, 1.0)
+        self._coef[:] = coef
+        if not learned:
+            self._base = base = self._base_features.dot(self._coef).tolist()
+        else:
+            values = self._features.dot(self._coef).tolist()
+            k = self._k
+            self._base = base = values[:k]
+            quad = values[k : 2 * k]
+            try:
+                self._width = list(map(math.sqrt, quad))
+            except ValueError:  # round-off can leave a tiny negative form once Q is large
+                self._width = [math.sqrt(x) if x > 0.0 else 0.0 for x in quad]
+            self._pred = values[2 * k :]
+        mask = self._mask
+        self._allowed_base = (
+            base
+            if mask is None
+            else [b if ok else math.inf for b, ok in zip(base, mask, strict=True)]
+        )
+        self._bonus_scale = self.params.beta * robot.full_cost
 
     # -- introspection ---------------------------------------------------------------------
 
@@ -252,19 +304,19 @@ class ElasticPolicy(Policy):
         cuts = [
             index
             for i, index in enumerate(self.cuts.indices)
-            if self._mask is None or bool(self._mask[i])
+            if self._mask is None or self._mask[i]
         ]
         return [*cuts, PURE_ROBOT] if self._p_allowed else list(cuts)
 
     def predicted_cloud_cost(self) -> dict[int, float]:
         """α̂ᵀv_a for every cut (objective units)."""
-        return {index: float(self._ridge.pred[i]) for i, index in enumerate(self.cuts.indices)}
+        return dict(zip(self.cuts.indices, self._pred, strict=True))
 
     def state(self) -> dict[str, Any]:
         return {
             "policy": self.name,
             "frame": self._frame,
-            "alpha": [float(a) for a in self._ridge.alpha],
+            "alpha": list(self._ridge.alpha),
             "samples": self._ridge.samples,
             "updating": self._updating,
             "update_periods": self.update_periods,

@@ -22,6 +22,17 @@ from robotd.policies.base import FloatArray, one_line_validation_error
 F = TypeVar("F", float, FloatArray)
 
 
+def cloud_cost(
+    wait_rate: float, radio_rate: float, cloud_s: float, cloud_compute_s: float | None
+) -> float:
+    """`Objective.cloud_part` from the objective's rates (the learners cache them: this runs
+    every offloaded frame)."""
+    if cloud_compute_s is None:
+        return wait_rate * cloud_s + radio_rate * cloud_s
+    compute = cloud_compute_s if cloud_compute_s < cloud_s else cloud_s
+    return wait_rate * cloud_s + radio_rate * (cloud_s - compute)
+
+
 class PowerModel(BaseModel):
     """Robot power draw in watts, for the energy estimate."""
 
@@ -106,5 +117,4 @@ class Objective(BaseModel):
         The radio is counted active for the whole round trip except the server's compute time,
         when the reply says how long that was.
         """
-        compute = min(cloud_compute_s, cloud_s) if cloud_compute_s is not None else 0.0
-        return self.wait_rate * cloud_s + self.radio_rate * (cloud_s - compute)
+        return cloud_cost(self.wait_rate, self.radio_rate, cloud_s, cloud_compute_s)

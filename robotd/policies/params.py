@@ -7,7 +7,8 @@ behind the defaults.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+import difflib
+from collections.abc import Mapping, Sequence
 from typing import Any, Literal, TypeVar
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
@@ -173,3 +174,46 @@ def parse_params(model: type[P], params: Mapping[str, Any] | BaseModel | None, p
         return model.model_validate(dict(params))
     except ValidationError as exc:
         raise UserError(one_line_validation_error(f"policy {policy} params", exc)) from None
+
+
+def parse_assignments(items: Sequence[str], option: str = "--param") -> dict[str, str]:
+    """`["beta=0.5", "hedge=false"]` → `{"beta": "0.5", "hedge": "false"}` (a repeated key: the
+    last one wins); UserError for an item that is not KEY=VALUE. Values stay strings: the params
+    model converts them (`0.5` to a float, `false` to a bool) and rejects what does not fit."""
+    out: dict[str, str] = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        key = key.strip()
+        if not sep or not key or not value.strip():
+            raise UserError(f"{option} {item!r}: expected KEY=VALUE, e.g. {option} beta=0.5")
+        out[key] = value.strip()
+    return out
+
+
+def check_override(
+    model: type[BaseModel], overrides: Mapping[str, Any], policy: str, option: str = "--param"
+) -> None:
+    """UserError naming the option and key when `overrides` do not fit `model`."""
+    fields = model.model_fields
+    for key in overrides:
+        if key not in fields:
+            raise UserError(f"{option} {key}: {_no_such_parameter(model, key, policy)}")
+    try:
+        model.model_validate(dict(overrides))
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        loc = err["loc"]
+        if loc and loc[0] in overrides:
+            head = f"{option} {loc[0]}={overrides[str(loc[0])]}"
+        else:
+            head = f"{option} ({', '.join(f'{k}={v}' for k, v in overrides.items())})"
+        raise UserError(f"{head}: policy {policy}: {err['msg']}".replace("\n", " ")) from None
+
+
+def _no_such_parameter(model: type[BaseModel], key: str, policy: str) -> str:
+    names = sorted(model.model_fields)
+    if not names:
+        return f"policy {policy} takes no parameters"
+    close = difflib.get_close_matches(key, names, n=1)
+    hint = f"did you mean {close[0]}?" if close else f"its parameters: {', '.join(names)}"
+    return f"policy {policy} has no parameter {key!r} ({hint})"

@@ -32,8 +32,14 @@ class RobotCostModel:
         self._suspect_sign = 0
         self._suspect_ratio = 0.0
         self.frames_since_timed = 0
-        self.prefix_cost: FloatArray = cuts.prefix_s * self._rate
+        # Cost of one profiled second of robot compute; a prefix costs prefix_s·unit_cost.
+        self.unit_cost = self._rate
         self.full_cost = cuts.full_s * self._rate
+
+    @property
+    def prefix_cost(self) -> FloatArray:
+        """Robot cost of every prefix, in cut order (computed on demand)."""
+        return self._cuts.prefix_s * self.unit_cost
 
     @property
     def scale(self) -> float:
@@ -54,7 +60,8 @@ class RobotCostModel:
         if measured_s is None or measured_s <= 0 or profiled_s < MIN_TIMED_S:
             return
         self.frames_since_timed = 0
-        sample = measured_s / profiled_s
+        # float(): a numpy scalar would make every later operation on the ratio slower.
+        sample = float(measured_s) / profiled_s
         if self.ratio is None:
             self.ratio = sample
         else:
@@ -69,5 +76,5 @@ class RobotCostModel:
             else:
                 self._suspect_sign = 0
                 self.ratio += self._ewma * (sample - self.ratio)
-        self.prefix_cost = self._cuts.prefix_s * (self._rate * self.ratio)
+        self.unit_cost = self._rate * self.ratio
         self.full_cost = self._cuts.full_s * self._rate * self.ratio

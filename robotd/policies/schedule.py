@@ -28,6 +28,9 @@ class ForcedSchedule:
         self.start_frames = start_frames
         self.exponent = exponent
         self.every_frames = every_frames
+        # The doubling epoch last looked up, [first, end) and its interval: is_forced runs every
+        # frame and frames arrive in order, so the epoch arithmetic runs once per epoch.
+        self._epoch_first, self._epoch_end, self._epoch_interval = 0, 0, 1
 
     def epoch(self, n: int) -> tuple[int, int, int]:
         """(epoch start frame, T_e, interval) of the doubling epoch holding frame n."""
@@ -54,5 +57,7 @@ class ForcedSchedule:
             return False
         if self.kind == "every":
             return n % self.every_frames == 0
-        start, _, interval = self.epoch(n)
-        return (n - start) % interval == 0
+        if not self._epoch_first <= n < self._epoch_end:
+            first, end, interval = self.epoch(n)
+            self._epoch_first, self._epoch_end, self._epoch_interval = first, end, interval
+        return (n - self._epoch_first) % self._epoch_interval == 0

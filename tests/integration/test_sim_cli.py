@@ -164,6 +164,98 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path: Path, args: list[str], messa
     assert message in lines[0]
 
 
+def test_param_overrides_reach_the_policy() -> None:
+    cpu_drop = ROOT / "deploy" / "traces" / "cpu-drop.yaml"
+    base = ["--profile", str(VGG), "--policy", "elastic", "--trace", str(cpu_drop), "--json"]
+    default = json.loads(sim(*base)[1])
+    assert default["actions"]["P"] > default["frames"] // 2
+    # Every 2nd frame forced onto the cloud: at most half the frames can run on the robot.
+    code, out, _ = sim(
+        *base, "--param", "forced_schedule=every", "--param", "forced_every_frames=2"
+    )
+    assert code == 0
+    forced = json.loads(out)
+    assert forced["actions"]["P"] <= forced["frames"] // 2
+    # A repeated key: the last one wins, so this is the default run again.
+    code, out, _ = sim(*base, "--param", "beta=0.1", "--param", "beta=1.0")
+    again = json.loads(out)
+    for doc in (default, again):
+        doc.pop("decision_us_median")
+    assert again == default
+
+
+def test_param_with_compare_goes_to_the_policies_that_take_it(tmp_path: Path) -> None:
+    args = [
+        "--profile",
+        str(VGG),
+        "--trace",
+        str(GLITCH),
+        "--json",
+        "--plot",
+        str(tmp_path / "c.png"),
+    ]
+    plain = json.loads(sim(*args, "--compare", "elastic,robot")[1])["results"]
+    code, out, err = sim(*args, "--compare", "elastic,robot", "--param", "change_detection=false")
+    assert code == 0, err
+    tuned = json.loads(out)["results"]
+    # Without change detection elastic sits on the stale cut after the glitch; robot is untouched.
+    assert tuned[0]["segments"][1]["settle_frames"] != plain[0]["segments"][1]["settle_frames"]
+    assert tuned[1]["mean_latency_s"] == plain[1]["mean_latency_s"]
+
+
+@pytest.mark.parametrize(
+    ("policy", "params", "message"),
+    [
+        (
+            "elastic",
+            ["betta=0.3"],
+            "--param betta: policy elastic has no parameter 'betta' (did you mean beta?)",
+        ),
+        (
+            "elastic",
+            ["beta=-1"],
+            "--param beta=-1: policy elastic: Input should be greater than or equal to 0",
+        ),
+        ("elastic", ["hedge=maybe"], "--param hedge=maybe"),
+        ("elastic", ["forced_schedule=weekly"], "'doubling', 'every' or 'off'"),
+        ("elastic", ["sigma_key=0.1", "sigma_nonkey=0.5"], "must be <= sigma_key"),
+        ("elastic", ["beta"], "--param 'beta': expected KEY=VALUE"),
+        ("elastic", ["=3"], "expected KEY=VALUE"),
+        ("ans", ["change_detection=false"], "policy ans has no parameter 'change_detection'"),
+        ("robot", ["beta=1"], "policy robot takes no parameters"),
+        ("compare:elastic,robot", ["zeta=1"], "none of elastic, robot has a parameter 'zeta'"),
+        ("compare:ans,neurosurgeon", ["ewma=2"], "--param ewma=2: policy neurosurgeon"),
+    ],
+)
+def test_bad_param_is_one_line_and_exit_2(
+    tmp_path: Path, policy: str, params: list[str], message: str
+) -> None:
+    which = (
+        ["--compare", policy.split(":", 1)[1]]
+        if policy.startswith("compare:")
+        else ["--policy", policy]
+    )
+    argv = [
+        "--profile",
+        str(VGG),
+        "--trace",
+        str(GLITCH),
+        *which,
+        "--plot",
+        str(tmp_path / "x.png"),
+    ]
+    for item in params:
+        argv += ["--param", item]
+    code, out, err = sim(*argv)
+    assert code == 2
+    assert out == ""
+    lines = err.strip().splitlines()
+    assert len(lines) == 1
+    assert lines[0].startswith("error:")
+    assert message in lines[0]
+    assert not (tmp_path / "x.png").exists()  # rejected before anything ran
+
+
 def test_model_and_profile_are_exclusive(tmp_path: Path) -> None:
     code, _, err = sim(
         "--model", "zoo:vgg", "--profile", str(VGG), "--policy", "robot", "--trace", str(GLITCH)
