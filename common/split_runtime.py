@@ -264,6 +264,9 @@ class SplitModel:
         if self.threads:
             opts.intra_op_num_threads = self.threads
             opts.inter_op_num_threads = 1
+        # Daemons share a host's cores (and a robot may run under a CPU quota): idle onnxruntime
+        # workers that spin burn the cores the other processes need.
+        opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
         if not self.arena:
             opts.enable_cpu_mem_arena = False
         if self.optimization == "extended":

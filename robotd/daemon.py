@@ -529,9 +529,14 @@ class RobotDaemon(Daemon):
         payload = request.to_wire()
         delay = 0.0
         if self._uplink is not None:
+            # A frame that cannot get through the emulated uplink before its deadline is not
+            # sent: it would only queue ahead of the next frames (the call then times out at the
+            # deadline, so the policy still learns what this cut costs).
+            delay = self._uplink.delay_for(len(payload))
+            if delay < self.deadline_s:
+                delay = self._uplink.reserve(len(payload))
             # The encoded size does not depend on the deadline's value (a float is 9 bytes), so
             # re-encoding with the budget left after the emulated uplink keeps the size reserved.
-            delay = self._uplink.reserve(len(payload))
             if 0 < delay < self.deadline_s:
                 budget = self.deadline_s - delay
                 payload = dataclasses.replace(request, deadline_s=budget).to_wire()
