@@ -71,11 +71,20 @@ def test_a_daemon_ignoring_sigint_is_killed_with_its_children(tmp_path: Path):
     assert _gone(child_pid)
 
 
-def _gone(pid: int) -> bool:
+def _gone(pid: int, timeout_s: float = 5.0) -> bool:
+    """True once `pid` has exited (or is a zombie nobody reaped): SIGKILL is delivered
+    asynchronously, so a grandchild may still be listed for a moment after its group was killed."""
+
+    def exited() -> bool:
+        try:
+            return psutil.Process(pid).status() == psutil.STATUS_ZOMBIE
+        except psutil.NoSuchProcess:
+            return True
+
     try:
-        return psutil.Process(pid).status() == psutil.STATUS_ZOMBIE
-    except psutil.NoSuchProcess:
-        return True
+        return bool(wait_until(exited, timeout_s=timeout_s, what=f"pid {pid} to exit"))
+    except DaemonError:
+        return False
 
 
 def test_leaving_the_block_by_an_exception_stops_everything(tmp_path: Path):
