@@ -1,7 +1,350 @@
-"""Commands of this package (filled in as the package grows)."""
+"""`elasticfog bench ...`: the papers' experiments on the namespace testbed (root).
+
+Each command parses its options and calls one experiment of `benchmarks/experiments` (see
+docs/experiments.md): it brings a testbed up, runs the real daemons inside its hosts, shapes the
+robot's uplink or CPU quota while the robot streams, prints a markdown table on stdout (or
+`--json`), writes PNG plots into docs/img/, and always removes the testbed again, also on Ctrl-C.
+Progress goes to stderr. `--quick` runs short.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from types import ModuleType
+from typing import Any
 
 import typer
+from rich.console import Console
+
+from common.errors import UserError
+
+bench_app = typer.Typer(
+    name="bench",
+    help="The papers' experiments on the namespace testbed (root): tables and plots.",
+    no_args_is_help=True,
+)
+
+INTERRUPTED_EXIT_CODE = 130
+REPO_ROOT = Path(__file__).resolve().parents[1]
+
+QUICK_OPTION = typer.Option(False, "--quick", help="A short run (fewer frames).")
+FRAMES_OPTION = typer.Option(
+    None, "--frames", help="Frames per robot run (default: the experiment's, less with --quick)."
+)
+ROBOT_CPU_OPTION = typer.Option(
+    0.02, "--robot-cpu", help="The robot host's CPU quota, in cores (how slow the robot is)."
+)
+MODEL_OPTION = typer.Option("zoo:vgg", "--model", help="zoo:NAME or an ONNX file.")
+SHAPE_OPTION = typer.Option("3x120x160", "--input-shape", help="Frame shape CxHxW (float32).")
+PLOTS_OPTION = typer.Option(
+    REPO_ROOT / "docs" / "img", "--plots-dir", help="Where PNG plots are written."
+)
+NO_PLOTS_OPTION = typer.Option(False, "--no-plots", help="Write no plots.")
+WORKDIR_OPTION = typer.Option(
+    None, "--workdir", help="Keep fleets, telemetry and daemon logs here (default: temporary)."
+)
+NAME_OPTION = typer.Option(None, "--name", help="Testbed name (default: one of its own).")
+JSON_OPTION = typer.Option(False, "--json", help="Print plain JSON on stdout.")
 
 
 def register(app: typer.Typer) -> None:
-    """Add this package's commands to the root app."""
+    """Add the `bench` command group to the root app."""
+    app.add_typer(bench_app, name="bench")
+
+
+def _experiments() -> ModuleType:
+    """`benchmarks.experiments`, from the source checkout this package is installed from."""
+    try:
+        import benchmarks.experiments as experiments
+    except ModuleNotFoundError:
+        if not (REPO_ROOT / "benchmarks" / "experiments" / "__init__.py").is_file():
+            raise UserError(
+                "elasticfog bench needs the source checkout (benchmarks/experiments is missing "
+                f"next to {Path(__file__).parent})"
+            ) from None
+        sys.path.insert(0, str(REPO_ROOT))
+        import benchmarks.experiments as experiments
+    return experiments
+
+
+def _options(
+    *,
+    quick: bool,
+    frames: int | None,
+    robot_cpu: float,
+    model: str,
+    input_shape: str,
+    plots_dir: Path,
+    no_plots: bool,
+    workdir: Path | None,
+    name: str | None,
+) -> Any:
+    _experiments()
+    from benchmarks.experiments.options import BenchOptions
+    from common.zoo import parse_shape
+    from deploy.testbed import check_name
+
+    if name is not None:
+        check_name(name)
+    err = Console(stderr=True)
+    options = BenchOptions(
+        model=model,
+        input_shape=parse_shape(input_shape),
+        robot_cpu=robot_cpu,
+        frames=frames,
+        quick=quick,
+        workdir=workdir,
+        plots_dir=None if no_plots else plots_dir,
+        name=name,
+        log=lambda message: err.print(f"[dim]bench:[/dim] {message}", highlight=False),
+    )
+    options.check()
+    return options
+
+
+def _run(
+    options: Any,
+    experiment: Callable[[], dict[str, Any]],
+    render: Callable[[dict[str, Any]], str],
+    plot: Callable[[dict[str, Any], Path], list[Path]],
+    as_json: bool,
+    public: Callable[[dict[str, Any]], dict[str, Any]] = lambda r: r,
+) -> None:
+    from deploy.testbed import require_root
+
+    err = Console(stderr=True)
+    try:
+        require_root()  # after every option was checked: bad input is reported to anyone
+        result = experiment()
+    except UserError as exc:
+        err.print(f"[red]error:[/red] {exc}", highlight=False, soft_wrap=True)
+        raise typer.Exit(exc.exit_code) from None
+    except KeyboardInterrupt:
+        err.print("interrupted; the testbed and every daemon are gone", highlight=False)
+        raise typer.Exit(INTERRUPTED_EXIT_CODE) from None
+    if options.plots_dir is not None and result.get("results"):
+        for path in plot(result, options.plots_dir):
+            err.print(f"plot: {path}", highlight=False)
+    if as_json:
+        typer.echo(json.dumps(public(result)))
+    else:
+        typer.echo(render(result))
+
+
+def _guard(fn: Callable[[], Any]) -> Any:
+    try:
+        return fn()
+    except UserError as exc:
+        Console(stderr=True).print(f"[red]error:[/red] {exc}", highlight=False, soft_wrap=True)
+        raise typer.Exit(exc.exit_code) from None
+
+
+@bench_app.command("table1")
+def table1(
+    uplinks: str = typer.Option(
+        "0.5,1,2,5,20", "--uplinks", help="Robot uplink caps in Mbit/s, comma-separated."
+    ),
+    policies: str = typer.Option(
+        "robot,cloud,elastic,elastic-nohedge,neurosurgeon,ans",
+        "--policies",
+        help="Policies, comma-separated (elastic-nohedge: elastic without hedged exploration).",
+    ),
+    quick: bool = QUICK_OPTION,
+    frames: int | None = FRAMES_OPTION,
+    robot_cpu: float = ROBOT_CPU_OPTION,
+    model: str = MODEL_OPTION,
+    input_shape: str = SHAPE_OPTION,
+    plots_dir: Path = PLOTS_OPTION,
+    no_plots: bool = NO_PLOTS_OPTION,
+    workdir: Path | None = WORKDIR_OPTION,
+    name: str | None = NAME_OPTION,
+    as_json: bool = JSON_OPTION,
+) -> None:
+    """ElasticROS Table I: latency, robot CPU and energy per frame at each uplink cap."""
+    options = _guard(
+        lambda: _options(
+            quick=quick,
+            frames=frames,
+            robot_cpu=robot_cpu,
+            model=model,
+            input_shape=input_shape,
+            plots_dir=plots_dir,
+            no_plots=no_plots,
+            workdir=workdir,
+            name=name,
+        )
+    )
+    from benchmarks.experiments import table1 as t1
+    from benchmarks.experiments.options import parse_floats, parse_names
+
+    caps = _guard(lambda: parse_floats(uplinks, "--uplinks"))
+    names = _guard(lambda: parse_names(policies, "--policies", _policy_names()))
+    _run(options, lambda: t1.run(options, caps, names), t1.markdown, t1.plot, as_json)
+
+
+@bench_app.command("glitch")
+def glitch(
+    from_mbit: float = typer.Option(..., "--from-mbit", help="Uplink cap before, Mbit/s."),
+    to_mbit: float = typer.Option(..., "--to-mbit", help="Uplink cap after, Mbit/s."),
+    policies: str = typer.Option(
+        "elastic,elastic-nohedge,cloud,robot", "--policies", help="Comma-separated."
+    ),
+    quick: bool = QUICK_OPTION,
+    frames: int | None = FRAMES_OPTION,
+    robot_cpu: float = ROBOT_CPU_OPTION,
+    model: str = MODEL_OPTION,
+    input_shape: str = SHAPE_OPTION,
+    plots_dir: Path = PLOTS_OPTION,
+    no_plots: bool = NO_PLOTS_OPTION,
+    workdir: Path | None = WORKDIR_OPTION,
+    name: str | None = NAME_OPTION,
+    as_json: bool = JSON_OPTION,
+) -> None:
+    """A bandwidth glitch while the robot streams: before / on / after, frames to settle."""
+    options = _guard(
+        lambda: _options(
+            quick=quick,
+            frames=frames,
+            robot_cpu=robot_cpu,
+            model=model,
+            input_shape=input_shape,
+            plots_dir=plots_dir,
+            no_plots=no_plots,
+            workdir=workdir,
+            name=name,
+        )
+    )
+    from benchmarks.experiments import glitch as gl
+    from benchmarks.experiments.options import parse_floats, parse_names
+
+    a, b = _guard(lambda: parse_floats(f"{from_mbit},{to_mbit}", "--from-mbit/--to-mbit"))
+    names = _guard(lambda: parse_names(policies, "--policies", _policy_names()))
+    _run(
+        options,
+        lambda: gl.run(options, a, b, names),
+        gl.markdown,
+        lambda r, d: gl.plot(r, d, "glitch"),
+        as_json,
+        gl.public,
+    )
+
+
+@bench_app.command("table2")
+def table2(
+    policies: str = typer.Option(
+        "elastic,elastic-nohedge,cloud,robot", "--policies", help="Comma-separated."
+    ),
+    quick: bool = QUICK_OPTION,
+    frames: int | None = FRAMES_OPTION,
+    robot_cpu: float = ROBOT_CPU_OPTION,
+    model: str = MODEL_OPTION,
+    input_shape: str = SHAPE_OPTION,
+    plots_dir: Path = PLOTS_OPTION,
+    no_plots: bool = NO_PLOTS_OPTION,
+    workdir: Path | None = WORKDIR_OPTION,
+    name: str | None = NAME_OPTION,
+    as_json: bool = JSON_OPTION,
+) -> None:
+    """ElasticROS Table II: the glitches 10→3, 5→1 and 10→1 Mbit/s."""
+    options = _guard(
+        lambda: _options(
+            quick=quick,
+            frames=frames,
+            robot_cpu=robot_cpu,
+            model=model,
+            input_shape=input_shape,
+            plots_dir=plots_dir,
+            no_plots=no_plots,
+            workdir=workdir,
+            name=name,
+        )
+    )
+    from benchmarks.experiments import glitch as gl
+    from benchmarks.experiments.options import parse_names
+
+    names = _guard(lambda: parse_names(policies, "--policies", _policy_names()))
+    _run(
+        options,
+        lambda: gl.run_table2(options, gl.TABLE2_GLITCHES, names),
+        gl.markdown,
+        lambda r, d: gl.plot(r, d, "table2"),
+        as_json,
+        gl.public,
+    )
+
+
+@bench_app.command("table3")
+def table3(
+    policies: str = typer.Option(
+        "elastic,elastic-nohedge,robot,cloud", "--policies", help="Comma-separated."
+    ),
+    quick: bool = QUICK_OPTION,
+    frames: int | None = FRAMES_OPTION,
+    robot_cpu: float = ROBOT_CPU_OPTION,
+    model: str = MODEL_OPTION,
+    input_shape: str = SHAPE_OPTION,
+    plots_dir: Path = PLOTS_OPTION,
+    no_plots: bool = NO_PLOTS_OPTION,
+    workdir: Path | None = WORKDIR_OPTION,
+    name: str | None = NAME_OPTION,
+    as_json: bool = JSON_OPTION,
+) -> None:
+    """ElasticROS Table III: the robot's CPU quota drops to --robot-cpu, then recovers."""
+    options = _guard(
+        lambda: _options(
+            quick=quick,
+            frames=frames,
+            robot_cpu=robot_cpu,
+            model=model,
+            input_shape=input_shape,
+            plots_dir=plots_dir,
+            no_plots=no_plots,
+            workdir=workdir,
+            name=name,
+        )
+    )
+    from benchmarks.experiments import table3 as t3
+    from benchmarks.experiments.options import parse_names
+
+    names = _guard(lambda: parse_names(policies, "--policies", _policy_names()))
+    _run(options, lambda: t3.run(options, names), t3.markdown, t3.plot, as_json, t3.public)
+
+
+@bench_app.command("anycast")
+def anycast(
+    quick: bool = QUICK_OPTION,
+    frames: int | None = FRAMES_OPTION,
+    model: str = MODEL_OPTION,
+    input_shape: str = SHAPE_OPTION,
+    plots_dir: Path = PLOTS_OPTION,
+    no_plots: bool = NO_PLOTS_OPTION,
+    workdir: Path | None = WORKDIR_OPTION,
+    name: str | None = NAME_OPTION,
+    as_json: bool = JSON_OPTION,
+) -> None:
+    """FogROS2-LS Table I: deadline misses with 1-4 deployments when edge-1 is slowed."""
+    options = _guard(
+        lambda: _options(
+            quick=quick,
+            frames=frames,
+            robot_cpu=1.0,
+            model=model,
+            input_shape=input_shape,
+            plots_dir=plots_dir,
+            no_plots=no_plots,
+            workdir=workdir,
+            name=name,
+        )
+    )
+    from benchmarks.experiments import anycast as ac
+
+    _run(options, lambda: ac.run(options), ac.markdown, ac.plot, as_json)
+
+
+def _policy_names() -> list[str]:
+    from robotd.policies import policy_names
+
+    return [n for n in policy_names() if n != "oracle"]

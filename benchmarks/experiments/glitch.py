@@ -1,0 +1,194 @@
+"""ElasticROS Table II on the testbed: the robot's uplink cap drops while it streams.
+
+One robot run per policy against one cloud daemon (`edge-1`): the uplink is capped at A Mbit/s,
+and once the robot has reported `before` measured frames the cap is changed to B Mbit/s with
+`tc class change` while its frames are in flight. The frames are split into before / on / after
+the change ("on" lasts until the policy settles on its final action, see `stats.phases`), each
+with its mean latency, robot CPU and energy per frame; `settle_frames` counts frames from the
+change until the policy settled, `lost` the frames asked for and never reported.
+
+`--json` prints `{"results": [{"policy", "before_mean_latency_s", "on_mean_latency_s",
+"after_mean_latency_s", "settle_frames", "lost", ...}]}`. Table II runs 10→3, 5→1 and 10→1.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from .fleet import FleetSpec
+from .options import BenchOptions, open_fleet
+from .report import fmt, md_table, save_plot, use_agg
+from .runner import TestbedFleet
+from .stats import by_frame, lost_frames, phases
+
+POLICIES = ("elastic", "elastic-nohedge", "cloud", "robot")
+TABLE2_GLITCHES = ((10.0, 3.0), (5.0, 1.0), (10.0, 1.0))
+# Frames of one run: warm-up (left out), before the change, after it.
+FULL_SPLIT = (10, 20, 50)
+QUICK_SPLIT = (4, 10, 24)
+DEADLINE_S = 15.0
+RUN_SLACK_S = 120.0
+CHANGE_WAIT_S = 300.0
+"""Bound of the wait for the frame at which the cap changes."""
+
+
+def frame_split(options: BenchOptions) -> tuple[int, int, int]:
+    """(warm-up, before, after) frames; --frames N splits N as 1/8, 1/4, 5/8."""
+    if options.frames is None:
+        return QUICK_SPLIT if options.quick else FULL_SPLIT
+    n = options.frames
+    warmup, before = max(1, n // 8), max(3, n // 4)
+    return warmup, before, max(3, n - warmup - before)
+
+
+def run_one(
+    tf: TestbedFleet,
+    options: BenchOptions,
+    policy: str,
+    from_mbit: float,
+    to_mbit: float,
+) -> dict[str, Any]:
+    """One policy through one glitch on a launched fleet; its result row."""
+    warmup, before, after = frame_split(options)
+    frames = warmup + before + after
+    tf.shape_robot(from_mbit)
+    robot = tf.start_robot(policy, frames=frames, cpu_fraction=options.robot_cpu)
+    start = tf.measure_from + warmup
+    # Change the cap as soon as the last "before" frame is reported: the next one is in flight.
+    tf.follower.wait_frame(start + before - 1, timeout_s=CHANGE_WAIT_S, procs=[robot])
+    tf.shape_robot(to_mbit)
+    change_frame = tf.follower.last_frame() + 1
+    options.log(f"{policy}: uplink {from_mbit:g} -> {to_mbit:g} Mbit/s at frame {change_frame}")
+    records = by_frame(tf.finish_robot(RUN_SLACK_S + frames * (DEADLINE_S + 1)))
+    ph = phases(records, start, change_frame)
+    row: dict[str, Any] = {
+        "policy": policy,
+        "from_mbit": from_mbit,
+        "to_mbit": to_mbit,
+        "before_mean_latency_s": ph["before"]["mean_latency_s"],
+        "on_mean_latency_s": ph["on"]["mean_latency_s"],
+        "after_mean_latency_s": ph["after"]["mean_latency_s"],
+        "settle_frames": ph["settle_frames"],
+        "lost": len(lost_frames(records, frames)),
+        "change_frame": change_frame,
+        "measured_from_frame": start,
+        "before": ph["before"],
+        "on": ph["on"],
+        "after": ph["after"],
+        "trace": [
+            {k: r.get(k) for k in ("frame", "action", "latency_s", "bytes_up", "fallback")}
+            for r in records
+        ],
+    }
+    return row
+
+
+def _spec(tf: TestbedFleet, options: BenchOptions) -> FleetSpec:
+    return FleetSpec(
+        fleet=tf.next_fleet_name("gl-"),
+        clouds=("edge-1",),
+        model=options.model,
+        input_shape=options.input_shape,
+        deadline_s=DEADLINE_S,
+    )
+
+
+def run(
+    options: BenchOptions,
+    from_mbit: float,
+    to_mbit: float,
+    policies: Sequence[str] = POLICIES,
+) -> dict[str, Any]:
+    """`bench glitch`: every policy through one glitch."""
+    return run_table2(options, [(from_mbit, to_mbit)], policies)
+
+
+def run_table2(
+    options: BenchOptions,
+    glitches: Sequence[tuple[float, float]] = TABLE2_GLITCHES,
+    policies: Sequence[str] = POLICIES,
+) -> dict[str, Any]:
+    """Every policy through every glitch, on one testbed."""
+    options.check()
+    warmup, before, after = frame_split(options)
+    results = []
+    with open_fleet(options, hosts=("registry", "robot", "edge-1", "bench")) as tf:
+        tf.launch(_spec(tf, options))
+        for from_mbit, to_mbit in glitches:
+            for policy in policies:
+                results.append(run_one(tf, options, policy, from_mbit, to_mbit))
+    return {
+        "settings": {
+            "model": options.model,
+            "input_shape": list(options.input_shape),
+            "robot_cpu": options.robot_cpu,
+            "warmup_frames": warmup,
+            "before_frames": before,
+            "after_frames": after,
+            "deadline_s": DEADLINE_S,
+        },
+        "results": results,
+    }
+
+
+def public(result: dict[str, Any]) -> dict[str, Any]:
+    """The JSON of `bench glitch --json` / `bench table2 --json` (traces left out)."""
+    rows = [{k: v for k, v in r.items() if k != "trace"} for r in result["results"]]
+    return {"settings": result["settings"], "results": rows}
+
+
+def markdown(result: dict[str, Any]) -> str:
+    """One row per glitch and policy: latency before / on / after, robot CPU and energy per frame
+    before and after, the main action before and after, frames to settle, frames lost."""
+    header = [
+        "glitch (Mbit/s)",
+        "policy",
+        "latency before / on / after (s)",
+        "robot CPU before / after (s)",
+        "energy before / after (J)",
+        "main action",
+        "settle",
+        "lost",
+    ]
+    rows: list[list[str]] = []
+    for r in result["results"]:
+        b, o, a = r["before"], r["on"], r["after"]
+        rows.append(
+            [
+                f"{r['from_mbit']:g}→{r['to_mbit']:g}",
+                r["policy"],
+                " / ".join(fmt(x["mean_latency_s"], 3) for x in (b, o, a)),
+                " / ".join(fmt(x["robot_cpu_s"], 4) for x in (b, a)),
+                " / ".join(fmt(x["energy_j"], 2) for x in (b, a)),
+                f"{b['main_action']} → {a['main_action']}",
+                fmt(r["settle_frames"]),
+                str(r["lost"]),
+            ]
+        )
+    return md_table(header, rows) + "\n"
+
+
+def plot(result: dict[str, Any], out_dir: Path, name: str) -> list[Path]:
+    """Per glitch: latency of every frame against its index, one line per policy."""
+    use_agg()
+    import matplotlib.pyplot as plt
+
+    glitches = list(dict.fromkeys((r["from_mbit"], r["to_mbit"]) for r in result["results"]))
+    fig, axes = plt.subplots(1, len(glitches), figsize=(5 * len(glitches), 4), squeeze=False)
+    for ax, (a, b) in zip(axes[0], glitches, strict=True):
+        for r in result["results"]:
+            if (r["from_mbit"], r["to_mbit"]) != (a, b):
+                continue
+            trace = [t for t in r["trace"] if t["frame"] >= r["measured_from_frame"]]
+            xs = [t["frame"] - r["change_frame"] for t in trace]
+            ax.plot(xs, [t["latency_s"] for t in trace], marker=".", label=r["policy"])
+        ax.axvline(0, color="grey", linestyle="--")
+        ax.set_yscale("log")
+        ax.set_title(f"uplink {a:g} → {b:g} Mbit/s")
+        ax.set_xlabel("frames since the change")
+        ax.set_ylabel("latency (s)")
+        ax.grid(True, alpha=0.3)
+        ax.legend()
+    return [save_plot(fig, out_dir / f"{name}.png")]

@@ -1,0 +1,110 @@
+"""Settings every experiment shares, and the one place that opens a testbed fleet for it.
+
+What stands for what (see docs/experiments.md): the robot is the `robot` host with a cgroup CPU
+quota of `robot_cpu` of one core (0.02 by default: the whole model then takes about as long on
+the robot, 0.4 s, as a full offload takes at 5 Mbit/s), the uplink is the `tc` cap on the
+robot's link, the deployments are cloud daemons on hosts of their own with the rest of the
+machine, and a frame is a synthetic camera image of `input_shape` sent as float32.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import shutil
+import tempfile
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from common.errors import UserError
+
+from .fleet import DEFAULT_INPUT_SHAPE, DEFAULT_MODEL, POLICY_VARIANTS
+from .runner import DEFAULT_HOSTS, TestbedFleet
+
+DEFAULT_ROBOT_CPU = 0.02
+DOCS_IMG_DIR = Path(__file__).resolve().parents[2] / "docs" / "img"
+
+
+@dataclass
+class BenchOptions:
+    """Options of every `elasticfog bench` command."""
+
+    model: str = DEFAULT_MODEL
+    input_shape: tuple[int, ...] = DEFAULT_INPUT_SHAPE
+    robot_cpu: float = DEFAULT_ROBOT_CPU
+    frames: int | None = None
+    """Frames per robot run; None: the experiment's default (smaller with `quick`)."""
+    quick: bool = False
+    workdir: Path | None = None
+    """Where fleets, telemetry and logs go; None: a temporary folder removed after a clean run."""
+    plots_dir: Path | None = DOCS_IMG_DIR
+    """Where PNG plots go; None: no plots."""
+    name: str | None = None
+    """Testbed name (prefix of its namespaces); None: one of its own."""
+    log: Callable[[str], None] = lambda message: None
+
+    def check(self) -> None:
+        if not (math.isfinite(self.robot_cpu) and 0.01 <= self.robot_cpu <= 16):
+            raise UserError(f"--robot-cpu {self.robot_cpu:g}: expected 0.01 to 16 (cores)")
+        if self.frames is not None and self.frames < 1:
+            raise UserError(f"--frames {self.frames}: expected at least 1")
+
+    def frames_or(self, full: int, quick: int) -> int:
+        """The frames of one run: --frames if given, else the experiment's default."""
+        if self.frames is not None:
+            return self.frames
+        return quick if self.quick else full
+
+
+def parse_floats(text: str, what: str) -> list[float]:
+    """'0.5,1,2' -> [0.5, 1.0, 2.0]; a UserError naming `what` for anything else."""
+    values: list[float] = []
+    for part in text.split(","):
+        part = part.strip()
+        try:
+            value = float(part)
+        except ValueError:
+            raise UserError(f"{what}: {part!r} is not a number (expected e.g. 0.5,1,2)") from None
+        if not (math.isfinite(value) and value > 0):
+            raise UserError(f"{what}: {part!r} must be a positive number")
+        values.append(value)
+    if not values:
+        raise UserError(f"{what}: expected at least one value")
+    return values
+
+
+def parse_names(text: str, what: str, allowed: Sequence[str] | None = None) -> list[str]:
+    """'elastic,cloud' -> ['elastic', 'cloud'], checked against `allowed` if given."""
+    names = [p.strip() for p in text.split(",") if p.strip()]
+    if not names:
+        raise UserError(f"{what}: expected at least one name")
+    if allowed is not None:
+        known = [*allowed, *POLICY_VARIANTS]
+        bad = [n for n in names if n not in known and not n.startswith("static:")]
+        if bad:
+            raise UserError(
+                f"{what}: unknown {', '.join(bad)}; expected some of {', '.join(known)}"
+            )
+    return names
+
+
+@contextlib.contextmanager
+def open_fleet(options: BenchOptions, hosts: Sequence[str] | None = None) -> Iterator[TestbedFleet]:
+    """A testbed fleet in `options.workdir` (or a temporary folder), always torn down.
+
+    A temporary folder is removed after a clean run and kept (and named) after a failure."""
+    own = options.workdir is None
+    workdir = options.workdir or Path(tempfile.mkdtemp(prefix="elasticfog-bench-"))
+    ok = False
+    try:
+        with TestbedFleet(
+            workdir, name=options.name, hosts=hosts or DEFAULT_HOSTS, log=options.log
+        ) as tf:
+            yield tf
+        ok = True
+    finally:
+        if own and ok:
+            shutil.rmtree(workdir, ignore_errors=True)
+        elif own:
+            options.log(f"logs kept in {workdir}")

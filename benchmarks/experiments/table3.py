@@ -1,0 +1,177 @@
+"""ElasticROS Table III on the testbed: the robot's CPU availability drops, then recovers.
+
+One robot run per policy against one cloud daemon (`edge-1`), uplink capped at 10 Mbit/s. The
+robot's host starts with a whole core (`HIGH_CPU`), drops to `robot_cpu` of a core (the cgroup
+quota changes while the robot computes), then gets the whole core back. Each change splits the
+frames into before / on / after as in Table II (`stats.phases`): "on" lasts until the policy
+settles. A policy that keeps computing on the robot pays the lower quota in full; one that moves
+work to the cloud pays the uplink instead.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from .fleet import FleetSpec
+from .options import BenchOptions, open_fleet
+from .report import fmt, md_table, save_plot, use_agg
+from .runner import TestbedFleet
+from .stats import by_frame, lost_frames, phases
+
+POLICIES = ("elastic", "elastic-nohedge", "robot", "cloud")
+UPLINK_MBIT = 10.0
+HIGH_CPU = 1.0
+# Frames of one run: warm-up (left out), whole core, low quota, whole core again.
+FULL_SPLIT = (10, 25, 40, 40)
+QUICK_SPLIT = (4, 12, 20, 20)
+DEADLINE_S = 15.0
+RUN_SLACK_S = 120.0
+CHANGE_WAIT_S = 300.0
+
+
+def frame_split(options: BenchOptions) -> tuple[int, int, int, int]:
+    if options.frames is None:
+        return QUICK_SPLIT if options.quick else FULL_SPLIT
+    n = options.frames
+    warmup, high = max(1, n // 12), max(3, n // 5)
+    low = max(3, (n - warmup - high) // 2)
+    return warmup, high, low, max(3, n - warmup - high - low)
+
+
+def run_one(tf: TestbedFleet, options: BenchOptions, policy: str) -> dict[str, Any]:
+    warmup, high, low, again = frame_split(options)
+    frames = warmup + high + low + again
+    tf.shape_robot(UPLINK_MBIT)
+    robot = tf.start_robot(policy, frames=frames, cpu_fraction=HIGH_CPU)
+    start = tf.measure_from + warmup
+    tf.follower.wait_frame(start + high - 1, timeout_s=CHANGE_WAIT_S, procs=[robot])
+    tf.cpu_robot(options.robot_cpu)
+    drop_frame = tf.follower.last_frame() + 1
+    tf.follower.wait_frame(drop_frame + low - 1, timeout_s=CHANGE_WAIT_S, procs=[robot])
+    tf.cpu_robot(HIGH_CPU)
+    recover_frame = tf.follower.last_frame() + 1
+    options.log(f"{policy}: CPU dropped at frame {drop_frame}, back at {recover_frame}")
+    records = by_frame(tf.finish_robot(RUN_SLACK_S + frames * (DEADLINE_S + 1)))
+    drop = phases(records, start, drop_frame, stop=recover_frame)
+    recover = phases(records, drop_frame, recover_frame)
+    return {
+        "policy": policy,
+        "before": drop["before"],
+        "drop_on": drop["on"],
+        "drop_after": drop["after"],
+        "drop_settle_frames": drop["settle_frames"],
+        "recover_on": recover["on"],
+        "recover_after": recover["after"],
+        "recover_settle_frames": recover["settle_frames"],
+        "lost": len(lost_frames(records, frames)),
+        "drop_frame": drop_frame,
+        "recover_frame": recover_frame,
+        "measured_from_frame": start,
+        "trace": [
+            {k: r.get(k) for k in ("frame", "action", "latency_s", "robot_cpu_s", "fallback")}
+            for r in records
+        ],
+    }
+
+
+def run(options: BenchOptions, policies: Sequence[str] = POLICIES) -> dict[str, Any]:
+    options.check()
+    warmup, high, low, again = frame_split(options)
+    results = []
+    with open_fleet(options, hosts=("registry", "robot", "edge-1", "bench")) as tf:
+        tf.launch(
+            FleetSpec(
+                fleet=tf.next_fleet_name("t3-"),
+                clouds=("edge-1",),
+                model=options.model,
+                input_shape=options.input_shape,
+                deadline_s=DEADLINE_S,
+            )
+        )
+        for policy in policies:
+            results.append(run_one(tf, options, policy))
+    return {
+        "settings": {
+            "model": options.model,
+            "input_shape": list(options.input_shape),
+            "uplink_mbit": UPLINK_MBIT,
+            "high_cpu": HIGH_CPU,
+            "low_cpu": options.robot_cpu,
+            "frames": {"warmup": warmup, "high": high, "low": low, "high_again": again},
+            "deadline_s": DEADLINE_S,
+        },
+        "results": results,
+    }
+
+
+def public(result: dict[str, Any]) -> dict[str, Any]:
+    rows = [{k: v for k, v in r.items() if k != "trace"} for r in result["results"]]
+    return {"settings": result["settings"], "results": rows}
+
+
+PHASES = ("before", "drop_on", "drop_after", "recover_on", "recover_after")
+
+
+def markdown(result: dict[str, Any]) -> str:
+    """One row per policy; each cell lists the five phases: before, on and after the drop, on
+    and after the recovery."""
+    s = result["settings"]
+    phases = (
+        f"before ({s['high_cpu']:g} core) / on / after (at {s['low_cpu']:g}) / on / "
+        f"after (at {s['high_cpu']:g} again)"
+    )
+    header = [
+        "policy",
+        f"latency (s): {phases}",
+        "robot CPU (s)",
+        "energy (J)",
+        "main action",
+        "settle (drop / recovery)",
+        "lost",
+    ]
+    rows: list[list[str]] = []
+    for r in result["results"]:
+        rows.append(
+            [
+                r["policy"],
+                " / ".join(fmt(r[p]["mean_latency_s"], 3) for p in PHASES),
+                " / ".join(fmt(r[p]["robot_cpu_s"], 4) for p in PHASES),
+                " / ".join(fmt(r[p]["energy_j"], 2) for p in PHASES),
+                " / ".join(str(r[p]["main_action"]) for p in PHASES),
+                f"{fmt(r['drop_settle_frames'])} / {fmt(r['recover_settle_frames'])}",
+                str(r["lost"]),
+            ]
+        )
+    return md_table(header, rows) + "\n"
+
+
+def plot(result: dict[str, Any], out_dir: Path) -> list[Path]:
+    use_agg()
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(9, 4))
+    spans = []
+    for r in result["results"]:
+        trace = [t for t in r["trace"] if t["frame"] >= r["measured_from_frame"]]
+        ax.plot(
+            [t["frame"] - r["drop_frame"] for t in trace],
+            [t["latency_s"] for t in trace],
+            marker=".",
+            label=r["policy"],
+        )
+        spans.append(r["recover_frame"] - r["drop_frame"])
+    if spans:
+        ax.axvspan(0, min(spans), color="orange", alpha=0.15)
+    s = result["settings"]
+    ax.set_title(
+        f"robot CPU {s['high_cpu']:g} → {s['low_cpu']:g} → {s['high_cpu']:g} core "
+        f"(shaded: low quota), uplink {s['uplink_mbit']:g} Mbit/s"
+    )
+    ax.set_yscale("log")
+    ax.set_xlabel("frames since the quota dropped")
+    ax.set_ylabel("latency (s)")
+    ax.grid(True, alpha=0.3)
+    ax.legend()
+    return [save_plot(fig, out_dir / "table3.png")]
