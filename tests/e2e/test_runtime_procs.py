@@ -35,7 +35,7 @@ STUBBORN = textwrap.dedent(
     """
     import signal, subprocess, sys, threading
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    child = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    child = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])  # readiness-ok
     print(f"child {child.pid}", flush=True)
     threading.Event().wait(60)
     """

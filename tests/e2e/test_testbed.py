@@ -169,7 +169,7 @@ STUBBORN = r"""
 import signal, sys, time
 signal.signal(signal.SIGTERM, signal.SIG_IGN)
 print("ready", flush=True)
-time.sleep(30)
+time.sleep(30)  # readiness-ok: stays up until the testbed kills it
 """
 
 
