@@ -163,14 +163,7 @@ class Switcher:
             answer = self._request(deployment, self._ctl(CtlOp.SERVICE, robot, epoch, reason))
             if answer.newer_epoch is not None:
                 attempts.append(Attempt(deployment, epoch, answer.outcome, answer.detail))
-                epoch = self.rib.reserve_epoch(robot, at_least=answer.newer_epoch + 1)
-                self.rib.record_event(
-                    EventKind.EPOCH_RAISED,
-                    robot=robot,
-                    deployment=deployment,
-                    epoch=epoch,
-                    reason=f"{deployment} knows epoch {answer.newer_epoch}",
-                )
+                epoch = self._epoch_past(robot, deployment, answer.newer_epoch)
                 answer = self._request(deployment, self._ctl(CtlOp.SERVICE, robot, epoch, reason))
             attempts.append(Attempt(deployment, epoch, answer.outcome, answer.detail))
             if answer.outcome is Outcome.ACKED:
@@ -186,6 +179,20 @@ class Switcher:
         return self._no_taker(
             robot, route.epoch if route else 0, previous, reason, failed, attempts
         )
+
+    def _epoch_past(self, robot: str, deployment: str, newer: int | None) -> int:
+        """A fresh epoch for `robot` past `newer`, the epoch `deployment` says it already holds
+        (recorded as an event), so the next service request cannot be refused as stale."""
+        epoch = self.rib.reserve_epoch(robot, at_least=newer + 1 if newer is not None else 0)
+        if newer is not None:
+            self.rib.record_event(
+                EventKind.EPOCH_RAISED,
+                robot=robot,
+                deployment=deployment,
+                epoch=epoch,
+                reason=f"{deployment} knows epoch {newer}",
+            )
+        return epoch
 
     def reassert(self, robot: str, *, reason: str = "restore") -> SwitchResult:
         """Re-send `service` at the route's own epoch to the deployment the RIB routes `robot` to.
@@ -206,16 +213,7 @@ class Switcher:
         answer = self._request(deployment, self._ctl(CtlOp.SERVICE, robot, epoch, reason))
         attempts = [Attempt(deployment, epoch, answer.outcome, answer.detail)]
         if answer.outcome is Outcome.REFUSED:
-            newer = answer.newer_epoch
-            epoch = self.rib.reserve_epoch(robot, at_least=newer + 1 if newer is not None else 0)
-            if newer is not None:
-                self.rib.record_event(
-                    EventKind.EPOCH_RAISED,
-                    robot=robot,
-                    deployment=deployment,
-                    epoch=epoch,
-                    reason=f"{deployment} knows epoch {newer}",
-                )
+            epoch = self._epoch_past(robot, deployment, answer.newer_epoch)
             answer = self._request(deployment, self._ctl(CtlOp.SERVICE, robot, epoch, reason))
             attempts.append(Attempt(deployment, epoch, answer.outcome, answer.detail))
             if answer.outcome is Outcome.ACKED:
