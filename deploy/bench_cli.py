@@ -1,6 +1,6 @@
 """`elasticfog bench ...`: the papers' experiments on the namespace testbed (root).
 
-Each command parses its options and calls one experiment of `benchmarks/experiments` (see
+Each command parses its options and calls one experiment of `deploy/experiments` (see
 docs/experiments.md): it brings a testbed up, runs the real daemons inside its hosts, shapes the
 robot's uplink or CPU quota while the robot streams, prints a markdown table on stdout (or
 `--json`), writes PNG plots into docs/img/, and always removes the testbed again, also on Ctrl-C.
@@ -10,10 +10,8 @@ Progress goes to stderr. `--quick` runs short.
 from __future__ import annotations
 
 import json
-import sys
 from collections.abc import Callable
 from pathlib import Path
-from types import ModuleType
 from typing import Any
 
 import typer
@@ -29,6 +27,11 @@ bench_app = typer.Typer(
 
 INTERRUPTED_EXIT_CODE = 130
 REPO_ROOT = Path(__file__).resolve().parents[1]
+# In a source checkout the plots go beside the docs that show them; elsewhere into the current
+# directory.
+DEFAULT_PLOTS_DIR = (
+    REPO_ROOT / "docs" / "img" if (REPO_ROOT / "docs").is_dir() else Path("elasticfog-plots")
+)
 
 QUICK_OPTION = typer.Option(False, "--quick", help="A short run (fewer frames).")
 FRAMES_OPTION = typer.Option(
@@ -39,9 +42,7 @@ ROBOT_CPU_OPTION = typer.Option(
 )
 MODEL_OPTION = typer.Option("zoo:vgg", "--model", help="zoo:NAME or an ONNX file.")
 SHAPE_OPTION = typer.Option("3x120x160", "--input-shape", help="Frame shape CxHxW (float32).")
-PLOTS_OPTION = typer.Option(
-    REPO_ROOT / "docs" / "img", "--plots-dir", help="Where PNG plots are written."
-)
+PLOTS_OPTION = typer.Option(DEFAULT_PLOTS_DIR, "--plots-dir", help="Where PNG plots are written.")
 NO_PLOTS_OPTION = typer.Option(False, "--no-plots", help="Write no plots.")
 WORKDIR_OPTION = typer.Option(
     None, "--workdir", help="Keep fleets, telemetry and daemon logs here (default: temporary)."
@@ -53,21 +54,6 @@ JSON_OPTION = typer.Option(False, "--json", help="Print plain JSON on stdout.")
 def register(app: typer.Typer) -> None:
     """Add the `bench` command group to the root app."""
     app.add_typer(bench_app, name="bench")
-
-
-def _experiments() -> ModuleType:
-    """`benchmarks.experiments`, from the source checkout this package is installed from."""
-    try:
-        import benchmarks.experiments as experiments
-    except ModuleNotFoundError:
-        if not (REPO_ROOT / "benchmarks" / "experiments" / "__init__.py").is_file():
-            raise UserError(
-                "elasticfog bench needs the source checkout (benchmarks/experiments is missing "
-                f"next to {Path(__file__).parent})"
-            ) from None
-        sys.path.insert(0, str(REPO_ROOT))
-        import benchmarks.experiments as experiments
-    return experiments
 
 
 def _options(
@@ -82,9 +68,8 @@ def _options(
     workdir: Path | None,
     name: str | None,
 ) -> Any:
-    _experiments()
-    from benchmarks.experiments.options import BenchOptions
     from common.zoo import parse_shape
+    from deploy.experiments.options import BenchOptions
     from deploy.testbed import check_name
 
     if name is not None:
@@ -177,8 +162,8 @@ def table1(
             name=name,
         )
     )
-    from benchmarks.experiments import table1 as t1
-    from benchmarks.experiments.options import parse_floats, parse_names
+    from deploy.experiments import table1 as t1
+    from deploy.experiments.options import parse_floats, parse_names
 
     caps = _guard(lambda: parse_floats(uplinks, "--uplinks"))
     names = _guard(lambda: parse_names(policies, "--policies", _policy_names()))
@@ -217,8 +202,8 @@ def glitch(
             name=name,
         )
     )
-    from benchmarks.experiments import glitch as gl
-    from benchmarks.experiments.options import parse_floats, parse_names
+    from deploy.experiments import glitch as gl
+    from deploy.experiments.options import parse_floats, parse_names
 
     a, b = _guard(lambda: parse_floats(f"{from_mbit},{to_mbit}", "--from-mbit/--to-mbit"))
     names = _guard(lambda: parse_names(policies, "--policies", _policy_names()))
@@ -262,8 +247,8 @@ def table2(
             name=name,
         )
     )
-    from benchmarks.experiments import glitch as gl
-    from benchmarks.experiments.options import parse_names
+    from deploy.experiments import glitch as gl
+    from deploy.experiments.options import parse_names
 
     names = _guard(lambda: parse_names(policies, "--policies", _policy_names()))
     _run(
@@ -306,8 +291,8 @@ def table3(
             name=name,
         )
     )
-    from benchmarks.experiments import table3 as t3
-    from benchmarks.experiments.options import parse_names
+    from deploy.experiments import table3 as t3
+    from deploy.experiments.options import parse_names
 
     names = _guard(lambda: parse_names(policies, "--policies", _policy_names()))
     _run(options, lambda: t3.run(options, names), t3.markdown, t3.plot, as_json, t3.public)
@@ -339,7 +324,7 @@ def anycast(
             name=name,
         )
     )
-    from benchmarks.experiments import anycast as ac
+    from deploy.experiments import anycast as ac
 
     _run(options, lambda: ac.run(options), ac.markdown, ac.plot, as_json)
 

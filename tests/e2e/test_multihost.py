@@ -1,7 +1,7 @@
 """e2e across real network stacks: the daemons in the namespace testbed, with real link caps,
 CPU quotas, a pulled cable and SIGKILLed hosts (root only).
 
-Every test brings up a testbed of its own (`benchmarks.experiments.runner.TestbedFleet`): the
+Every test brings up a testbed of its own (`deploy.experiments.runner.TestbedFleet`): the
 registry and its router on `registry`, cloud daemons on `edge-1`/`edge-2`, the robot on `robot`,
 an observer on `bench`; peers with gossip, shared memory off, endpoints only. Conditions change
 while the robot streams; what is asserted comes from the robot's own telemetry file and from the
@@ -19,9 +19,9 @@ from typing import Any
 import psutil
 import pytest
 
-from benchmarks.experiments.fleet import FleetSpec
-from benchmarks.experiments.runner import TestbedFleet
-from benchmarks.experiments.stats import between, by_frame
+from deploy.experiments.fleet import FleetSpec
+from deploy.experiments.runner import TestbedFleet
+from deploy.experiments.stats import between, by_frame
 from deploy.testbed import ETC_NETNS_DIR, NETNS_DIR
 from tests.e2e.conftest import TEST_INPUT_SHAPE, TEST_MODEL
 

@@ -3,7 +3,7 @@
 The testbed's addresses exist only inside its namespaces, so the process running an experiment
 (in the machine's own namespace) cannot open a Zenoh session to the fleet itself, and it must not
 move into a namespace either (Zenoh's threads would stay there). It starts this helper on the
-`bench` host instead (`python -m benchmarks.experiments.observer --config F --listen EP`) and
+`bench` host instead (`python -m deploy.experiments.observer --config F --listen EP`) and
 talks to it with one JSON object per line:
 
     -> {"id": 1, "op": "wait_tokens", "keys": [...], "present": true, "timeout_s": 30}

@@ -13,7 +13,7 @@
 
 Each host of the fleet is a namespace of one testbed (`deploy.testbed`): the registry with its
 router on `registry`, cloud daemons on `edge-1`, `edge-2`, `cloud-1`, `cloud-2`, the robot on
-`robot`, and an observer (`benchmarks.experiments.observer`) on `bench`, through which the runner
+`robot`, and an observer (`deploy.experiments.observer`) on `bench`, through which the runner
 waits for readiness (liveliness tokens, the registry's views) and injects faults. Daemons are
 started with `Testbed.popen`, so each runs inside its host's namespace and CPU cgroup, in its own
 process group, with its output in a log file (`deploy.procs.DaemonProc`).
@@ -107,7 +107,7 @@ class NetnsDaemon(DaemonProc):
 
 
 class ObserverClient:
-    """The runner's side of `benchmarks.experiments.observer`: one request at a time."""
+    """The runner's side of `deploy.experiments.observer`: one request at a time."""
 
     def __init__(self, testbed: Testbed, config: Path, log_path: Path) -> None:
         self.testbed = testbed
@@ -127,7 +127,7 @@ class ObserverClient:
         env["PYTHONUNBUFFERED"] = "1"
         self.log_path.parent.mkdir(parents=True, exist_ok=True)
         self._log = self.log_path.open("ab")
-        argv = [sys.executable, "-m", "benchmarks.experiments.observer"]
+        argv = [sys.executable, "-m", "deploy.experiments.observer"]
         self._proc = self.testbed.popen(
             OBSERVER_HOST,
             [*argv, "--config", str(self.config), "--listen", listen],
