@@ -390,7 +390,7 @@ class RobotDaemon(Daemon):
             session,
             self.fleet,
             self.robot,
-            padding_bytes=padding,
+            max_padding_bytes=padding,
             publish=self._publish_probe,
             alive_clouds=self._alive_clouds,
             cloud_time=self._cloud_time,

@@ -2,10 +2,20 @@
 
 Every `PROBE_INTERVAL_S` the prober sends one `ProbeRequest` to the probe wildcard
 (`dep/*/probe`) with `QueryTarget.ALL` and no consolidation, so every live deployment answers,
-whatever its state. The request carries padding sized like a typical cut (the median of the
-model's cut sizes, capped by `PROBE_MAX_PADDING_BYTES` so that probing stays a small share of a
-slow uplink) and asks for a reply-sized echo; each reply's arrival time gives that deployment's
-round trip for a frame-like transfer. For each reply the robot publishes a `ProbeReport` on
+whatever its state. The request carries padding and asks for a reply-sized echo; each reply's
+arrival time gives that deployment's round trip for a frame-like transfer.
+
+The padding must not crowd out frames on a slow uplink (64 KiB every 2 s is half of 0.5 Mbit/s),
+and the robot does not know its uplink's rate. So the padding adapts to what the probes
+themselves measure (`next_padding_bytes`): it starts at `PROBE_MIN_PADDING_BYTES` and doubles
+while the fastest reply's round trip stays under half of `PROBE_UPLINK_SHARE` × the interval,
+and shrinks in proportion when the round trip exceeds that budget (halves when nothing answers).
+Its ceiling is a typical cut (the median of the model's cut sizes, at most
+`PROBE_MAX_PADDING_BYTES`). The round trip bounds the padding's time on the uplink, so probing
+takes at most about that share of the link. On a link whose bare round trip exceeds the budget,
+probes carry the minimum padding and measure latency alone.
+
+For each reply the robot publishes a `ProbeReport` on
 `tele/<robot>/probe` (the registry builds its probe profiles from them), and a report with
 `ok=false` for every deployment whose liveliness token is up but which did not answer in time.
 
@@ -35,6 +45,9 @@ log = logging.getLogger(__name__)
 PROBE_INTERVAL_S = 2.0
 PROBE_TIMEOUT_S = 0.5
 PROBE_MAX_PADDING_BYTES = 64 * 1024
+PROBE_MIN_PADDING_BYTES = 1024
+# The share of the uplink's time the probes' padding may take.
+PROBE_UPLINK_SHARE = 0.02
 # The echo asked for: about the size of a classifier's reply.
 PROBE_ECHO_BYTES = 4096
 # Weight of a new answered frame in the moving average of the cloud's queue + compute time.
@@ -47,6 +60,30 @@ def probe_padding_bytes(cut_bytes: Sequence[int], cap: int = PROBE_MAX_PADDING_B
         return 0
     ordered = sorted(int(b) for b in cut_bytes)
     return min(cap, ordered[len(ordered) // 2])
+
+
+def next_padding_bytes(
+    current: int,
+    fastest_rtt_s: float | None,
+    *,
+    interval_s: float,
+    ceiling: int,
+    share: float = PROBE_UPLINK_SHARE,
+    floor: int = PROBE_MIN_PADDING_BYTES,
+) -> int:
+    """The next round's padding after a round with `current` bytes whose fastest answer took
+    `fastest_rtt_s` (None: nobody answered). See the module docstring."""
+    floor = min(floor, ceiling)
+    budget_s = share * interval_s
+    if fastest_rtt_s is None:
+        wanted = current // 2
+    elif fastest_rtt_s > budget_s:
+        wanted = int(current * budget_s / fastest_rtt_s)
+    elif fastest_rtt_s < budget_s / 2:
+        wanted = 2 * current
+    else:
+        wanted = current
+    return max(floor, min(ceiling, wanted))
 
 
 class CloudTime:
@@ -78,7 +115,7 @@ class Prober:
         fleet: str,
         robot: str,
         *,
-        padding_bytes: int,
+        max_padding_bytes: int,
         publish: Callable[[ProbeReport], None],
         alive_clouds: Callable[[], set[str]],
         cloud_time: CloudTime,
@@ -89,7 +126,8 @@ class Prober:
         self._session = session
         self._fleet = fleet
         self._robot = robot
-        self._padding = b"\0" * padding_bytes
+        self.max_padding_bytes = max_padding_bytes
+        self.padding_bytes = min(PROBE_MIN_PADDING_BYTES, max_padding_bytes)
         self._publish = publish
         self._alive_clouds = alive_clouds
         self._cloud_time = cloud_time
@@ -125,7 +163,7 @@ class Prober:
             sender=self._robot,
             sent_at=time.time(),
             echo_bytes=PROBE_ECHO_BYTES,
-            padding=self._padding,
+            padding=bytes(self.padding_bytes),
         )
         payload = request.to_wire()
         started = time.perf_counter()
@@ -138,12 +176,22 @@ class Prober:
             congestion_control=zenoh.CongestionControl.BLOCK,
         )
         reports: dict[str, ProbeReport] = {}
+        fastest_s: float | None = None
         # The channel ends when every deployment answered or the timeout passed.
         for reply in replies:
             arrived = time.perf_counter()
             report = self._report(reply, arrived - started, len(payload))
             if report is not None and report.deployment not in reports:
                 reports[report.deployment] = report
+                if report.ok and (fastest_s is None or arrived - started < fastest_s):
+                    fastest_s = arrived - started
+        if fastest_s is not None or self._alive_clouds():
+            self.padding_bytes = next_padding_bytes(
+                self.padding_bytes,
+                fastest_s,
+                interval_s=self.interval_s,
+                ceiling=self.max_padding_bytes,
+            )
         for deployment in sorted(self._alive_clouds() - set(reports)):
             reports[deployment] = ProbeReport(
                 robot=self._robot,
