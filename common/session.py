@@ -13,6 +13,13 @@ What every session gets, and why (zenoh 1.10; keys checked against the installed
 - Shared memory switchable: on by default between processes of one host, but it bypasses the
   network, so it must be off when traffic shaping between namespaces is to mean anything.
 - TLS file paths from fleet.yaml go to `transport/link/tls/*` (for `tls/...` endpoints).
+- More reception threads (`init_runtime`): Zenoh sets SO_LINGER (10 s) on its TCP links and closes
+  a dead link on one of its 2 reception ("rx") runtime threads, where `close()` blocks until the
+  unsent bytes are acknowledged or the 10 s pass (zenoh issue #1101). After a pulled cable every
+  link to that host holds unsent keep-alives, so one or two closing links stalled all reception
+  of a process for seconds: a deployment stopped answering the registry's ctl queries and the
+  robot was left computing locally. With `ZENOH_RX_WORKER_THREADS` the live links keep being
+  served meanwhile.
 
 A peer that cannot reach its connect endpoints still opens and keeps retrying in the background
 (daemons must start before the registry and survive its restarts); a client fails at once, or
@@ -24,6 +31,7 @@ hangs the process.
 from __future__ import annotations
 
 import json
+import os
 import re
 import threading
 from collections.abc import Sequence
@@ -35,6 +43,11 @@ from common.config import FleetConfig, ZenohConfig
 from common.errors import UserError
 
 KEEP_ALIVES_PER_LEASE = 4
+# Zenoh's reception runtime threads (its default is 2): each link to a host that vanished holds
+# one for up to 10 s while it closes (see the module docstring), and a peer may hold two links to
+# another (one each way). Idle threads cost nothing; 16 leave room for several hosts lost at once.
+ZENOH_RX_WORKER_THREADS = 16
+ZENOH_RUNTIME_ENV = "ZENOH_RUNTIME"
 LOG_LEVEL_DEFAULT = "error"
 MODES = ("peer", "client", "router")
 
@@ -49,6 +62,12 @@ def init_logging() -> None:
         if not _log_ready:
             zenoh.init_log_from_env_or(LOG_LEVEL_DEFAULT)
             _log_ready = True
+
+
+def init_runtime() -> None:
+    """Size Zenoh's runtime before this process opens its first session (read once, then
+    fixed). A `ZENOH_RUNTIME` set by the user is left as it is."""
+    os.environ.setdefault(ZENOH_RUNTIME_ENV, f"(rx: (worker_threads: {ZENOH_RX_WORKER_THREADS}))")
 
 
 def _unique(items: Sequence[str]) -> list[str]:
@@ -177,6 +196,7 @@ def open_session(
 ) -> zenoh.Session:
     """Open a session configured by `zenoh_config` (same arguments). A failure (endpoint in use,
     nothing reachable for a client) is a UserError naming the endpoints."""
+    init_runtime()
     init_logging()
     settings = zenoh_settings(
         cfg,

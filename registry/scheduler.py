@@ -18,13 +18,18 @@ Triggers, in order:
 Choice: among live, non-draining deployments of the robot's service, those whose recent probe
 profile (load-adjusted) meets the bound rank first, lowest predicted latency first; then the others
 (the best available); full deployments and those left for a violation rank last, the latter until
-their probes have met the bound for `recovery_s`. Forced moves take the first of that ranking. A
-move for a violation or an improvement also needs a target predicted better than the current by
-`better_margin`, and otherwise stays. For a violation "current" is the robot's telemetry (probe
-windows lag behind a sudden delay); a second violation within `flap_window_s` of the last move for
-one also needs the target to beat the current deployment's own probe profile. For an improvement it
-is the current deployment's probe profile (like for like), else the telemetry. With no live
-deployment the robot gets no route and computes locally.
+their probes have met the bound for `recovery_s`. Forced moves take the first of that ranking, and
+rank by every recent probe profile, also one thinner than `min_probe_samples`: when the robot has
+to leave now, a deployment measured twice at 34 ms is a better bet than one measured three times
+at 67 ms, and either is better than one never measured (the probes of a robot that started a few
+seconds ago are thin for every deployment). A move for a violation or an improvement is a choice,
+not a necessity: it counts only profiles of at least `min_probe_samples`, and also needs a target
+predicted better than the current by `better_margin`, and otherwise stays. For a violation
+"current" is the robot's telemetry (probe windows lag behind a sudden delay); a second violation
+within `flap_window_s` of the last move for one also needs the target to beat the current
+deployment's own probe profile. For an improvement it is the current deployment's probe profile
+(like for like), else the telemetry. With no live deployment the robot gets no route and computes
+locally.
 """
 
 from __future__ import annotations
@@ -164,6 +169,9 @@ class _Candidate:
     predicted_s: float | None
     meets: bool
     penalized: bool
+    # Predicted from a recent profile thinner than min_probe_samples: good enough to rank the
+    # targets of a forced move, not to move a robot that is being served.
+    thin: bool = False
 
     @property
     def tier(self) -> int:
@@ -171,13 +179,20 @@ class _Candidate:
             return 2
         return 0 if self.meets else 1
 
-    def sort_key(self) -> tuple[int, bool, float, float, str]:
-        # Known latency before unknown; then lower predicted latency, lower load, stable by id.
+    @property
+    def confident_s(self) -> float | None:
+        """The prediction when it rests on at least min_probe_samples probes, else None."""
+        return None if self.thin else self.predicted_s
+
+    def sort_key(self) -> tuple[int, bool, float, bool, float, str]:
+        # Known latency before unknown; then lower predicted latency (a thick profile before a
+        # thin one at the same value), lower load, stable by id.
         pred = self.predicted_s if self.predicted_s is not None else math.inf
         return (
             self.tier,
             self.predicted_s is None,
             pred,
+            self.thin,
             self.deployment.utilization,
             self.deployment.id,
         )
@@ -297,7 +312,7 @@ class Scheduler:
             if st.violation_since is None:
                 st.violation_since = now
             if now - st.violation_since >= self.bound.hysteresis_s and self._dwelt(st, now):
-                own = self._candidate(robot, current, profiles, st, now).predicted_s
+                own = self._candidate(robot, current, profiles, st, now).confident_s
                 recent = (
                     st.violation_move_at is not None
                     and now - st.violation_move_at < self.params.flap_window_s
@@ -353,8 +368,8 @@ class Scheduler:
             for c in ranked
             if c.deployment.id != current.id
             and c.tier < 2
-            and c.predicted_s is not None
-            and c.predicted_s < limit
+            and c.confident_s is not None
+            and c.confident_s < limit
         ]
         if not targets:
             return None
@@ -385,8 +400,8 @@ class Scheduler:
             for c in ranked
             if c.deployment.id != current.id
             and c.tier == 0
-            and c.predicted_s is not None
-            and c.predicted_s < limit
+            and c.confident_s is not None
+            and c.confident_s < limit
         ]
         if not targets:
             st.better_since = None
@@ -424,7 +439,7 @@ class Scheduler:
         Its own probe profile when fresh (like for like: probes are smaller than frames, so
         telemetry against probes would always favour moving), else the robot's telemetry.
         """
-        own = self._candidate(robot, current, profiles, st, now).predicted_s
+        own = self._candidate(robot, current, profiles, st, now).confident_s
         return own if own is not None else self._observed(robot)
 
     def _observed(self, robot: RobotView) -> float | None:
@@ -438,9 +453,15 @@ class Scheduler:
         return observed is not None and observed > self.bound.seconds
 
     def _fresh(self, stats: WindowStats | None, now: float) -> WindowStats | None:
-        if stats is None or stats.count < self.params.min_probe_samples:
+        """`stats` if recent and of at least min_probe_samples probes, else None."""
+        recent = self._recent(stats, now)
+        if recent is None or recent.count < self.params.min_probe_samples:
             return None
-        if now - stats.last_at > self.params.profile_max_age_s:
+        return recent
+
+    def _recent(self, stats: WindowStats | None, now: float) -> WindowStats | None:
+        """`stats` if it has a sample younger than profile_max_age_s, else None."""
+        if stats is None or stats.count < 1 or now - stats.last_at > self.params.profile_max_age_s:
             return None
         return stats
 
@@ -452,7 +473,7 @@ class Scheduler:
         st: _RobotState,
         now: float,
     ) -> _Candidate:
-        stats = self._fresh(profiles.get(dep.id), now)
+        stats = self._recent(profiles.get(dep.id), now)
         predicted = None
         if stats is not None:
             # Load-aware: a busier deployment queues more; scale by its utilization.
@@ -464,6 +485,7 @@ class Scheduler:
             predicted_s=predicted,
             meets=predicted is not None and predicted <= self.bound.seconds,
             penalized=dep.id in st.left_at,
+            thin=stats is not None and stats.count < self.params.min_probe_samples,
         )
 
     def _rank(

@@ -169,3 +169,39 @@ def test_registry_killed_data_keeps_flowing_and_never_crossed_it(
     assert robot_tx >= (kill_at - count_from - 2) * INPUT_BYTES
     assert registry < 0.05 * robot_tx
     assert len(served) >= 0.9 * len(rest), "frames stopped flowing when the registry died"
+
+
+def test_cut_link_to_the_deployment_falls_back_locally_then_reroutes(
+    fleet: Callable[..., TestbedFleet],
+) -> None:
+    """edge-1's cable is pulled (its bridge port goes down): the robot's requests time out and it
+    finishes those frames itself, then the registry moves it to edge-2. No frame is lost."""
+    tf = fleet(clouds=("edge-1", "edge-2"), deadline_s=0.5, lease_ms=1000)
+    frames, cut_at = 80, 15
+    robot = tf.start_robot("cloud", frames=frames, fps=20.0)
+    tf.follower.wait_for(
+        lambda r: r["frame"] >= cut_at and _answered_by(r) == "edge-1",
+        timeout_s=WAIT_S,
+        what=f"a frame >= {cut_at} answered by edge-1",
+        procs=[robot],
+    )
+    tf.tb.link("edge-1", up=False)
+    cut_frame = tf.follower.last_frame() + 1
+    rerouted = tf.follower.wait_for(
+        lambda r: r["frame"] >= cut_frame and _answered_by(r) == "edge-2",
+        timeout_s=WAIT_S,
+        what="a frame answered by edge-2 after the cut",
+        procs=[robot],
+    )
+    records = by_frame(tf.finish_robot(RUN_S))
+    _assert_no_frame_lost(records, frames)
+    during = between(records, cut_frame, int(rerouted["frame"]))
+    fallbacks = [r for r in during if r["fallback"]]
+    print(
+        f"cable cut at frame {cut_frame}; frames finished on the robot meanwhile: "
+        f"{len(fallbacks)} ({sorted({str(r['reason']) for r in fallbacks})}); "
+        f"edge-2 from frame {rerouted['frame']}"
+    )
+    assert fallbacks, "no local fallback while the deployment was unreachable"
+    assert all(_answered_by(r) is None for r in during), "a frame answered by edge-1 after the cut"
+    assert all(_answered_by(r) == "edge-2" for r in between(records, frames - 10))

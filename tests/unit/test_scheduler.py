@@ -129,14 +129,84 @@ def test_when_none_meets_the_bound_the_best_available_is_chosen(
     assert decision is not None and decision.candidates == ("b", "a", "c")
 
 
-def test_stale_or_thin_probe_profiles_count_as_unknown(sched: Scheduler, clock: FakeClock) -> None:
+def test_stale_profiles_count_as_unknown_thin_ones_rank_a_forced_move(
+    sched: Scheduler, clock: FakeClock
+) -> None:
     old = window(0.01, clock)
     clock.advance(SchedulerParams().profile_max_age_s + 1)
     thin = WindowStats.of([0.02, 0.02], last_at=clock.now)  # fewer than min_probe_samples
     profiles = {"old": old, "thin": thin, "known": window(0.09, clock)}
     decision = sched.evaluate(robot(None), [dep("old"), dep("thin"), dep("known")], profiles)
-    assert decision is not None and decision.candidates == ("known", "old", "thin")
-    assert decision.predicted_s == pytest.approx(0.09)
+    assert decision is not None and decision.candidates == ("thin", "known", "old")
+    assert decision.predicted_s == pytest.approx(0.02)
+
+
+def thin(value: float, clock: FakeClock) -> WindowStats:
+    """Two probes: what every deployment has 4 s after the robot started (one every 2 s)."""
+    return WindowStats.of([value, value], last_at=clock.now)
+
+
+@pytest.mark.parametrize("cloud_samples", [2, 3])
+def test_timeouts_move_to_the_nearest_deployment_while_probes_are_thin(
+    sched: Scheduler, clock: FakeClock, cloud_samples: int
+) -> None:
+    """Regression: with every probe window under min_probe_samples all deployments counted as
+    unknown, and a robot timing out on edge-1 went to cloud-1 (67 ms; first by id) instead of
+    edge-2 (34 ms), corrected only by a `better` move seconds later."""
+    deps = [dep("edge-1"), dep("edge-2"), dep("cloud-1"), dep("cloud-2")]
+    profiles = {
+        "edge-1": thin(0.011, clock),
+        "edge-2": thin(0.034, clock),
+        "cloud-1": window(0.067, clock, count=cloud_samples),
+    }
+    n = SchedulerParams().timeout_count
+    decision = sched.evaluate(robot("edge-1", timeouts=n), deps, profiles)
+    assert decision is not None and decision.reason is Reason.TIMEOUTS
+    assert decision.candidates == ("edge-2", "cloud-1", "cloud-2")
+    assert decision.predicted_s == pytest.approx(0.034)
+
+
+def test_the_same_prediction_prefers_the_thicker_profile(
+    sched: Scheduler, clock: FakeClock
+) -> None:
+    deps = [dep("a"), dep("b")]
+    decision = sched.evaluate(robot(None), deps, {"a": thin(0.05, clock), "b": window(0.05, clock)})
+    assert decision is not None and decision.candidates == ("b", "a")
+
+
+def test_thin_profiles_never_move_a_served_robot(sched: Scheduler, clock: FakeClock) -> None:
+    """A move by choice needs min_probe_samples: two fast probes are no reason to leave."""
+    deps = [dep("a"), dep("b")]
+    # No improvement move to a thin, much faster b (the hold time passes many times over).
+    assert (
+        hold(
+            sched,
+            clock,
+            3 * SchedulerParams().improve_hold_s,
+            lambda: (
+                robot("a", window(0.09, clock)),
+                deps,
+                {"a": window(0.09, clock), "b": thin(0.01, clock)},
+            ),
+        )
+        is None
+    )
+    # Nor a violation move when only a thin profile is better.
+    assert (
+        hold(
+            sched,
+            clock,
+            3 * BOUND.hysteresis_s,
+            lambda: (robot("a", window(0.3, clock)), deps, {"b": thin(0.01, clock)}),
+        )
+        is None
+    )
+    # The same b with enough probes: the violation moves the robot.
+    decision = sched.evaluate(robot("a", window(0.3, clock)), deps, {"b": window(0.01, clock)})
+    assert decision is not None and (decision.to_deployment, decision.reason) == (
+        "b",
+        Reason.BOUND_VIOLATION,
+    )
 
 
 # -- forced triggers -------------------------------------------------------------------------------
