@@ -146,12 +146,23 @@ class SplitModel:
 
     # -- running --
 
-    def run_full(self, feeds: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
-        """The whole model on this host: model inputs → model outputs."""
-        session = self._full_session()
-        return self._run(session, feeds, "the full model")
+    def run_full(
+        self, feeds: Mapping[str, np.ndarray], *, run_options: ort.RunOptions | None = None
+    ) -> dict[str, np.ndarray]:
+        """The whole model on this host: model inputs → model outputs.
 
-    def run_prefix(self, k: int, feeds: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+        ``run_options`` (all ``run_*`` methods) is handed to ``InferenceSession.run``: another
+        thread may set its ``terminate`` to stop the run, which then raises."""
+        session = self._full_session()
+        return self._run(session, feeds, "the full model", run_options)
+
+    def run_prefix(
+        self,
+        k: int,
+        feeds: Mapping[str, np.ndarray],
+        *,
+        run_options: ort.RunOptions | None = None,
+    ) -> dict[str, np.ndarray]:
         """The robot's part of cut ``k``: model inputs → the cut's tensors, by name.
 
         Model inputs that cross the cut (all of them for cut 0) are passed through as given.
@@ -159,7 +170,7 @@ class SplitModel:
         cut = self.partition.cut(k)
         out: dict[str, np.ndarray] = {}
         if cut.prefix is not None:
-            out = self._run(self._prefix_session(k), feeds, f"prefix of cut {k}")
+            out = self._run(self._prefix_session(k), feeds, f"prefix of cut {k}", run_options)
         inputs = set(self.partition.inputs)
         missing = [t for t in cut.tensors if t in inputs and t not in feeds]
         if missing:
@@ -174,6 +185,8 @@ class SplitModel:
         k: int,
         tensors: Mapping[str, np.ndarray],
         feeds: Mapping[str, np.ndarray] | None = None,
+        *,
+        run_options: ort.RunOptions | None = None,
     ) -> dict[str, np.ndarray]:
         """The cloud's part of cut ``k``: the cut's tensors → model outputs.
 
@@ -191,7 +204,7 @@ class SplitModel:
                 missing.append(name)
         if missing:
             raise ValueError(f"suffix of cut {k}: missing tensor(s) {', '.join(missing)}")
-        return self._run(self._suffix_session(k), given, f"suffix of cut {k}")
+        return self._run(self._suffix_session(k), given, f"suffix of cut {k}", run_options)
 
     def build_all(self) -> None:
         """Build every session now (startup cost paid once, nothing built on the frame path)."""
@@ -223,14 +236,18 @@ class SplitModel:
     # -- sessions --
 
     def _run(
-        self, session: ort.InferenceSession, feeds: Mapping[str, np.ndarray], what: str
+        self,
+        session: ort.InferenceSession,
+        feeds: Mapping[str, np.ndarray],
+        what: str,
+        run_options: ort.RunOptions | None = None,
     ) -> dict[str, np.ndarray]:
         names = [i.name for i in session.get_inputs()]
         missing = [n for n in names if n not in feeds]
         if missing:
             raise ValueError(f"{what}: missing input(s) {', '.join(missing)}")
         outputs = [o.name for o in session.get_outputs()]
-        values = session.run(outputs, {n: feeds[n] for n in names})
+        values = session.run(outputs, {n: feeds[n] for n in names}, run_options)
         return dict(zip(outputs, values, strict=True))
 
     def _full_session(self) -> ort.InferenceSession:

@@ -13,9 +13,13 @@ A frame (DESIGN.md, "A frame's life"): grab → entropy → `policy.decide` → 
 model for P) → encoded `InferRequest` → (emulated uplink) → `get` on the service key with the
 deadline → reply, or the robot runs the suffix itself with the reason (`robotd.offload`) →
 `policy.observe` → telemetry (JSONL file, `tele/<robot>`, run summary). No frame is ever lost.
-A hedged decision also runs the local suffix at once and serves whichever result is ready first;
-when the robot's result wins, the frame is served and the loop moves on while the cloud's reply
-(at most one such frame in flight) is awaited up to its deadline, to feed the learner.
+A hedged decision also runs the local suffix speculatively (at once, or deferred by the policy
+while the reply is expected first) on a thread of the lowest CPU priority
+(`robotd.offload.LocalRunner`), so that on a robot short of CPU it does not slow the offload it
+hedges, and serves whichever result is ready first. A cloud reply
+first cancels the local run; when the robot's result wins, the frame is served and the loop moves
+on while the cloud's reply (at most one such frame in flight) is awaited up to its deadline, to
+feed the learner; meanwhile the next frames' model runs go to the low-priority thread too.
 
 Registry: the robot watches the registry's liveliness token. When none is up it says so, naming
 the endpoint, and keeps saying so with a growing interval (Zenoh keeps reconnecting meanwhile);
@@ -31,7 +35,7 @@ import dataclasses
 import logging
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from importlib import metadata
 from pathlib import Path
@@ -63,11 +67,14 @@ from common.wire.robot_to_cloud import InferRequest
 from common.wire.telemetry import ProbeReport, TelemetryRecord, action_label
 from robotd.entropy import frame_entropy
 from robotd.offload import (
+    FINISH_GRACE_S,
     REASON_DECODE_ERROR,
     REASON_NO_ROUTE,
     REASON_TIMEOUT,
+    STOP_POLL_S,
     CallResult,
     CloudCall,
+    LocalRunner,
 )
 from robotd.pacing import FramePacer, TokenBucket
 from robotd.policies import (
@@ -278,6 +285,7 @@ class RobotDaemon(Daemon):
         self._prober: Prober | None = None
         self._token: zenoh.LivelinessToken | None = None
         self._position: dict[int, int] = {}
+        self._local: LocalRunner | None = None
 
     # -- lifecycle -------------------------------------------------------------------------
     def startup(self) -> None:
@@ -306,6 +314,9 @@ class RobotDaemon(Daemon):
         self._position = {cut.index: k for k, cut in enumerate(partition.cuts)}
         feeds = sample_feeds(specs)
         self._warm_up(feeds)
+        self._local = LocalRunner(f"local-run-{self.robot}")
+        self._local.start()
+        self._cleanups.append(("local-run thread", self._local.stop))
         self.policy = self._policy_override or self._make_policy(robot_profile(self.model, feeds))
         self._source = open_source(
             self.source_spec,
@@ -476,8 +487,9 @@ class RobotDaemon(Daemon):
         with self._route_lock:
             epoch = self._route.epoch
         f = _Frame(n, decision, entropy, feeds, started, cpu_started, epoch)
+        model = self.model
         if decision.action == PURE_ROBOT:
-            f.outputs = self.model.run_full(feeds)
+            f.outputs = self._compute(lambda options: model.run_full(feeds, run_options=options))
             f.prefix_s = f.latency_s = time.perf_counter() - started
             f.cpu_s = time.process_time() - cpu_started
             self._emit(f)
@@ -485,9 +497,9 @@ class RobotDaemon(Daemon):
         k = self._position_of(decision)
         cut = self.model.partition.cuts[k]
         t = time.perf_counter()
-        sent = self.model.run_prefix(k, feeds)
+        sent = self._compute(lambda options: model.run_prefix(k, feeds, run_options=options))
         f.prefix_s = time.perf_counter() - t
-        f.call = call = self._send(n, cut.index, sent, epoch)
+        f.call = call = self._send(n, cut.index, sent, epoch, background=decision.hedge)
         f.bytes_up = call.bytes_up
         if decision.hedge:
             self._hedged(f, k, sent)
@@ -499,11 +511,33 @@ class RobotDaemon(Daemon):
             f.served_by = SERVED_BY_CLOUD
         else:
             t = time.perf_counter()
-            f.outputs = self.model.run_suffix(k, sent, feeds)
+            f.outputs = self._compute(
+                lambda options: model.run_suffix(k, sent, feeds, run_options=options)
+            )
             f.local_s = time.perf_counter() - t
         f.latency_s = time.perf_counter() - started
         f.cpu_s = time.process_time() - cpu_started
         self._emit(f)
+
+    def _compute(self, run: Callable[[Any], Mapping[str, np.ndarray]]) -> dict[str, np.ndarray]:
+        """Run robot-side model work (`run` gets onnxruntime run options) and wait for it.
+
+        While a hedged frame's reply is still on its way (`_pending`), the work goes to the
+        low-priority thread: on a robot short of CPU, receiving that reply then goes first, and
+        the learner sees the link, not the robot's later frames. Otherwise it runs here, at the
+        loop's own priority (on the testbed's 0.02-core robot, P frames on the low-priority
+        thread took a median 0.50 s against 0.40 s here: Zenoh's and the prober's threads
+        went first)."""
+        pending = self._pending
+        if pending is None or pending.call is None or pending.call.settled:
+            return dict(run(None))
+        assert self._local is not None
+        job = self._local.submit(run)
+        job.wait()  # as long as the run takes, as if computed in this thread
+        if job.error is not None:
+            raise job.error
+        assert job.outputs is not None
+        return job.outputs
 
     def _position_of(self, decision: Decision) -> int:
         try:
@@ -515,7 +549,15 @@ class RobotDaemon(Daemon):
                 f"{known}"
             ) from None
 
-    def _send(self, n: int, cut: int, tensors: dict[str, np.ndarray], epoch: int) -> CloudCall:
+    def _send(
+        self,
+        n: int,
+        cut: int,
+        tensors: dict[str, np.ndarray],
+        epoch: int,
+        *,
+        background: bool = False,
+    ) -> CloudCall:
         request = InferRequest(
             robot=self.robot,
             frame=n,
@@ -549,34 +591,87 @@ class RobotDaemon(Daemon):
             delay_s=delay,
             max_reply_bytes=self.config.max_payload_bytes,
         )
-        call.start()
+        call.start(background=background)
         return call
 
     def _hedged(self, f: _Frame, k: int, sent: dict[str, np.ndarray]) -> None:
-        """Run the local suffix while the cloud works; serve whichever is ready first."""
-        assert f.call is not None
-        t = time.perf_counter()
-        local = self.model.run_suffix(k, sent, f.feeds)
-        local_done = time.perf_counter()
-        f.local_s = local_done - t
+        """Race the cloud against the local suffix and serve whichever result is first.
+
+        The local run is speculative: it starts `decision.hedge_after_s` after the request (the
+        policy defers it when the cloud is expected first) and runs on the `LocalRunner`'s
+        thread at the lowest CPU priority, so on a robot with a small CPU quota it does not slow
+        the offload it hedges (the learner would otherwise see the transfer inflated). A cloud
+        reply that comes first serves the frame and cancels the local run (which then reports
+        no robot time). A local result that comes first serves the frame; the cloud reply is
+        awaited later (`_settle_pending`) to feed the learner. A cloud that fails first (no
+        route, busy, an error, the deadline) leaves the local run as the frame's only path: it
+        is awaited.
+        """
         call = f.call
+        assert call is not None and self._local is not None
+        wake = threading.Event()
+        call.notify(wake)
+        cloud_limit = call.deadline_at + FINISH_GRACE_S
+        # The policy may defer the local run (`Decision.hedge_after_s`): a reply within that
+        # time serves the frame without any local work competing with the offload.
+        start_at = min(call.handed_at + f.decision.hedge_after_s, cloud_limit)
+        self._wait_until(wake, start_at, lambda: call.settled)
         if call.settled:
+            f.result = self._checked(call.result())
+            if f.result.reply is not None:
+                self._serve_cloud(f, f.result)
+                return
+        model, feeds = self.model, f.feeds
+        job = self._local.submit(
+            lambda options: model.run_suffix(k, sent, feeds, run_options=options), wake
+        )
+        self._wait_until(wake, cloud_limit, lambda: job.done or call.settled)
+        if not job.done and call.settled:
+            f.result = self._checked(call.result())
+            if f.result.reply is not None:
+                job.cancel()
+                self._serve_cloud(f, f.result)
+                return
+        job.wait()  # as long as the run takes, like a fallback computed in this thread
+        if job.error is not None:
+            raise job.error
+        assert job.outputs is not None and job.finished_at is not None
+        local_done = job.finished_at
+        f.local_s = job.elapsed_s
+        if call.settled or time.perf_counter() >= cloud_limit:
             f.result = self._checked(call.result())
             replied_at = f.result.replied_at
             if f.result.reply is not None and replied_at is not None and replied_at <= local_done:
-                f.outputs = dict(f.result.reply.outputs)
-                f.served_by = SERVED_BY_CLOUD
-                f.latency_s = replied_at - f.started
-            else:
-                f.outputs, f.latency_s = local, local_done - f.started
+                self._serve_cloud(f, f.result)
+                return
+            f.outputs, f.latency_s = job.outputs, local_done - f.started
             f.cpu_s = time.process_time() - f.cpu_started
             self._emit(f)
             return
         # The robot's result is first: the frame is served now, its cloud reply comes later.
-        f.outputs, f.latency_s = local, local_done - f.started
+        f.outputs, f.latency_s = job.outputs, local_done - f.started
         f.cpu_s = time.process_time() - f.cpu_started
         self._settle_pending(block=True)  # at most one frame waits for its reply
         self._pending = f
+
+    def _wait_until(self, wake: threading.Event, until: float, done: Callable[[], bool]) -> None:
+        """Wait until `done()`, the perf_counter time `until` or a stop; `wake` is set by
+        whatever may make `done()` true."""
+        while True:  # bounded by `until` (or the stop flag)
+            wake.clear()
+            left = until - time.perf_counter()
+            if done() or left <= 0 or self.should_exit.is_set():
+                return
+            wake.wait(min(left, STOP_POLL_S))
+
+    def _serve_cloud(self, f: _Frame, result: CallResult) -> None:
+        """Serve a hedged frame with its cloud reply (which came first) and emit it."""
+        assert result.reply is not None and result.replied_at is not None
+        f.outputs = dict(result.reply.outputs)
+        f.served_by = SERVED_BY_CLOUD
+        f.latency_s = result.replied_at - f.started
+        f.cpu_s = time.process_time() - f.cpu_started
+        self._emit(f)
 
     def _settle_pending(self, *, block: bool) -> None:
         f = self._pending

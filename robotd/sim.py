@@ -7,9 +7,11 @@ Cost model, per segment (times in seconds; the profile was taken on some host):
 - every one of robot, uplink, cloud and downlink time is multiplied per frame by its own seeded
   lognormal factor of mean 1 (σ = `noise.jitter`). The factors are drawn once per frame from the
   seed, independent of the policy, so every policy (and the oracle) meets the same conditions.
-- an offloaded frame costs prefix + y; a hedged one prefix + min(y, local suffix), its local
-  suffix running to completion on the robot; with a `deadline_ms`, a reply later than the deadline
-  is lost and the robot finishes locally after waiting. Frames are independent (no queueing).
+- an offloaded frame costs prefix + y; a hedged one prefix + min(y, d + local suffix), its local
+  suffix starting d (the decision's `hedge_after_s`) after the request and stopped when the reply
+  comes first (it then reports no robot time); with a `deadline_ms`, a reply later than the
+  deadline is lost and the robot finishes locally after waiting (a hedged frame's local run then
+  started at d or at the deadline, whichever is first). Frames are independent (no queueing).
 
 The expected cost of an action is its cost at the mean conditions of its segment. The oracle
 picks the least expected cost in every segment; regret sums, frame by frame, the expected cost of
@@ -96,7 +98,8 @@ def segment_costs(
     lat_plain = np.where(answered, prefix + y, prefix + wait + local)
     cpu_plain = np.where(answered, prefix, prefix + local)
     lat_hedged = np.where(answered, prefix + np.minimum(y, local), prefix + local)
-    cpu_hedged = prefix + local
+    # A local run that loses to the reply is stopped then.
+    cpu_hedged = prefix + np.where(answered, np.minimum(y, local), local)
     plain = objective.frame_cost(lat_plain, cpu_plain, radio, mb)
     hedged = objective.frame_cost(lat_hedged, cpu_hedged, radio, mb)
     p_cost = objective.frame_cost(full, full, 0.0, 0.0)
@@ -279,6 +282,21 @@ class Simulator:
             path = trace_dir / path
         return video_entropies(path, total)
 
+    def _delayed_hedge_cost(self, table: tuple[Any, ...], j: int, after_s: float) -> float:
+        """Expected cost of cut j hedged with its local run starting `after_s` after the request
+        (the segment's mean conditions; `table` is the run's per-segment table)."""
+        prefix, local, _full, uplink, compute, downlink = table[:6]
+        y = uplink[j] + compute[j] + downlink
+        deadline = self.deadline_s
+        if deadline is None or y <= deadline:
+            done = min(y, after_s + local[j])
+            lat, ran, radio = prefix[j] + done, max(0.0, done - after_s), y - compute[j]
+        else:
+            lat = prefix[j] + min(after_s, deadline) + local[j]
+            ran, radio = local[j], min(y - compute[j], deadline)
+        mb = float(self.cuts.bytes[j]) / BYTES_PER_MB
+        return float(self.objective.frame_cost(lat, prefix[j] + ran, radio, mb))
+
     def _realized(self, seg: SegmentCosts, col: int, frames: slice) -> FloatArray:
         """Realized latency of always serving column `col` (unhedged) over `frames`."""
         fr, fu, fc, fd = (f[frames] for f in self.factors)
@@ -358,16 +376,27 @@ class Simulator:
                 answered = deadline is None or y <= deadline
                 loc = local[j] * fr
                 if decision.hedge:
-                    lat = pre + (min(y, loc) if answered else loc)
-                    cost = hedge_cost[j]
+                    after = decision.hedge_after_s
+                    if answered:
+                        lat = pre + min(y, after + loc)
+                        ran_local = after + loc <= y  # else stopped (or never started)
+                    else:
+                        lat = pre + min(after, float(deadline or 0.0)) + loc
+                        ran_local = True
+                    cost = (
+                        hedge_cost[j]
+                        if after <= 0.0
+                        else self._delayed_hedge_cost(tables[s], j, after)
+                    )
                     hedged[t] = True
                 elif answered:
                     lat = pre + y
                     cost = plain[j]
+                    ran_local = False
                 else:
                     lat = pre + float(deadline or 0.0) + loc
                     cost = plain[j]
-                ran_local = decision.hedge or not answered
+                    ran_local = True
                 outcome = Outcome(
                     prefix_s=pre,
                     cloud_s=y if answered else None,

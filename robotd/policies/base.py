@@ -59,11 +59,13 @@ class FrameContext:
 class Decision:
     """What to do with a frame.
 
-    `hedge`: also finish the frame on the robot (run the local suffix right after the prefix) and
-    serve whichever result is ready first; the cloud reply, when it comes, still feeds the learner.
-    `forced` marks a forced-sampling frame and `updating` a frame inside a parameter-update period
-    (both for telemetry). `predicted_cost` is the policy's estimate for the chosen action, in
-    objective units (seconds for the default latency objective), or None when it has none.
+    `hedge`: also finish the frame on the robot (run the local suffix speculatively, starting
+    `hedge_after_s` after the request was handed to the uplink) and serve whichever result is
+    ready first; the other path's work is stopped, and the cloud reply, when it comes after a
+    local result, still feeds the learner. `forced` marks a forced-sampling frame and `updating`
+    a frame inside a parameter-update period (both for telemetry). `predicted_cost` is the
+    policy's estimate for the chosen action, in objective units (seconds for the default latency
+    objective), or None when it has none.
     """
 
     action: Action
@@ -71,6 +73,7 @@ class Decision:
     forced: bool = False
     updating: bool = False
     predicted_cost: float | None = None
+    hedge_after_s: float = 0.0
 
     @property
     def offloads(self) -> bool:

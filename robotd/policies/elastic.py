@@ -18,14 +18,27 @@ update the regression.
   dropped (Q, p are reset and the misses that revealed the change are replayed) and the actions
   are restricted in one direction: slower than predicted → only actions sending no more data
   than the one that missed (and P); faster → only actions sending at least as much. The period
-  ends after `fit_frames` fitting predictions in a row. A run starts in such a period (nothing is
-  known yet), unrestricted.
+  ends after `fit_frames` fitting predictions in a row, or when the mean relative residual of
+  the last `fit_frames` is within half the tolerance (on a link whose times come in steps,
+  single residuals of ±30% are noise, and "in a row" would hardly ever happen). Inside a
+  restricted period, `change_frames` misses in a row *against* its direction, on actions that
+  already fitted in it, start a period the other way: the link that fell while only actions
+  sending more (and not P) were allowed is noticed. A run starts in an unrestricted period
+  (nothing is known yet).
 - hedging: an exploring frame — one whose action differs from what the estimates alone would
   choose, because it is a forced frame or because its confidence bonus won — and every offloaded
   frame of an update period, is also computed on the robot and served by the faster path;
-  exploration then costs CPU and bandwidth, not latency. Offloaded frames are also
-  hedged when the robot has not timed a local run for `robot_probe_frames` frames, so a robot that
-  got faster again is noticed even while it only sends raw input.
+  exploration then costs CPU and bandwidth, not latency. The local run starts
+  `Decision.hedge_after_s` after the request: one expected to beat the reply at the latest
+  moment that still finishes it when the greedy choice would have served the frame; one expected
+  to lose to it once the reply is overdue. A local run that cannot beat the expected reply then
+  does not compete with the offload for the robot's CPU.
+- robot probes: when the robot has not been timed for `robot_probe_frames` frames (it only sends
+  raw input, cut 0), the next offloaded frame is hedged at once, so a robot that got faster
+  again is noticed. Without hedging the probe serves the frame on the robot (P) instead, and
+  each probe that finds the estimate right doubles the interval to the next (up to
+  `ROBOT_PROBE_MAX_FACTOR` times), as these probes cost latency; one that finds it wrong is
+  confirmed by a probe on the next frame.
 - confirmation: after a single miss the next frame is a forced frame (so it samples the cloud,
   hedged if the policy would not otherwise offload), and a change is confirmed within
   `change_frames` frames rather than `change_frames` forced intervals.
@@ -37,6 +50,7 @@ congested route then looks expensive instead of unknown, and the miss feeds chan
 from __future__ import annotations
 
 import math
+from collections import deque
 from typing import Any
 
 import numpy as np
@@ -61,6 +75,12 @@ from robotd.policies.schedule import ForcedSchedule
 MIN_PREDICTION = 1e-3
 # A failed attempt with no reported wait is charged this multiple of its prediction.
 UNKNOWN_WAIT_FACTOR = 2.0
+# An update period ends when the mean relative residual of its last fit_frames observations is
+# within this share of change_tolerance.
+FIT_BIAS_SHARE = 0.5
+# Without hedging, a robot probe serves a frame on the robot (P). Each probe that finds the
+# estimate right doubles the interval to the next, up to this multiple of robot_probe_frames.
+ROBOT_PROBE_MAX_FACTOR = 4
 
 
 class ElasticPolicy(Policy):
@@ -118,10 +138,26 @@ class ElasticPolicy(Policy):
         self._updating = params.change_detection
         self._period_frames = 0
         self._fits = 0
+        # Relative residuals of the period's last `fit_frames` observations: their mean decides
+        # when predictions fit again (one by one, a noisy link would rarely fit in a row).
+        self._recent: deque[float] = deque(maxlen=params.fit_frames)
+        # The period's restriction: +1 slower (less data, P allowed), -1 faster, 0 none.
+        self._direction = 0
+        # Columns whose prediction fitted in this period (first: the one whose misses started
+        # it): only their misses can reveal that conditions changed again.
+        self._fitted: set[int] = set()
         self._streak: list[tuple[int, float]] = []
         self._streak_sign = 0
         self._confirm = False
         self.update_periods = 0
+        # Robot probes: frames since the robot was last timed or a probe was tried, the current
+        # interval (grows while unhedged probes find the estimate right), and whether a probe
+        # was already tried for the measurement that is awaiting confirmation.
+        self._since_probe = 0
+        self._probe_interval = params.robot_probe_frames
+        self._suspect_probed = False
+        self._p_probe = False
+        self.robot_probes = 0
         # Score parts, cut order: base = E^c + bytes cost + α̂ᵀv (inf where restricted away in
         # `_allowed_base`), width = sqrt(vᵀQ⁻¹v); score = base − sqrt(1−σ)·β·E_P·width, with
         # `_bonus_scale` = β·E_P; `_pred` = α̂ᵀv.
@@ -139,6 +175,7 @@ class ElasticPolicy(Policy):
         self._frame = n + 1
         robot = self._robot
         robot.tick()
+        self._since_probe += 1
         params = self.params
         factor = self._key_factor if ctx.entropy >= params.key_entropy else self._nonkey_factor
         base = self._allowed_base
@@ -153,40 +190,89 @@ class ElasticPolicy(Policy):
         self._confirm = False
         if regular_p and not forced:
             return Decision(PURE_ROBOT, updating=self._updating, predicted_cost=p_cost)
-        hedge = False
-        if params.hedge:
-            # Exploring = serving something else than the estimates alone would choose.
-            cheapest = min(base)
-            greedy = -1 if self._p_allowed and p_cost <= cheapest else base.index(cheapest)
-            hedge = greedy != j or self._updating or self._needs_probe(j)
+        probe = self._needs_probe(j)
+        if not params.hedge:
+            if probe and self._p_allowed and not forced:
+                # Without hedging the robot is timed by serving the frame on it.
+                self._probe_tried()
+                self._p_probe = True
+                return Decision(PURE_ROBOT, updating=self._updating, predicted_cost=p_cost)
+            return Decision(
+                self.cuts.indices[j],
+                forced=forced,
+                updating=self._updating,
+                predicted_cost=self._base[j],
+            )
+        # Exploring = serving something else than the estimates alone would choose.
+        cheapest = min(base)
+        greedy = -1 if self._p_allowed and p_cost <= cheapest else base.index(cheapest)
+        hedge = greedy != j or self._updating or probe
+        after_s = 0.0
+        if hedge:
+            self._probe_tried()  # a hedged frame times the robot when its local run wins
+            if not probe:
+                after_s = self._hedge_after_s(j, greedy)
         return Decision(
             self.cuts.indices[j],
             hedge=hedge,
             forced=forced,
             updating=self._updating,
             predicted_cost=self._base[j],
+            hedge_after_s=after_s,
         )
 
     def _needs_probe(self, j: int) -> bool:
-        """Hedge to time the robot: cut j runs nothing measurable there, and the robot's speed is
-        stale or a surprising measurement awaits confirmation."""
+        """Time the robot: cut j runs nothing measurable there, and the robot's speed is stale
+        (or, when hedging, a surprising measurement awaits confirmation)."""
         if not self._untimed[j] or self.params.robot_probe_frames == 0:
             return False
-        robot = self._robot
-        return robot.suspect or robot.frames_since_timed >= self.params.robot_probe_frames
+        if self.params.hedge and self._robot.suspect and not self._suspect_probed:
+            return True
+        return self._since_probe >= self._probe_interval
+
+    def _probe_tried(self) -> None:
+        self._since_probe = 0
+        if self._robot.suspect:
+            self._suspect_probed = True
+
+    def _hedge_after_s(self, j: int, greedy: int) -> float:
+        """When a hedged frame of cut j starts its local run, in seconds after the request left.
+
+        The local run is speculative: started at once it competes with the offload for the
+        robot's CPU (and on a small CPU quota slows it). A local run expected to finish before
+        the reply races it, starting at the latest moment that still finishes it by the time the
+        greedy choice (`greedy`: a column, -1 for P) would have served the frame (at once when
+        that is P: every cut's prefix and suffix make the whole model). A local run expected to
+        lose to the reply is insurance: it starts when the reply is overdue (its prediction
+        plus `change_tolerance`), unless the greedy bound asks for it later."""
+        rate = self._wait_rate + self._radio_rate  # objective units per second of cloud wait
+        if rate <= 0:
+            return 0.0
+        scale = self._robot.scale
+        if greedy < 0:
+            target_s = self.cuts.full_s * scale
+        else:
+            target_s = self._prefix_s[greedy] * scale + max(self._pred[greedy], 0.0) / rate
+        slack_s = target_s - self._prefix_s[j] * scale - self._suffix_s[j] * scale
+        local_s = self._suffix_s[j] * scale
+        reply_s = max(self._pred[j], 0.0) / rate
+        if reply_s >= local_s:
+            return max(slack_s, 0.0)
+        return max(slack_s, (1.0 + self.params.change_tolerance) * reply_s)
 
     # -- learning --------------------------------------------------------------------------
 
     def observe(self, decision: Decision, outcome: Outcome) -> None:
         robot = self._robot
         if decision.action == PURE_ROBOT:
-            robot.observe(outcome.prefix_s, self.cuts.full_s)
+            self._timed(robot.observe(outcome.prefix_s, self.cuts.full_s), self._p_probe)
+            self._p_probe = False
             self._refresh(learned=False)
             return
         j = self._position[int(decision.action)]
-        robot.observe(outcome.prefix_s, self._prefix_s[j])
+        self._timed(robot.observe(outcome.prefix_s, self._prefix_s[j]), False)
         if outcome.local_s is not None:
-            robot.observe(outcome.local_s, self._suffix_s[j])
+            self._timed(robot.observe(outcome.local_s, self._suffix_s[j]), False)
         if outcome.cloud_s is not None:
             target = cloud_cost(
                 self._wait_rate, self._radio_rate, outcome.cloud_s, outcome.cloud_compute_s
@@ -201,20 +287,52 @@ class ElasticPolicy(Policy):
             self._ridge.update(j, target)
         self._refresh(learned=True)
 
+    def _timed(self, miss: int | None, p_probe: bool) -> None:
+        """After a robot measurement (`miss`: `RobotCostModel.observe`'s answer)."""
+        if miss is None:
+            return
+        self._since_probe = 0
+        self._suspect_probed = False
+        if p_probe:
+            self.robot_probes += 1
+            base = self.params.robot_probe_frames
+            if miss == 0:  # the estimate was right: probe less often
+                self._probe_interval = min(2 * self._probe_interval, ROBOT_PROBE_MAX_FACTOR * base)
+            elif self._robot.suspect:  # a surprise: confirm it on the next frame
+                self._probe_interval = 1
+            else:
+                self._probe_interval = base
+
     def _track(self, j: int, target: float) -> None:
         """Update the regression and the change detector with one cloud-side observation."""
         params = self.params
         pred = self._pred[j]
         residual = target - pred
-        tolerance = params.change_tolerance * max(abs(pred), MIN_PREDICTION)
+        scale = max(abs(pred), MIN_PREDICTION)
+        tolerance = params.change_tolerance * scale
+        sign = 1 if residual > 0 else -1
         if self._updating:
+            missed = abs(residual) > tolerance
+            if self._reversed(j, sign, missed, target):
+                return
+            if not missed:
+                self._fitted.add(j)
             self._ridge.update(j, target)
             self._period_frames += 1
             self._fits = self._fits + 1 if abs(residual) <= tolerance else 0
-            if self._fits >= params.fit_frames or self._period_frames >= params.max_update_frames:
+            recent = self._recent
+            recent.append(residual / scale)
+            # Fitting again: fit_frames predictions in a row within the tolerance, or (on a
+            # noisy link, where single residuals often miss) the mean residual of the last
+            # fit_frames well inside it; leaving on a bias just inside the tolerance would let
+            # the next residuals on the same bias start another period.
+            fits = self._fits >= params.fit_frames or (
+                len(recent) >= params.fit_frames
+                and abs(sum(recent)) <= FIT_BIAS_SHARE * params.change_tolerance * len(recent)
+            )
+            if fits or self._period_frames >= params.max_update_frames:
                 self._leave_update()
             return
-        sign = 1 if residual > 0 else -1
         # Only an action the model knows well can reveal a change; a surprise on an action still
         # being explored is ordinary learning.
         known = self._width[j] <= self._known_width
@@ -231,6 +349,29 @@ class ElasticPolicy(Policy):
             self._streak.clear()
             self._streak_sign = 0
         self._ridge.update(j, target)
+
+    def _reversed(self, j: int, sign: int, missed: bool, target: float) -> bool:
+        """Inside a restricted update period: `change_frames` misses in a row against its
+        direction (slower while only actions sending more are allowed, e.g. the link fell
+        during a period that excludes P; or faster while only actions sending less are), on
+        actions whose prediction already fitted in this period (the first: the one whose misses
+        started it), start a period the other way. True when that happened (the observation then
+        went into the new period). Misses in the period's own direction are left to the
+        regression: restarting on them would discard what the period has learned."""
+        if self._direction == 0 or j not in self._fitted:
+            return False  # unrestricted, or an action still being learned: not a miss nor a fit
+        if not missed or sign == self._direction:
+            self._streak.clear()
+            self._streak_sign = 0
+            return False
+        if sign != self._streak_sign:
+            self._streak.clear()
+            self._streak_sign = sign
+        self._streak.append((j, target))
+        if len(self._streak) < self.params.change_frames:
+            return False
+        self._enter_update(j, sign)
+        return True
 
     def _enter_update(self, j: int, sign: int) -> None:
         """Start a parameter-update period after the action in column j missed repeatedly."""
@@ -250,16 +391,24 @@ class ElasticPolicy(Policy):
             else:
                 self._mask = (sizes >= anchor).tolist()
                 self._p_allowed = False
+            self._direction = sign
+        self._fitted = {j}
         self._updating = True
         self._period_frames = 0
         self._fits = 0
+        self._recent.clear()
         self.update_periods += 1
 
     def _leave_update(self) -> None:
         self._updating = False
         self._mask = None
         self._p_allowed = True
+        self._direction = 0
+        self._fitted.clear()
         self._fits = 0
+        self._recent.clear()
+        self._streak.clear()
+        self._streak_sign = 0
 
     def _refresh(self, learned: bool) -> None:
         """Recompute the score parts after an observation (`learned`: the regression changed)."""
@@ -320,7 +469,9 @@ class ElasticPolicy(Policy):
             "samples": self._ridge.samples,
             "updating": self._updating,
             "update_periods": self.update_periods,
+            "direction": self._direction,
             "robot_speed_ratio": self._robot.ratio,
+            "robot_probes": self.robot_probes,
         }
 
 

@@ -111,7 +111,10 @@ class ElasticParams(AnsParams):
         default=3, ge=1, description="Misses in a row (same sign) that start an update period."
     )
     fit_frames: int = Field(
-        default=4, ge=1, description="Fitting predictions in a row that end an update period."
+        default=4,
+        ge=1,
+        description="Fitting predictions in a row that end an update period; it also ends when "
+        "the mean relative residual of the last fit_frames is within half of change_tolerance.",
     )
     max_update_frames: int = Field(
         default=200, ge=1, description="An update period ends after at most this many frames."
@@ -124,7 +127,8 @@ class ElasticParams(AnsParams):
     )
     hedge: bool = Field(
         default=True,
-        description="Also compute exploring frames locally and serve the faster path.",
+        description="Also compute exploring frames locally (deferred while the cloud is "
+        "expected first) and serve the faster path.",
     )
     confirm_misses: bool = Field(
         default=True,
@@ -135,7 +139,8 @@ class ElasticParams(AnsParams):
         default=10,
         ge=0,
         description="When the robot has not timed a local run for this many frames, hedge the "
-        "next offloaded frame so its robot cost stays fresh (0: never).",
+        "next offloaded frame (without hedging: serve it on the robot, the interval doubling up "
+        "to 4x while the estimate holds) so its robot cost stays fresh (0: never).",
     )
 
 

@@ -6,7 +6,8 @@ suffix, the whole model) updates one EWMA of the robot's speed relative to the p
 drop seen on any action raises the estimate of all of them at once. Two measurements in a row that
 miss the estimate by more than a tolerance in the same direction make it jump to them: a change of
 CPU availability is adopted in two timed frames instead of an EWMA's slow convergence, and the
-EWMA itself can stay smooth.
+EWMA itself can stay smooth. Runs of a small share of the model only nudge the EWMA: under a CPU
+quota their time is mostly scheduling delay, not work.
 """
 
 from __future__ import annotations
@@ -17,6 +18,11 @@ from robotd.policies.params import RobotCostParams
 
 # Runs shorter than this on the profiling host carry too little signal to time (cut 0's prefix).
 MIN_TIMED_S = 2e-4
+# A run of less than this share of the whole model is a weak measurement of the robot's speed:
+# on a CPU quota its time is mostly the wait for the next scheduling period (a prefix of 1% of the
+# model can take as long as the whole model). Such runs move the estimate by the EWMA only, with
+# a weight scaled down by their share, and never make it jump.
+SHORT_RUN_SHARE = 0.25
 
 
 class RobotCostModel:
@@ -55,15 +61,25 @@ class RobotCostModel:
         """Count a frame; timed runs reset the count (used to decide when to probe)."""
         self.frames_since_timed += 1
 
-    def observe(self, measured_s: float | None, profiled_s: float) -> None:
-        """Learn from a run that took `measured_s` on the robot and `profiled_s` when profiled."""
+    def observe(self, measured_s: float | None, profiled_s: float) -> int | None:
+        """Learn from a run that took `measured_s` on the robot and `profiled_s` when profiled.
+
+        Returns None when the run carries nothing to learn (not run, or too short to time), else
+        how it compared with the estimate before it: 0 within the tolerance, 1 slower, -1
+        faster."""
         if measured_s is None or measured_s <= 0 or profiled_s < MIN_TIMED_S:
-            return
+            return None
         self.frames_since_timed = 0
         # float(): a numpy scalar would make every later operation on the ratio slower.
         sample = float(measured_s) / profiled_s
+        share = profiled_s / self._cuts.full_s
+        sign = 0
         if self.ratio is None:
             self.ratio = sample
+        elif share < SHORT_RUN_SHARE:
+            miss = sample / self.ratio - 1.0
+            sign = 0 if abs(miss) <= self._tolerance else (1 if miss > 0 else -1)
+            self.ratio += self._ewma * (share / SHORT_RUN_SHARE) * (sample - self.ratio)
         else:
             miss = sample / self.ratio - 1.0
             sign = 0 if abs(miss) <= self._tolerance else (1 if miss > 0 else -1)
@@ -78,3 +94,4 @@ class RobotCostModel:
                 self.ratio += self._ewma * (sample - self.ratio)
         self.unit_cost = self._rate * self.ratio
         self.full_cost = self._cuts.full_s * self._rate * self.ratio
+        return sign

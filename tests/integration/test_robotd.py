@@ -405,7 +405,8 @@ def test_hedged_frames_serve_the_first_result_and_feed_the_cloud_reply_to_the_po
     assert len(policy.outcomes) == FRAMES
     for result, outcome in zip(run.results, policy.outcomes, strict=True):
         assert result.hedged and result.served_by in ("cloud", "robot")
-        assert outcome.local_s is not None and outcome.local_s > 0
+        # A reply that comes first cancels the local run: it then reports no robot time.
+        assert (outcome.local_s is not None and outcome.local_s > 0) or result.served_by == "cloud"
         assert outcome.cloud_s is not None  # the reply came within the deadline
         assert not result.record.fallback and result.record.deployment == DEPLOYMENT
         np.testing.assert_allclose(
