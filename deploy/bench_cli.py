@@ -12,7 +12,7 @@ from __future__ import annotations
 import json
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import typer
 from rich.console import Console
@@ -68,25 +68,29 @@ def _options(
     workdir: Path | None,
     name: str | None,
 ) -> Any:
+    """The experiment's options; bad ones are reported (one line, exit 2)."""
     from common.zoo import parse_shape
     from deploy.experiments.options import BenchOptions
     from deploy.testbed import check_name
 
-    if name is not None:
-        check_name(name)
-    err = Console(stderr=True)
-    options = BenchOptions(
-        model=model,
-        input_shape=parse_shape(input_shape),
-        robot_cpu=robot_cpu,
-        frames=frames,
-        quick=quick,
-        workdir=workdir,
-        plots_dir=None if no_plots else plots_dir,
-        name=name,
-        log=lambda message: err.print(f"[dim]bench:[/dim] {message}", highlight=False),
-    )
-    options.check()
+    try:
+        if name is not None:
+            check_name(name)
+        err = Console(stderr=True)
+        options = BenchOptions(
+            model=model,
+            input_shape=parse_shape(input_shape),
+            robot_cpu=robot_cpu,
+            frames=frames,
+            quick=quick,
+            workdir=workdir,
+            plots_dir=None if no_plots else plots_dir,
+            name=name,
+            log=lambda message: err.print(f"[dim]bench:[/dim] {message}", highlight=False),
+        )
+        options.check()
+    except UserError as exc:
+        _fail(exc)
     return options
 
 
@@ -105,8 +109,7 @@ def _run(
         require_root()  # after every option was checked: bad input is reported to anyone
         result = experiment()
     except UserError as exc:
-        err.print(f"[red]error:[/red] {exc}", highlight=False, soft_wrap=True)
-        raise typer.Exit(exc.exit_code) from None
+        _fail(exc)
     except KeyboardInterrupt:
         err.print("interrupted; the testbed and every daemon are gone", highlight=False)
         raise typer.Exit(INTERRUPTED_EXIT_CODE) from None
@@ -119,12 +122,26 @@ def _run(
         typer.echo(render(result))
 
 
+def _fail(exc: UserError) -> NoReturn:
+    """Report bad input or a failed run in one line and exit with its code."""
+    Console(stderr=True).print(f"[red]error:[/red] {exc}", highlight=False, soft_wrap=True)
+    raise typer.Exit(exc.exit_code) from None
+
+
 def _guard(fn: Callable[[], Any]) -> Any:
     try:
         return fn()
     except UserError as exc:
-        Console(stderr=True).print(f"[red]error:[/red] {exc}", highlight=False, soft_wrap=True)
-        raise typer.Exit(exc.exit_code) from None
+        _fail(exc)
+
+
+def _policies(text: str) -> list[str]:
+    """`--policies`, checked against the known policies (oracle is simulator-only)."""
+    from deploy.experiments.options import parse_names
+    from robotd.policies import policy_names
+
+    known = [n for n in policy_names() if n != "oracle"]
+    return _guard(lambda: parse_names(text, "--policies", known))
 
 
 @bench_app.command("table1")
@@ -149,24 +166,22 @@ def table1(
     as_json: bool = JSON_OPTION,
 ) -> None:
     """ElasticROS Table I: latency, robot CPU and energy per frame at each uplink cap."""
-    options = _guard(
-        lambda: _options(
-            quick=quick,
-            frames=frames,
-            robot_cpu=robot_cpu,
-            model=model,
-            input_shape=input_shape,
-            plots_dir=plots_dir,
-            no_plots=no_plots,
-            workdir=workdir,
-            name=name,
-        )
+    options = _options(
+        quick=quick,
+        frames=frames,
+        robot_cpu=robot_cpu,
+        model=model,
+        input_shape=input_shape,
+        plots_dir=plots_dir,
+        no_plots=no_plots,
+        workdir=workdir,
+        name=name,
     )
     from deploy.experiments import table1 as t1
-    from deploy.experiments.options import parse_floats, parse_names
+    from deploy.experiments.options import parse_floats
 
     caps = _guard(lambda: parse_floats(uplinks, "--uplinks"))
-    names = _guard(lambda: parse_names(policies, "--policies", _policy_names()))
+    names = _policies(policies)
     _run(options, lambda: t1.run(options, caps, names), t1.markdown, t1.plot, as_json)
 
 
@@ -189,24 +204,22 @@ def glitch(
     as_json: bool = JSON_OPTION,
 ) -> None:
     """A bandwidth glitch while the robot streams: before / on / after, frames to settle."""
-    options = _guard(
-        lambda: _options(
-            quick=quick,
-            frames=frames,
-            robot_cpu=robot_cpu,
-            model=model,
-            input_shape=input_shape,
-            plots_dir=plots_dir,
-            no_plots=no_plots,
-            workdir=workdir,
-            name=name,
-        )
+    options = _options(
+        quick=quick,
+        frames=frames,
+        robot_cpu=robot_cpu,
+        model=model,
+        input_shape=input_shape,
+        plots_dir=plots_dir,
+        no_plots=no_plots,
+        workdir=workdir,
+        name=name,
     )
     from deploy.experiments import glitch as gl
-    from deploy.experiments.options import parse_floats, parse_names
+    from deploy.experiments.options import parse_floats
 
     a, b = _guard(lambda: parse_floats(f"{from_mbit},{to_mbit}", "--from-mbit/--to-mbit"))
-    names = _guard(lambda: parse_names(policies, "--policies", _policy_names()))
+    names = _policies(policies)
     _run(
         options,
         lambda: gl.run(options, a, b, names),
@@ -234,23 +247,20 @@ def table2(
     as_json: bool = JSON_OPTION,
 ) -> None:
     """ElasticROS Table II: the glitches 10→3, 5→1 and 10→1 Mbit/s."""
-    options = _guard(
-        lambda: _options(
-            quick=quick,
-            frames=frames,
-            robot_cpu=robot_cpu,
-            model=model,
-            input_shape=input_shape,
-            plots_dir=plots_dir,
-            no_plots=no_plots,
-            workdir=workdir,
-            name=name,
-        )
+    options = _options(
+        quick=quick,
+        frames=frames,
+        robot_cpu=robot_cpu,
+        model=model,
+        input_shape=input_shape,
+        plots_dir=plots_dir,
+        no_plots=no_plots,
+        workdir=workdir,
+        name=name,
     )
     from deploy.experiments import glitch as gl
-    from deploy.experiments.options import parse_names
 
-    names = _guard(lambda: parse_names(policies, "--policies", _policy_names()))
+    names = _policies(policies)
     _run(
         options,
         lambda: gl.run_table2(options, gl.TABLE2_GLITCHES, names),
@@ -278,23 +288,20 @@ def table3(
     as_json: bool = JSON_OPTION,
 ) -> None:
     """ElasticROS Table III: the robot's CPU quota drops to --robot-cpu, then recovers."""
-    options = _guard(
-        lambda: _options(
-            quick=quick,
-            frames=frames,
-            robot_cpu=robot_cpu,
-            model=model,
-            input_shape=input_shape,
-            plots_dir=plots_dir,
-            no_plots=no_plots,
-            workdir=workdir,
-            name=name,
-        )
+    options = _options(
+        quick=quick,
+        frames=frames,
+        robot_cpu=robot_cpu,
+        model=model,
+        input_shape=input_shape,
+        plots_dir=plots_dir,
+        no_plots=no_plots,
+        workdir=workdir,
+        name=name,
     )
     from deploy.experiments import table3 as t3
-    from deploy.experiments.options import parse_names
 
-    names = _guard(lambda: parse_names(policies, "--policies", _policy_names()))
+    names = _policies(policies)
     _run(options, lambda: t3.run(options, names), t3.markdown, t3.plot, as_json, t3.public)
 
 
@@ -311,25 +318,17 @@ def anycast(
     as_json: bool = JSON_OPTION,
 ) -> None:
     """FogROS2-LS Table I: deadline misses with 1-4 deployments when edge-1 is slowed."""
-    options = _guard(
-        lambda: _options(
-            quick=quick,
-            frames=frames,
-            robot_cpu=1.0,
-            model=model,
-            input_shape=input_shape,
-            plots_dir=plots_dir,
-            no_plots=no_plots,
-            workdir=workdir,
-            name=name,
-        )
+    options = _options(
+        quick=quick,
+        frames=frames,
+        robot_cpu=1.0,
+        model=model,
+        input_shape=input_shape,
+        plots_dir=plots_dir,
+        no_plots=no_plots,
+        workdir=workdir,
+        name=name,
     )
     from deploy.experiments import anycast as ac
 
     _run(options, lambda: ac.run(options), ac.markdown, ac.plot, as_json)
-
-
-def _policy_names() -> list[str]:
-    from robotd.policies import policy_names
-
-    return [n for n in policy_names() if n != "oracle"]
