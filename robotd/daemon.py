@@ -616,22 +616,16 @@ class RobotDaemon(Daemon):
         # time serves the frame without any local work competing with the offload.
         start_at = min(call.handed_at + f.decision.hedge_after_s, cloud_limit)
         self._wait_until(wake, start_at, lambda: call.settled)
-        if call.settled:
-            f.result = self._checked(call.result())
-            if f.result.reply is not None:
-                self._serve_cloud(f, f.result)
-                return
+        if call.settled and self._served_by_reply(f):
+            return
         model, feeds = self.model, f.feeds
         job = self._local.submit(
             lambda options: model.run_suffix(k, sent, feeds, run_options=options), wake
         )
         self._wait_until(wake, cloud_limit, lambda: job.done or call.settled)
-        if not job.done and call.settled:
-            f.result = self._checked(call.result())
-            if f.result.reply is not None:
-                job.cancel()
-                self._serve_cloud(f, f.result)
-                return
+        if not job.done and call.settled and self._served_by_reply(f):
+            job.cancel()
+            return
         job.wait()  # as long as the run takes, like a fallback computed in this thread
         if job.error is not None:
             raise job.error
@@ -643,14 +637,12 @@ class RobotDaemon(Daemon):
             replied_at = f.result.replied_at
             if f.result.reply is not None and replied_at is not None and replied_at <= local_done:
                 self._serve_cloud(f, f.result)
-                return
-            f.outputs, f.latency_s = job.outputs, local_done - f.started
-            f.cpu_s = time.process_time() - f.cpu_started
-            self._emit(f)
+            else:
+                self._serve_local(f, job.outputs, local_done)
+                self._emit(f)
             return
         # The robot's result is first: the frame is served now, its cloud reply comes later.
-        f.outputs, f.latency_s = job.outputs, local_done - f.started
-        f.cpu_s = time.process_time() - f.cpu_started
+        self._serve_local(f, job.outputs, local_done)
         self._settle_pending(block=True)  # at most one frame waits for its reply
         self._pending = f
 
@@ -663,6 +655,22 @@ class RobotDaemon(Daemon):
             if done() or left <= 0 or self.should_exit.is_set():
                 return
             wake.wait(min(left, STOP_POLL_S))
+
+    def _served_by_reply(self, f: _Frame) -> bool:
+        """The cloud call of hedged frame `f` has settled: serve and emit the frame with its
+        reply if it brought one (True); else keep the result for later (False)."""
+        assert f.call is not None
+        f.result = self._checked(f.call.result())
+        if f.result.reply is None:
+            return False
+        self._serve_cloud(f, f.result)
+        return True
+
+    @staticmethod
+    def _serve_local(f: _Frame, outputs: dict[str, np.ndarray], done_at: float) -> None:
+        """Serve hedged frame `f` with the robot's own result, finished at `done_at`."""
+        f.outputs, f.latency_s = outputs, done_at - f.started
+        f.cpu_s = time.process_time() - f.cpu_started
 
     def _serve_cloud(self, f: _Frame, result: CallResult) -> None:
         """Serve a hedged frame with its cloud reply (which came first) and emit it."""
