@@ -76,14 +76,12 @@ class RobotCostModel:
         sign = 0
         if self.ratio is None:
             self.ratio = sample
-        elif share < SHORT_RUN_SHARE:
-            miss = sample / self.ratio - 1.0
-            sign = 0 if abs(miss) <= self._tolerance else (1 if miss > 0 else -1)
-            self.ratio += self._ewma * (share / SHORT_RUN_SHARE) * (sample - self.ratio)
         else:
             miss = sample / self.ratio - 1.0
             sign = 0 if abs(miss) <= self._tolerance else (1 if miss > 0 else -1)
-            if sign != 0 and sign == self._suspect_sign:
+            if share < SHORT_RUN_SHARE:
+                self.ratio += self._ewma * (share / SHORT_RUN_SHARE) * (sample - self.ratio)
+            elif sign != 0 and sign == self._suspect_sign:
                 # Second miss in the same direction: the robot changed; adopt the new speed.
                 self.ratio = 0.5 * (sample + self._suspect_ratio)
                 self._suspect_sign = 0
