@@ -119,19 +119,23 @@ class DaemonProc:
         # Daemon logs must reach the file as they happen, not when a buffer fills or at exit.
         env.setdefault("PYTHONUNBUFFERED", "1")
         self.started_at = time.monotonic()
+        self.popen = self._spawn(self._log_file, env)
+        log.debug("started %s (pid %d): %s", self.name, self.popen.pid, " ".join(self.args))
+        return self
+
+    def _spawn(self, log_file: IO[bytes], env: dict[str, str]) -> subprocess.Popen[bytes]:
+        """Start the process itself (a subclass may start it elsewhere, e.g. in a namespace)."""
         # No preexec_fn: the parent may hold a Zenoh session (threads), and fork+exec without
         # Python code in between is the only safe way to start a process from it.
-        self.popen = subprocess.Popen(
+        return subprocess.Popen(
             self.args,
             stdin=subprocess.DEVNULL,
-            stdout=self._log_file,
+            stdout=log_file,
             stderr=subprocess.STDOUT,
             env=env,
             cwd=self.cwd,
             start_new_session=True,
         )
-        log.debug("started %s (pid %d): %s", self.name, self.popen.pid, " ".join(self.args))
-        return self
 
     @property
     def pid(self) -> int:

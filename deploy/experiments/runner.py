@@ -59,7 +59,6 @@ from .fleet import (
     write_robot_variant,
 )
 
-REPO_ROOT = Path(__file__).resolve().parents[2]
 DEFAULT_HOSTS = (REGISTRY_HOST, ROBOT_HOST, *CLOUD_HOSTS, OBSERVER_HOST)
 STARTUP_TIMEOUT_S = 90.0
 """Per daemon: Python, onnxruntime and Zenoh start on 2 cores shared with everything else."""
@@ -87,23 +86,15 @@ class NetnsDaemon(DaemonProc):
         self.testbed = testbed
         self.host = host
 
-    def start(self) -> NetnsDaemon:
-        if self.popen is not None:
-            raise RuntimeError(f"{self.name} already started")
-        self.log_path.parent.mkdir(parents=True, exist_ok=True)
-        self._log_file = self.log_path.open("ab")
-        env = dict(os.environ if self.env is None else self.env)
-        env.setdefault("PYTHONUNBUFFERED", "1")
-        self.started_at = time.monotonic()
-        self.popen = self.testbed.popen(
+    def _spawn(self, log_file: IO[bytes], env: dict[str, str]) -> subprocess.Popen[bytes]:
+        return self.testbed.popen(
             self.host,
             self.args,
             stdin=subprocess.DEVNULL,
-            stdout=self._log_file,
+            stdout=log_file,
             stderr=subprocess.STDOUT,
             env=env,
         )
-        return self
 
 
 class ObserverClient:
@@ -120,11 +111,7 @@ class ObserverClient:
 
     def start(self, timeout_s: float = STARTUP_TIMEOUT_S) -> None:
         listen = endpoint(self.testbed.address(OBSERVER_HOST), OBSERVER_PORT)
-        env = dict(os.environ)
-        env["PYTHONPATH"] = os.pathsep.join(
-            p for p in (str(REPO_ROOT), env.get("PYTHONPATH", "")) if p
-        )
-        env["PYTHONUNBUFFERED"] = "1"
+        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
         self.log_path.parent.mkdir(parents=True, exist_ok=True)
         self._log = self.log_path.open("ab")
         argv = [sys.executable, "-m", "deploy.experiments.observer"]
@@ -136,7 +123,6 @@ class ObserverClient:
             stderr=self._log,
             text=True,
             env=env,
-            cwd=str(REPO_ROOT),
         )
         threading.Thread(target=self._read, name="observer-reader", daemon=True).start()
         event = self._next_line(timeout_s, "the observer's session")
@@ -398,7 +384,8 @@ class TestbedFleet:
         )
         # Owned by the process set: stopped (robots first) whatever happens.
         self.procs.procs.append(proc)
-        return proc.start()
+        proc.start()
+        return proc
 
     def start_registry(self) -> NetnsDaemon:
         """The registry (and its router) on the `registry` host, waited for by its token."""
