@@ -19,10 +19,12 @@ from pathlib import Path
 from types import FrameType
 from typing import Any
 
+import psutil
 import pytest
 import yaml
 
 from deploy.procs import LocalFleet, merge_into, write_local_fleet
+from deploy.testbed import ETC_NETNS_DIR, NETNS_DIR
 
 E2E_TEST_TIMEOUT_S = 90
 """Wall-clock bound of one e2e test, startup and teardown of its daemons included."""
@@ -31,6 +33,30 @@ TEST_INPUT_SHAPE = [3, 64, 64]
 """Small frames: the runtime is what is under test, not the model's speed."""
 
 TEST_MODEL = "zoo:vgg"
+
+
+def remains_of_testbed(name: str) -> list[str]:
+    """Whatever of testbed `name` still exists: namespaces, netns config, cgroups."""
+    left = (
+        [f"netns {n}" for n in os.listdir(NETNS_DIR) if n.startswith(f"{name}.")]
+        if NETNS_DIR.is_dir()
+        else []
+    )
+    if ETC_NETNS_DIR.is_dir():
+        left += [f"etc {p}" for p in ETC_NETNS_DIR.glob(f"{name}.*")]
+    left += [f"cgroup {p}" for p in Path("/sys/fs/cgroup").glob(f"*/elasticfog/{name}")]
+    return left
+
+
+def processes_under(workdir: Path) -> list[str]:
+    """Processes whose command line names a file under `workdir` (our daemons, the observer)."""
+    found = []
+    for proc in psutil.process_iter(["pid", "cmdline"]):
+        cmdline = proc.info.get("cmdline") or []
+        if any(str(workdir) in part for part in cmdline):
+            found.append(f"process {proc.info['pid']}: {' '.join(cmdline)[:120]}")
+    return found
+
 
 # Settings the tests rely on (seconds): a deadline far above a frame's cost on this input, a
 # bound that an injected delay of INJECT_DELAY_MS breaks but the deadline does not, and a short

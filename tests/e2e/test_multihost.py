@@ -16,14 +16,17 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
-import psutil
 import pytest
 
 from deploy.experiments.fleet import FleetSpec
 from deploy.experiments.runner import TestbedFleet
 from deploy.experiments.stats import between, by_frame
-from deploy.testbed import ETC_NETNS_DIR, NETNS_DIR
-from tests.e2e.conftest import TEST_INPUT_SHAPE, TEST_MODEL
+from tests.e2e.conftest import (
+    TEST_INPUT_SHAPE,
+    TEST_MODEL,
+    processes_under,
+    remains_of_testbed,
+)
 
 pytestmark = [
     pytest.mark.e2e,
@@ -43,29 +46,6 @@ INPUT_BYTES = 4 * 3 * 64 * 64
 BIG_INPUT_SHAPE = [3, 120, 160]
 BIG_INPUT_BYTES = 4 * 3 * 120 * 160
 NO_HEDGE = {"hedge": False, "robot_probe_frames": 0}
-
-
-def _testbed_leftovers(name: str) -> list[str]:
-    """Whatever of testbed `name` still exists: namespaces, netns config, cgroups, processes."""
-    left = (
-        [f"netns {n}" for n in os.listdir(NETNS_DIR) if n.startswith(f"{name}.")]
-        if (NETNS_DIR.is_dir())
-        else []
-    )
-    if ETC_NETNS_DIR.is_dir():
-        left += [f"etc {p}" for p in ETC_NETNS_DIR.glob(f"{name}.*")]
-    left += [f"cgroup {p}" for p in Path("/sys/fs/cgroup").glob(f"*/elasticfog/{name}")]
-    return left
-
-
-def _daemons_of(workdir: Path) -> list[int]:
-    """Processes whose command line names a file under `workdir` (our daemons, the observer)."""
-    found = []
-    for proc in psutil.process_iter(["pid", "cmdline"]):
-        cmdline = proc.info.get("cmdline") or []
-        if any(str(workdir) in part for part in cmdline):
-            found.append(proc.info["pid"])
-    return found
 
 
 _COUNTER = iter(range(1_000_000))
@@ -98,8 +78,8 @@ def fleet(tmp_path: Path, e2e_cache: Path, request: pytest.FixtureRequest) -> It
         for tf in opened:
             tf.close()
         for tf in opened:
-            assert not _testbed_leftovers(tf.testbed.name), _testbed_leftovers(tf.testbed.name)
-        assert not _daemons_of(tmp_path), "processes left behind"
+            assert not remains_of_testbed(tf.testbed.name), remains_of_testbed(tf.testbed.name)
+        assert not processes_under(tmp_path), "processes left behind"
 
 
 def _assert_no_frame_lost(records: list[dict[str, Any]], frames: int) -> None:

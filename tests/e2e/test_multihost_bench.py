@@ -13,13 +13,12 @@ import subprocess
 import time
 from pathlib import Path
 
-import psutil
 import pytest
 from typer.testing import CliRunner
 
 from common.cli import app
 from deploy.procs import elasticfog_argv
-from deploy.testbed import ETC_NETNS_DIR, NETNS_DIR
+from tests.e2e.conftest import processes_under, remains_of_testbed
 
 pytestmark = pytest.mark.e2e
 
@@ -60,18 +59,7 @@ def test_without_root_it_says_so(monkeypatch: pytest.MonkeyPatch) -> None:
 
 
 def _leftovers(name: str, workdir: Path) -> list[str]:
-    left = (
-        [f"netns {n}" for n in os.listdir(NETNS_DIR) if n.startswith(f"{name}.")]
-        if (NETNS_DIR.is_dir())
-        else []
-    )
-    if ETC_NETNS_DIR.is_dir():
-        left += [f"etc {p}" for p in ETC_NETNS_DIR.glob(f"{name}.*")]
-    left += [f"cgroup {p}" for p in Path("/sys/fs/cgroup").glob(f"*/elasticfog/{name}")]
-    for proc in psutil.process_iter(["pid", "cmdline"]):
-        if any(str(workdir) in part for part in proc.info.get("cmdline") or []):
-            left.append(f"process {proc.info['pid']}: {' '.join(proc.info['cmdline'])[:120]}")
-    return left
+    return remains_of_testbed(name) + processes_under(workdir)
 
 
 def _root_qdiscs() -> list[str]:
