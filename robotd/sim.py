@@ -38,7 +38,6 @@ from robotd.policies.base import (
     FloatArray,
     FrameContext,
     Outcome,
-    action_label,
 )
 from robotd.policies.objective import Objective
 from robotd.trace import ConstantEntropy, Segment, Trace, UniformEntropy, video_entropies
@@ -82,7 +81,7 @@ def segment_costs(
     local = cuts.suffix_s / seg.robot_cpu
     full = cuts.full_s / seg.robot_cpu
     uplink = cuts.bytes * BITS_PER_BYTE / (seg.uplink_mbit * MBIT) + seg.rtt_ms / MS_PER_S / 2
-    compute = cuts.suffix_s / seg.cloud_speedup
+    compute = cuts.cloud_s / seg.cloud_speedup
     downlink = (
         cuts.output_bytes * BITS_PER_BYTE / (seg.downlink_mbit * MBIT) + seg.rtt_ms / MS_PER_S / 2
     )
@@ -328,7 +327,7 @@ class Simulator:
         cuts = self.cuts
         k = cuts.size
         total = self.trace.total_frames
-        position = {index: i for i, index in enumerate(cuts.indices)}
+        position = cuts.positions()
         bytes_up = [int(b) for b in cuts.bytes]
         # Python lists: scalar reads from lists are several times cheaper than from arrays.
         tables = [
@@ -369,7 +368,7 @@ class Simulator:
                 outcome = Outcome(prefix_s=lat, latency_s=lat)
                 cost = plain[k]
             else:
-                j = position[decision.action]
+                j = position[(int(decision.action), decision.codec)]
                 pre = prefix[j] * fr
                 cc = compute[j] * fc_all[t]
                 y = uplink[j] * fu_all[t] + cc + downlink * fd_all[t]
@@ -416,7 +415,7 @@ class Simulator:
             frames_per_second=self.trace.frames_per_second,
             segment_starts=self.trace.segment_starts,
             segment_names=[s.name for s in self.trace.segments],
-            actions=tuple(action_label(a) for a in cuts.actions),
+            actions=cuts.labels,
             column=column,
             hedged=hedged,
             latency_s=latency,

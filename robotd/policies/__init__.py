@@ -2,11 +2,12 @@
 
     policy = make_policy("elastic", profile, params={"beta": 0.3}, objective={"latency": 1})
     decision = policy.decide(FrameContext(index=t, entropy=frame_entropy(frame)))
-    ... run decision.action (a cut index or "P"), hedged if decision.hedge ...
+    ... run decision.action (a cut index or "P") with decision.codec, hedged if decision.hedge ...
     policy.observe(decision, Outcome(prefix_s=..., cloud_s=..., bytes_up=..., latency_s=...))
 
 `profile` is the partitioner's profile dict (`{full_ms, cuts: [{index, bytes, prefix_ms,
-suffix_ms}, ...]}`); `params` and `objective` are plain dicts from the config file, validated here.
+suffix_ms, codecs?: [{name, bytes, encode_ms, decode_ms}]}, ...]}`: each (cut, codec) is an
+action); `params` and `objective` are plain dicts from the config file, validated here.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from pydantic import BaseModel
 from common.errors import UserError
 from robotd.policies.base import (
     PURE_ROBOT,
+    RAW_CODEC,
     Action,
     CutTable,
     Decision,
@@ -42,6 +44,7 @@ from robotd.policies.params import (
 
 __all__ = [
     "PURE_ROBOT",
+    "RAW_CODEC",
     "Action",
     "CutTable",
     "Decision",
@@ -59,12 +62,22 @@ __all__ = [
 ]
 
 # Policies the real-time robot daemon can run; `oracle` needs the simulator's ground truth.
-REAL_TIME_POLICIES = ("elastic", "ans", "neurosurgeon", "robot", "cloud", "static:K")
+REAL_TIME_POLICIES = (
+    "elastic",
+    "ans",
+    "neurosurgeon",
+    "robot",
+    "cloud",
+    "cloud:CODEC",
+    "static:K",
+    "static:K:CODEC",
+)
 SIM_ONLY_POLICIES = ("oracle",)
 
 
 def policy_names() -> tuple[str, ...]:
-    """Every accepted policy spec (`static:K` stands for any cut index K)."""
+    """Every accepted policy spec (`static:K` stands for any cut index K, `CODEC` for any codec
+    name the profile offers at that cut, e.g. `cloud:jpeg80`)."""
     return REAL_TIME_POLICIES + SIM_ONLY_POLICIES
 
 
@@ -78,7 +91,7 @@ def params_model(spec: str) -> type[BaseModel]:
     }
     if name in models:
         return models[name]
-    if name in ("robot", "cloud", "oracle") or name.startswith("static:"):
+    if name in ("robot", "cloud", "oracle") or name.startswith(("static:", "cloud:")):
         return NoParams
     raise UserError(f"unknown policy {spec!r}; expected one of {', '.join(policy_names())}")
 
@@ -133,17 +146,20 @@ def make_policy(
         return ElasticPolicy(cuts, elastic_params_for_ans(ans), goal, name)
     if name == "neurosurgeon":
         return NeurosurgeonPolicy(cuts, parse_params(NeurosurgeonParams, params, name), goal)
-    if name in ("robot", "cloud", "oracle") or name.startswith("static:"):
+    if name in ("robot", "cloud", "oracle") or name.startswith(("static:", "cloud:")):
         parse_params(NoParams, params, name)
     if name == "robot":
         return FixedPolicy(cuts, PURE_ROBOT, name)
-    if name == "cloud":
-        return FixedPolicy(cuts, cuts.indices[0], name)
+    if name == "cloud" or name.startswith("cloud:"):
+        codec = name.split(":", 1)[1].strip() if ":" in name else RAW_CODEC
+        return FixedPolicy(cuts, min(cuts.indices), name, codec)
     if name == "oracle":
         return OraclePolicy(cuts)
     if name.startswith("static:"):
-        text = name.split(":", 1)[1].strip()
+        text, _, codec = name.split(":", 1)[1].strip().partition(":")
         if not text.isdigit():
-            raise UserError(f"policy {spec!r}: static needs a cut index, e.g. static:3")
-        return FixedPolicy(cuts, int(text), name)
+            raise UserError(
+                f"policy {spec!r}: static needs a cut index, e.g. static:3 or static:3:int8"
+            )
+        return FixedPolicy(cuts, int(text), name, codec.strip() or RAW_CODEC)
     raise UserError(f"unknown policy {spec!r}; expected one of {', '.join(policy_names())}")

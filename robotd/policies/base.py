@@ -6,8 +6,10 @@ to hedge by also computing the frame locally), runs it, and reports what it meas
 trace-driven simulator, so a policy never knows which one it is talking to (except `oracle`, which
 needs the simulator's ground truth in `FrameContext.expected_costs`).
 
-An action is a cut index (an `int`: run the prefix up to that cut, send the cut tensors) or
-`PURE_ROBOT` (`"P"`: run the whole model on the robot). Cut 0 sends the raw input.
+An action is a cut index (an `int`: run the prefix up to that cut, send the cut tensors) with the
+codec its tensors cross in (`Decision.codec`: `raw`, `fp16`, `int8`, `int8+zstd`, `raw+zstd`,
+`jpeg<Q>`, `png`; see `common.wire.tensor_codecs`), or `PURE_ROBOT` (`"P"`: run the whole model on
+the robot). Cut 0 sends the model's input (the camera image for image-input models).
 """
 
 from __future__ import annotations
@@ -35,9 +37,15 @@ BYTES_PER_MB: Final = 1e6
 FloatArray = npt.NDArray[np.float64]
 
 
-def action_label(action: Action) -> str:
-    """The action as a string key (`"P"` or the cut index), as used in JSON and tables."""
-    return str(action)
+RAW_CODEC: Final = "raw"
+
+
+def action_label(action: Action, codec: str = RAW_CODEC) -> str:
+    """The action as a string key, as used in JSON and tables: `"P"`, the cut index for a raw
+    crossing (`"3"`), or cut and codec (`"0:jpeg80"`)."""
+    if action == PURE_ROBOT or codec == RAW_CODEC:
+        return str(action)
+    return f"{action}:{codec}"
 
 
 @dataclass(frozen=True, slots=True)
@@ -74,11 +82,17 @@ class Decision:
     updating: bool = False
     predicted_cost: float | None = None
     hedge_after_s: float = 0.0
+    codec: str = RAW_CODEC
 
     @property
     def offloads(self) -> bool:
         """True when the frame is sent to the cloud (any cut, not P)."""
         return self.action != PURE_ROBOT
+
+    @property
+    def label(self) -> str:
+        """`action_label` of this decision's action and codec."""
+        return action_label(self.action, self.codec)
 
 
 @dataclass(frozen=True, slots=True)
@@ -111,13 +125,26 @@ class Outcome:
         return self.cloud_s is not None
 
 
+class _CodecModel(BaseModel):
+    model_config = ConfigDict(extra="allow")
+
+    name: str = Field(min_length=1, description="Codec of the cut's tensors, e.g. jpeg80.")
+    bytes: float = Field(gt=0, description="Median bytes sent with this codec.")
+    encode_ms: float = Field(default=0.0, ge=0, description="Encode time on the robot.")
+    decode_ms: float = Field(default=0.0, ge=0, description="Decode time in the cloud.")
+
+
 class _CutModel(BaseModel):
     model_config = ConfigDict(extra="allow")
 
     index: int = Field(ge=0, description="Cut index; 0 sends the model's inputs.")
-    bytes: int = Field(gt=0, description="Bytes crossing the cut.")
+    bytes: int = Field(gt=0, description="Bytes crossing the cut (raw).")
     prefix_ms: float = Field(ge=0, description="Prefix time on the profiling host.")
     suffix_ms: float = Field(ge=0, description="Suffix time on the profiling host.")
+    codecs: list[_CodecModel] | None = Field(
+        default=None,
+        description="The codecs this cut may cross in (each an action); absent: raw only.",
+    )
 
 
 class _ProfileModel(BaseModel):
@@ -145,15 +172,21 @@ def one_line_validation_error(source: str, exc: ValidationError) -> str:
 
 @dataclass(frozen=True)
 class CutTable:
-    """Per-cut costs from a profile, as arrays in cut order (sorted by index).
+    """The offloading actions of a profile, as arrays in action order: cuts by index, and within
+    a cut its codecs in profile order (a profile without codecs gives one raw action per cut).
 
-    Times are seconds on the profiling host; `bytes` is what crosses each cut.
+    Times are seconds on the profiling host: `prefix_s` the robot's part of an action (prefix
+    and encode), `suffix_s` the suffix (what the robot runs when it finishes a frame itself,
+    from the tensors it still holds), `cloud_s` the cloud's part (decode and suffix); `bytes` is
+    what crosses (the median over calibration frames for content-dependent codecs).
     """
 
     indices: tuple[int, ...]
+    codecs: tuple[str, ...]
     bytes: FloatArray
     prefix_s: FloatArray
     suffix_s: FloatArray
+    cloud_s: FloatArray
     full_s: float
     output_bytes: int
 
@@ -175,38 +208,73 @@ class CutTable:
         if len(set(seen)) != len(seen):
             dup = next(i for i in seen if seen.count(i) > 1)
             raise UserError(f"{source}: cuts: index {dup} appears more than once")
+        rows: list[tuple[int, str, float, float, float, float]] = []
+        for c in cuts:
+            codecs = (
+                c.codecs if c.codecs is not None else [_CodecModel(name=RAW_CODEC, bytes=c.bytes)]
+            )
+            if not codecs:
+                raise UserError(f"{source}: cut {c.index}: codecs must not be empty")
+            names = [codec.name for codec in codecs]
+            if len(set(names)) != len(names):
+                raise UserError(f"{source}: cut {c.index}: a codec appears more than once")
+            for codec in codecs:
+                prefix_ms = c.prefix_ms + codec.encode_ms
+                cloud_ms = c.suffix_ms + codec.decode_ms
+                rows.append((c.index, codec.name, codec.bytes, prefix_ms, c.suffix_ms, cloud_ms))
+        columns = list(zip(*rows, strict=True))
         return cls(
-            indices=tuple(seen),
-            bytes=np.array([c.bytes for c in cuts], dtype=np.float64),
-            prefix_s=np.array([c.prefix_ms for c in cuts], dtype=np.float64) / MS_PER_S,
-            suffix_s=np.array([c.suffix_ms for c in cuts], dtype=np.float64) / MS_PER_S,
+            indices=tuple(int(i) for i in columns[0]),
+            codecs=tuple(str(n) for n in columns[1]),
+            bytes=np.array(columns[2], dtype=np.float64),
+            prefix_s=np.array(columns[3], dtype=np.float64) / MS_PER_S,
+            suffix_s=np.array(columns[4], dtype=np.float64) / MS_PER_S,
+            cloud_s=np.array(columns[5], dtype=np.float64) / MS_PER_S,
             full_s=model.full_ms / MS_PER_S,
             output_bytes=model.output_bytes,
         )
 
     @property
     def size(self) -> int:
-        """Number of cuts (offloading actions)."""
+        """Number of offloading actions."""
         return len(self.indices)
 
     @property
     def actions(self) -> tuple[Action, ...]:
-        """All actions in the policy order: the cuts, then P."""
+        """The cut of every action in the policy order (offloading actions, then P)."""
         return (*self.indices, PURE_ROBOT)
 
-    def position(self, action: Action) -> int:
+    @property
+    def labels(self) -> tuple[str, ...]:
+        """`action_label` of every action in the policy order (offloading actions, then P)."""
+        cuts = (action_label(k, c) for k, c in zip(self.indices, self.codecs, strict=True))
+        return (*cuts, PURE_ROBOT)
+
+    def position(self, action: Action, codec: str = RAW_CODEC) -> int:
         """Column of an action in the policy order (P is last)."""
         if action == PURE_ROBOT:
             return self.size
-        try:
-            return self.indices.index(int(action))
-        except ValueError:
-            valid = ", ".join(str(i) for i in self.indices)
-            raise UserError(f"cut {action} is not in the profile (cuts: {valid})") from None
+        key = (int(action), codec)
+        for j, row in enumerate(zip(self.indices, self.codecs, strict=True)):
+            if row == key:
+                return j
+        valid = ", ".join(self.labels[:-1])
+        what = f"cut {action}" if codec == RAW_CODEC else f"cut {action} with codec {codec}"
+        raise UserError(f"{what} is not in the profile (actions: {valid})")
+
+    def positions(self) -> dict[tuple[int, str], int]:
+        """Column of every offloading action by (cut, codec), for per-frame lookups."""
+        return {row: j for j, row in enumerate(zip(self.indices, self.codecs, strict=True))}
 
     def action_at(self, position: int) -> Action:
-        """Inverse of `position`."""
+        """The cut (or P) of the action in column `position`."""
         return PURE_ROBOT if position == self.size else self.indices[position]
+
+    def decision_at(self, position: int, **fields: Any) -> Decision:
+        """A decision for the action in column `position` (its cut and codec)."""
+        if position == self.size:
+            return Decision(PURE_ROBOT, **fields)
+        return Decision(self.indices[position], codec=self.codecs[position], **fields)
 
 
 class Policy(abc.ABC):

@@ -2,7 +2,9 @@
 
 - `robot`: always P (the whole model on the robot).
 - `cloud`: always the lowest cut (cut 0: send the raw input), the node-level full offload.
-- `static:K`: always cut K.
+- `cloud:CODEC`: cut 0 crossing in CODEC (e.g. `cloud:jpeg80`: what a user streaming compressed
+  camera frames to one server runs).
+- `static:K[:CODEC]`: always cut K (raw, or in CODEC).
 - `neurosurgeon`: the profile's costs (scaled by the robot's measured speed, as Neurosurgeon
   profiles the device it runs on) plus a transfer model — RTT and uplink bandwidth as EWMAs of
   recent transfers, cloud speed from the server-reported compute time — and the argmin of the
@@ -20,6 +22,7 @@ from common.errors import UserError
 from robotd.policies.base import (
     BYTES_PER_MB,
     PURE_ROBOT,
+    RAW_CODEC,
     Action,
     CutTable,
     Decision,
@@ -41,10 +44,10 @@ MIN_TRANSFER_S = 1e-4
 class FixedPolicy(Policy):
     """Always the same action."""
 
-    def __init__(self, cuts: CutTable, action: Action, name: str) -> None:
+    def __init__(self, cuts: CutTable, action: Action, name: str, codec: str = RAW_CODEC) -> None:
         super().__init__(cuts)
-        cuts.position(action)  # raises UserError for a cut the profile lacks
-        self._decision = Decision(action)
+        # Raises UserError for a cut or codec the profile lacks.
+        self._decision = cuts.decision_at(cuts.position(action, codec))
         self.name = name
 
     def decide(self, ctx: FrameContext) -> Decision:
@@ -60,7 +63,7 @@ class OraclePolicy(Policy):
         if ctx.expected_costs is None:
             raise UserError("policy oracle needs the true costs, which only the simulator has")
         best = int(np.argmin(np.asarray(ctx.expected_costs)))
-        return Decision(self.cuts.action_at(best), predicted_cost=float(ctx.expected_costs[best]))
+        return self.cuts.decision_at(best, predicted_cost=float(ctx.expected_costs[best]))
 
 
 class NeurosurgeonPolicy(Policy):
@@ -73,8 +76,9 @@ class NeurosurgeonPolicy(Policy):
         self.params = params
         self.objective = objective
         self._robot = RobotCostModel(cuts, objective, params)
-        self._position = {index: i for i, index in enumerate(cuts.indices)}
-        self._bytes_cost = objective.bytes * cuts.bytes / BYTES_PER_MB
+        self._position = cuts.positions()
+        # Bytes sent per action, followed online like the link (a JPEG's size varies).
+        self._bytes = cuts.bytes.copy()
         self.rtt_s = params.rtt_ms / MS_PER_S
         # Seconds per byte: averaging the inverse keeps one slow sample from dominating.
         self.s_per_byte = BITS_PER_BYTE / (params.uplink_mbit * MBIT)
@@ -83,43 +87,46 @@ class NeurosurgeonPolicy(Policy):
     def predicted_costs(self) -> np.ndarray:
         """Predicted objective cost of every action, cuts then P."""
         cuts = self.cuts
-        compute = cuts.suffix_s / self.cloud_speedup
-        transfer = self.rtt_s + cuts.bytes * self.s_per_byte
+        compute = cuts.cloud_s / self.cloud_speedup
+        transfer = self.rtt_s + self._bytes * self.s_per_byte
         cloud = self.objective.wait_rate * (transfer + compute) + self.objective.radio_rate * (
             transfer
         )
-        offload = self._robot.prefix_cost + self._bytes_cost + cloud
+        bytes_cost = self.objective.bytes * self._bytes / BYTES_PER_MB
+        offload = self._robot.prefix_cost + bytes_cost + cloud
         return np.append(offload, self._robot.full_cost)
 
     def decide(self, ctx: FrameContext) -> Decision:
         self._robot.tick()
         costs = self.predicted_costs()
         best = int(costs.argmin())
-        return Decision(self.cuts.action_at(best), predicted_cost=float(costs[best]))
+        return self.cuts.decision_at(best, predicted_cost=float(costs[best]))
 
     def observe(self, decision: Decision, outcome: Outcome) -> None:
         cuts = self.cuts
         if decision.action == PURE_ROBOT:
             self._robot.observe(outcome.prefix_s, cuts.full_s)
             return
-        j = self._position[int(decision.action)]
+        j = self._position[(int(decision.action), decision.codec)]
+        if outcome.bytes_up > 0:
+            self._bytes[j] += self.params.bytes_ewma * (outcome.bytes_up - self._bytes[j])
         self._robot.observe(outcome.prefix_s, float(cuts.prefix_s[j]))
         if outcome.local_s is not None:
             self._robot.observe(outcome.local_s, float(cuts.suffix_s[j]))
         w = self.params.ewma
         if outcome.cloud_s is not None:
             compute = outcome.cloud_compute_s
-            if compute is not None and compute > 0 and cuts.suffix_s[j] > 0:
-                speedup = float(cuts.suffix_s[j]) / compute
+            if compute is not None and compute > 0 and cuts.cloud_s[j] > 0:
+                speedup = float(cuts.cloud_s[j]) / compute
                 self.cloud_speedup += w * (speedup - self.cloud_speedup)
             if compute is None:
-                compute = float(cuts.suffix_s[j]) / self.cloud_speedup
+                compute = float(cuts.cloud_s[j]) / self.cloud_speedup
             transfer = max(outcome.cloud_s - compute, MIN_TRANSFER_S)
         elif outcome.waited_s is not None:
             transfer = outcome.waited_s  # the transfer took at least this long
         else:
             return
-        size = float(cuts.bytes[j])
+        size = float(self._bytes[j])
         if size <= self.params.small_transfer_bytes:
             self.rtt_s += w * (transfer - self.rtt_s)
         else:

@@ -78,6 +78,8 @@ UNKNOWN_WAIT_FACTOR = 2.0
 # An update period ends when the mean relative residual of its last fit_frames observations is
 # within this share of change_tolerance.
 FIT_BIAS_SHARE = 0.5
+# Learned bytes of an action change its context only when they moved by more than this share.
+BYTES_CHANGE_SHARE = 0.02
 # Without hedging, a robot probe serves a frame on the robot (P). Each probe that finds the
 # estimate right doubles the interval to the next, up to this multiple of robot_probe_frames.
 ROBOT_PROBE_MAX_FACTOR = 4
@@ -96,8 +98,10 @@ class ElasticPolicy(Policy):
         self.params = params
         self.objective = objective
         mb = cuts.bytes / BYTES_PER_MB
-        share = cuts.suffix_s / cuts.full_s
+        share = cuts.cloud_s / cuts.full_s
         self.contexts = np.column_stack([mb, share, np.ones(cuts.size)])
+        # Bytes sent per action, learned online: a JPEG's size follows the content.
+        self._bytes: list[float] = cuts.bytes.tolist()
         self._ridge = RidgeEstimator(self.contexts, params.gamma)
         self._robot = RobotCostModel(cuts, objective, params)
         self._wait_rate = objective.wait_rate
@@ -108,7 +112,7 @@ class ElasticPolicy(Policy):
             params.forced_exponent,
             params.forced_every_frames,
         )
-        self._position = {index: i for i, index in enumerate(cuts.indices)}
+        self._position = cuts.positions()
         self._untimed = (cuts.prefix_s < MIN_TIMED_S).tolist()
         self._known_width = 1.0 / math.sqrt(params.known_samples)
         self._key_factor = math.sqrt(1.0 - params.sigma_key)
@@ -197,11 +201,8 @@ class ElasticPolicy(Policy):
                 self._probe_tried()
                 self._p_probe = True
                 return Decision(PURE_ROBOT, updating=self._updating, predicted_cost=p_cost)
-            return Decision(
-                self.cuts.indices[j],
-                forced=forced,
-                updating=self._updating,
-                predicted_cost=self._base[j],
+            return self.cuts.decision_at(
+                j, forced=forced, updating=self._updating, predicted_cost=self._base[j]
             )
         # Exploring = serving something else than the estimates alone would choose.
         cheapest = min(base)
@@ -212,8 +213,8 @@ class ElasticPolicy(Policy):
             self._probe_tried()  # a hedged frame times the robot when its local run wins
             if not probe:
                 after_s = self._hedge_after_s(j, greedy)
-        return Decision(
-            self.cuts.indices[j],
+        return self.cuts.decision_at(
+            j,
             hedge=hedge,
             forced=forced,
             updating=self._updating,
@@ -269,7 +270,8 @@ class ElasticPolicy(Policy):
             self._p_probe = False
             self._refresh(learned=False)
             return
-        j = self._position[int(decision.action)]
+        j = self._position[(int(decision.action), decision.codec)]
+        self._learn_bytes(j, outcome.bytes_up)
         self._timed(robot.observe(outcome.prefix_s, self._prefix_s[j]), False)
         if outcome.local_s is not None:
             self._timed(robot.observe(outcome.local_s, self._suffix_s[j]), False)
@@ -286,6 +288,26 @@ class ElasticPolicy(Policy):
         else:
             self._ridge.update(j, target)
         self._refresh(learned=True)
+
+    def _learn_bytes(self, j: int, sent: int) -> None:
+        """Follow the bytes action j really sends (EWMA): its context and byte cost move with
+        them. Relative changes under `BYTES_CHANGE_SHARE` are left alone (no work per frame)."""
+        if sent <= 0:
+            return
+        old = self._bytes[j]
+        new = old + self.params.bytes_ewma * (sent - old)
+        if abs(new - old) <= BYTES_CHANGE_SHARE * old:
+            return
+        self._bytes[j] = new
+        mb = new / BYTES_PER_MB
+        self.contexts[j, 0] = mb
+        self._ridge.set_context(j, self.contexts[j])
+        k = self._k
+        d = self.contexts.shape[1]
+        self._features[j, 0] = mb
+        self._features[j, -1] = self.objective.bytes * mb
+        self._features[k + j, d : d + d * d] = quadratic_features(self.contexts[j : j + 1])[0]
+        self._features[2 * k + j, 0] = mb
 
     def _timed(self, miss: int | None, p_probe: bool) -> None:
         """After a robot measurement (`miss`: `RobotCostModel.observe`'s answer)."""
@@ -383,7 +405,7 @@ class ElasticPolicy(Policy):
         for row, y in misses:
             self._ridge.update(row, y)
         if self.params.direction_restriction:
-            sizes = self.cuts.bytes
+            sizes = np.array(self._bytes)
             anchor = sizes[j]
             if sign > 0:
                 self._mask = (sizes <= anchor).tolist()
@@ -448,18 +470,20 @@ class ElasticPolicy(Policy):
         """True inside a parameter-update period."""
         return self._updating
 
-    def allowed_actions(self) -> list[int | str]:
-        """Actions the direction restriction currently allows (all of them outside a period)."""
-        cuts = [
-            index
-            for i, index in enumerate(self.cuts.indices)
-            if self._mask is None or self._mask[i]
-        ]
-        return [*cuts, PURE_ROBOT] if self._p_allowed else list(cuts)
+    def allowed_actions(self) -> list[str]:
+        """Labels of the actions the direction restriction currently allows (all of them
+        outside a period)."""
+        labels = self.cuts.labels
+        cuts = [labels[i] for i in range(self._k) if self._mask is None or self._mask[i]]
+        return [*cuts, PURE_ROBOT] if self._p_allowed else cuts
 
-    def predicted_cloud_cost(self) -> dict[int, float]:
-        """α̂ᵀv_a for every cut (objective units)."""
-        return dict(zip(self.cuts.indices, self._pred, strict=True))
+    def predicted_cloud_cost(self) -> dict[str, float]:
+        """α̂ᵀv_a for every offloading action, by label (objective units)."""
+        return dict(zip(self.cuts.labels, self._pred, strict=False))
+
+    def learned_bytes(self) -> dict[str, float]:
+        """The bytes each offloading action is expected to send, by label."""
+        return dict(zip(self.cuts.labels, self._bytes, strict=False))
 
     def state(self) -> dict[str, Any]:
         return {

@@ -43,6 +43,13 @@ class RobotCostParams(BaseModel):
         description="Relative gap between a measured and a predicted robot time that counts as a "
         "change; two such measurements in a row make the estimate jump to them.",
     )
+    bytes_ewma: float = Field(
+        default=0.2,
+        gt=0,
+        le=1,
+        description="Weight of a frame's bytes sent in the EWMA of its action's bytes (a JPEG's "
+        "size follows the content).",
+    )
 
 
 class AnsParams(RobotCostParams):

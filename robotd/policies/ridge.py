@@ -75,6 +75,13 @@ class RidgeEstimator:
         self.alpha = [0.0] * d
         self.samples = 0
 
+    def set_context(self, row: int, v: FloatArray | list[float]) -> None:
+        """Replace the context of the action in `row` (e.g. the bytes it sends, learned online);
+        the evidence gathered so far is kept."""
+        self.contexts[row] = v
+        self._rows[row] = [float(x) for x in v]
+        self._pairs[row] = quadratic_features(self.contexts[row : row + 1])[0]
+
     def update(self, row: int, y: float) -> None:
         """Add the observation y for the action in `row`."""
         # float(): numpy scalars would make every later operation on Q⁻¹, p and α̂ slower.

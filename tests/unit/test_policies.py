@@ -255,9 +255,9 @@ def test_repeated_slower_misses_restrict_to_actions_sending_less() -> None:
     assert policy.updating
     assert policy.update_periods == 1
     # Slower than predicted on cut 0 (1 MB): every cut sends no more than that, and P is allowed.
-    assert policy.allowed_actions() == [0, 1, 2, PURE_ROBOT]
+    assert policy.allowed_actions() == ["0", "1", "2", PURE_ROBOT]
     # The misses are the first evidence of the new conditions: the model now predicts them.
-    assert policy.predicted_cloud_cost()[0] == pytest.approx(1.5, rel=0.3)
+    assert policy.predicted_cloud_cost()["0"] == pytest.approx(1.5, rel=0.3)
 
 
 def test_faster_misses_restrict_to_actions_sending_more_and_exclude_p() -> None:
@@ -268,7 +268,7 @@ def test_faster_misses_restrict_to_actions_sending_more_and_exclude_p() -> None:
         policy.observe(Decision(1), Outcome(prefix_s=0.5, cloud_s=0.01))
     assert policy.updating
     # Faster than predicted on cut 1 (100 kB): only cuts sending at least that much, no P.
-    assert policy.allowed_actions() == [0, 1]
+    assert policy.allowed_actions() == ["0", "1"]
     for t in range(10):
         d = policy.decide(FrameContext(t, 0.9))
         assert d.action in (0, 1)
@@ -293,7 +293,7 @@ def test_update_period_ends_when_predictions_fit_again() -> None:
         if not policy.updating:
             break
     assert not policy.updating
-    assert policy.allowed_actions() == [0, 1, 2, PURE_ROBOT]
+    assert policy.allowed_actions() == ["0", "1", "2", PURE_ROBOT]
     # Now cut 1 (0.5 + 0.19) beats cut 0 (1.5), cut 2 (0.95) and P (1.0).
     greedy = [policy.decide(FrameContext(1000 + t, 1.0)).action for t in range(5)]
     assert greedy.count(1) >= 4
@@ -314,7 +314,7 @@ def test_a_timeout_teaches_that_the_action_is_expensive() -> None:
         policy.observe(
             d, Outcome(prefix_s=(0.0, 0.5, 0.9)[c], cloud_s=None, waited_s=deadline, local_s=0.5)
         )
-    assert policy.predicted_cloud_cost()[0] > 1.0
+    assert policy.predicted_cloud_cost()["0"] > 1.0
     decisions = [policy.decide(FrameContext(100 + t, 1.0)) for t in range(20)]
     assert sum(d.action == PURE_ROBOT for d in decisions) >= 15
 
@@ -330,7 +330,7 @@ def test_ans_never_hedges_nor_restricts() -> None:
         else:
             policy.observe(d, Outcome(prefix_s=0.0, cloud_s=5.0 if t > 150 else 0.1))
     assert policy.update_periods == 0
-    assert policy.allowed_actions() == [0, 1, 2, PURE_ROBOT]
+    assert policy.allowed_actions() == ["0", "1", "2", PURE_ROBOT]
 
 
 def test_ans_first_decision_matches_the_hand_computed_lcb() -> None:
@@ -393,7 +393,8 @@ def test_neurosurgeon_predicts_from_profile_and_measured_transfers() -> None:
 def test_every_named_policy_builds_on_a_real_profile() -> None:
     profile = vgg_profile()
     for name in policy_names():
-        spec = "static:3" if name == "static:K" else name
+        placeholders = {"static:K": "static:3", "static:K:CODEC": "static:3:raw"}
+        spec = placeholders.get(name, name.replace("CODEC", "raw"))
         policy = make_policy(spec, profile)
         assert policy.name == spec
 
