@@ -1,22 +1,24 @@
 """The wire format: one codec (`codec`) and the messages, grouped by who sends them.
 
-- `robot_to_cloud`: InferRequest.
+- `robot_to_cloud`: InferRequest, whose tensors are `EncodedTensor`s (`tensor_codecs`: raw, fp16,
+  int8, int8+zstd, raw+zstd, jpeg<Q>, png; decoded strictly, within the receiver's limit).
 - `cloud_to_robot`: InferReply, BusyReply (and ErrorReply, which any replier may send).
 - `registry`: registration, probe, control, routes, drain, RIB views (registry <-> daemons).
 - `telemetry`: what a robot publishes for anyone (per-frame records, probe reports).
 
 Typical use::
 
-    payload = InferRequest(...).to_wire()
+    payload = InferRequest(..., tensors={"x": encode_tensor_as(x, "int8+zstd")}).to_wire()
     try:
         request = InferRequest.from_wire(query_payload, max_bytes=limit)
+        tensors = decode_tensors(request.tensors, max_bytes=limit)
     except WireError as exc:
         query.reply(key, error_reply(exc))
 
 Only this package imports msgpack.
 """
 
-from common.wire import cloud_to_robot, registry, robot_to_cloud, telemetry
+from common.wire import cloud_to_robot, registry, robot_to_cloud, telemetry, tensor_codecs
 from common.wire.codec import (
     DEFAULT_MAX_PAYLOAD_BYTES,
     DTYPES,
@@ -34,25 +36,47 @@ from common.wire.codec import (
 )
 from common.wire.errors import (
     BadDtype,
+    BadQuantization,
+    CodecMismatch,
+    CorruptPayload,
     ErrorCode,
     InvalidValue,
     MalformedPayload,
     MissingField,
     PayloadTooLarge,
     ShapeMismatch,
+    TensorTooLarge,
     TrailingBytes,
     UnexpectedMessageType,
+    UnknownCodec,
     UnknownMessageType,
     UnknownSchemaVersion,
     WireError,
     WrongFieldType,
 )
+from common.wire.tensor_codecs import (
+    CODEC_RAW,
+    Codec,
+    EncodedTensor,
+    applies,
+    codec_names_for,
+    decode_encoded,
+    decode_tensors,
+    encode_tensor_as,
+    parse_codec,
+)
 
 __all__ = [
+    "CODEC_RAW",
     "DEFAULT_MAX_PAYLOAD_BYTES",
     "DTYPES",
     "SCHEMA_VERSION",
     "BadDtype",
+    "BadQuantization",
+    "Codec",
+    "CodecMismatch",
+    "CorruptPayload",
+    "EncodedTensor",
     "ErrorCode",
     "ErrorReply",
     "InvalidValue",
@@ -62,21 +86,30 @@ __all__ = [
     "PayloadTooLarge",
     "ShapeMismatch",
     "Struct",
+    "TensorTooLarge",
     "TrailingBytes",
     "UnexpectedMessageType",
+    "UnknownCodec",
     "UnknownMessageType",
     "UnknownSchemaVersion",
     "WireError",
     "WrongFieldType",
+    "applies",
     "cloud_to_robot",
+    "codec_names_for",
     "decode",
+    "decode_encoded",
     "decode_tensor",
+    "decode_tensors",
     "encode",
     "encode_raw",
     "encode_tensor",
+    "encode_tensor_as",
     "error_reply",
+    "parse_codec",
     "registry",
     "robot_to_cloud",
     "telemetry",
+    "tensor_codecs",
     "to_jsonable",
 ]

@@ -7,7 +7,9 @@ required fields are an error.
 
 A tensor is the map `{"dtype": <name>, "shape": [<int>...], "bytes": <bin>}` with little-endian
 data in C order; dtypes come from an allow-list. msgpack copies a `bin` once while unpacking; the
-array is then a read-only `numpy.frombuffer` view of those bytes, with no further copy.
+array is then a read-only `numpy.frombuffer` view of those bytes, with no further copy. The
+tensors of an `InferRequest` travel instead as `EncodedTensor` records naming a per-tensor codec
+(raw, fp16, int8, zstd, JPEG, PNG: see `tensor_codecs`), decoded by the receiver with its limit.
 
 Decoding is strict and total: for *any* input, `decode` returns a message or raises a
 `WireError` subclass whose message names the problem (size limit, not msgpack, trailing bytes,
@@ -48,7 +50,8 @@ from common.wire.errors import (
     WrongFieldType,
 )
 
-SCHEMA_VERSION = 1
+# 2: InferRequest tensors are EncodedTensor records (per-tensor codecs) instead of raw tensors.
+SCHEMA_VERSION = 2
 SUPPORTED_SCHEMA_VERSIONS = frozenset({SCHEMA_VERSION})
 VERSION_FIELD = "v"
 TYPE_FIELD = "t"
@@ -152,6 +155,11 @@ def decode_tensor(value: Any, path: str = "tensor") -> np.ndarray:
 
 
 _ALLOWED = ", ".join(DTYPES)
+_READS = (
+    "this build reads schema version"
+    + ("s " if len(SUPPORTED_SCHEMA_VERSIONS) > 1 else " ")
+    + ", ".join(str(v) for v in sorted(SUPPORTED_SCHEMA_VERSIONS))
+)
 
 
 # -- field decoders and encoders, built from type hints --------------------------------------------
@@ -217,6 +225,9 @@ def _check_keys(value: dict[Any, Any], path: str) -> None:
 _SIMPLE_DECODERS: dict[Any, _Decoder] = {
     str: _decode_str,
     bytes: _decode_bytes,
+    # A field typed Buffer is bytes when decoded, and any bytes-like object when built locally
+    # (e.g. a memoryview of an array's data, sent without a copy): msgpack packs them all as bin.
+    Buffer: _decode_bytes,
     bool: _decode_bool,
     int: _decode_int,
     float: _decode_float,
@@ -554,9 +565,8 @@ def decode(
     version = body.get(VERSION_FIELD)
     if type(version) is not int or version not in SUPPORTED_SCHEMA_VERSIONS:
         if VERSION_FIELD not in body:
-            raise UnknownSchemaVersion("no schema version ('v') in the message")
-        supported = ", ".join(str(v) for v in sorted(SUPPORTED_SCHEMA_VERSIONS))
-        raise UnknownSchemaVersion(f"schema version {version!r} is not supported ({supported})")
+            raise UnknownSchemaVersion(f"no schema version ('v') in the message; {_READS}")
+        raise UnknownSchemaVersion(f"schema version {version!r} is not supported; {_READS}")
     tag = body.get(TYPE_FIELD)
     cls = MESSAGE_TYPES.get(tag) if type(tag) is str else None
     if cls is None:
@@ -589,8 +599,8 @@ def _jsonable(value: Any) -> Any:
         return to_jsonable(value)
     if isinstance(value, enum.Enum):
         return value.value
-    if isinstance(value, bytes):
-        return {"bytes": len(value)}
+    if isinstance(value, (bytes, bytearray, memoryview)):
+        return {"bytes": memoryview(value).nbytes}
     if isinstance(value, (list, tuple)):
         return [_jsonable(v) for v in value]
     if isinstance(value, dict):

@@ -28,6 +28,11 @@ class ErrorCode(str, enum.Enum):
     BAD_VALUE = "bad_value"
     BAD_DTYPE = "bad_dtype"
     SHAPE_MISMATCH = "shape_mismatch"
+    # Raised by the tensor codecs (tensor_codecs).
+    UNKNOWN_CODEC = "unknown_codec"
+    CODEC_MISMATCH = "codec_mismatch"
+    CORRUPT_PAYLOAD = "corrupt_payload"
+    BAD_QUANTIZATION = "bad_quantization"
     # Used by daemons in their replies.
     UNKNOWN_CUT = "unknown_cut"
     MODEL_DIGEST = "model_digest"
@@ -111,6 +116,40 @@ class BadDtype(WireError):
 
 
 class ShapeMismatch(WireError):
-    """A tensor's shape does not match its byte count (or is not a list of sizes)."""
+    """A tensor's shape does not match its byte count (or is not a list of sizes), or an encoded
+    image's header disagrees with the declared shape."""
 
     code = ErrorCode.SHAPE_MISMATCH
+
+
+class TensorTooLarge(PayloadTooLarge):
+    """An encoded tensor declares a decoded size over the receiver's limit (checked before
+    decompressing or decoding anything: a size bomb)."""
+
+    code = ErrorCode.TOO_LARGE
+
+
+class UnknownCodec(WireError):
+    """A tensor codec name this build does not know."""
+
+    code = ErrorCode.UNKNOWN_CODEC
+
+
+class CodecMismatch(WireError):
+    """A known codec that does not apply to the tensor's dtype or shape (e.g. jpeg for float32)."""
+
+    code = ErrorCode.CODEC_MISMATCH
+
+
+class CorruptPayload(WireError):
+    """Encoded tensor data that cannot be decoded: corrupt zstd, JPEG or PNG bytes, or a zstd
+    frame that does not hold the expected number of bytes."""
+
+    code = ErrorCode.CORRUPT_PAYLOAD
+
+
+class BadQuantization(WireError):
+    """int8 parameters missing, of the wrong length or dtype, a scale that is not finite and
+    positive, a zero point not a whole number in 0..255, or parameters on a non-int8 tensor."""
+
+    code = ErrorCode.BAD_QUANTIZATION

@@ -1,21 +1,24 @@
 """Messages a robot sends to the deployment serving it, on its anycast service key
-(`keys.svc_infer`). The deployment answers with a message of `cloud_to_robot`."""
+(`keys.svc_infer`). The deployment answers with a message of `cloud_to_robot`.
+
+The cut's tensors travel as `EncodedTensor` records, each naming its codec (`tensor_codecs`): the
+robot picks per tensor (`encode_tensor_as(array, "int8+zstd")`, or `EncodedTensor.raw(array)`),
+the deployment decodes them with `decode_tensors(request.tensors, max_bytes=...)`."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from typing import ClassVar
 
-import numpy as np
-
 from common.wire.codec import Message, register
+from common.wire.tensor_codecs import EncodedTensor, check_encoded
 
 
 @register
 @dataclass(frozen=True, slots=True, kw_only=True)
 class InferRequest(Message):
     """Run the suffix after cut `cut` of the model `model_digest` on `tensors` (the cut's tensors
-    by name) and reply within `deadline_s` of `sent_at`.
+    by name, each encoded with its codec) and reply within `deadline_s` of `sent_at`.
 
     `deadline_s` is a budget, not a time of day: hosts' clocks are not synchronised, so the
     deployment measures it from the request's arrival (a request that waited in its queue longer
@@ -29,7 +32,7 @@ class InferRequest(Message):
     frame: int
     model_digest: str
     cut: int
-    tensors: dict[str, np.ndarray]
+    tensors: dict[str, EncodedTensor]
     deadline_s: float
     sent_at: float
     epoch: int = 0
@@ -43,3 +46,12 @@ class InferRequest(Message):
             raise self._invalid("model_digest", "must not be empty")
         if not self.tensors:
             raise self._invalid("tensors", "at least one tensor is needed")
+        for name, tensor in self.tensors.items():
+            if not isinstance(tensor, EncodedTensor):  # e.g. a bare ndarray from older code
+                raise self._invalid(
+                    "tensors",
+                    f"{name!r} is a {type(tensor).__name__}, expected an EncodedTensor "
+                    "(EncodedTensor.raw(array) or encode_tensor_as(array, codec))",
+                )
+            # Codec, dtype, shape, data length and int8 parameters, before any data is decoded.
+            check_encoded(tensor, f"{self.TYPE}.tensors.{name}")

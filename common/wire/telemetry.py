@@ -13,9 +13,11 @@ from typing import Any, ClassVar
 from common.wire.codec import Message, register
 
 # The action label of "pure robot" (run the whole model locally); offloading at cut k is
-# action_label(k).
+# action_label(k) ("cut:k"), or action_label(k, codec) ("cut:k:jpeg80") when its tensors cross in
+# a codec other than raw.
 ACTION_ROBOT = "P"
 _CUT_PREFIX = "cut:"
+_RAW = "raw"
 
 # The per-frame JSONL object, in this order (the `--telemetry` contract of `elasticfog robot`).
 JSONL_FIELDS = (
@@ -36,22 +38,32 @@ JSONL_FIELDS = (
 )
 
 
-def action_label(cut: int | None) -> str:
-    """ "P" for pure robot (cut None), "cut:<k>" for offloading after cut k."""
+def action_label(cut: int | None, codec: str = _RAW) -> str:
+    """ "P" for pure robot (cut None), "cut:<k>" for offloading after cut k with raw tensors,
+    "cut:<k>:<codec>" with another codec."""
     if cut is None:
         return ACTION_ROBOT
     if cut < 0:
         raise ValueError(f"cut index must be >= 0, got {cut}")
-    return f"{_CUT_PREFIX}{cut}"
+    return f"{_CUT_PREFIX}{cut}" if codec == _RAW else f"{_CUT_PREFIX}{cut}:{codec}"
+
+
+def parse_action_codec(label: str) -> tuple[int | None, str]:
+    """(cut index or None for "P", codec) of an action label; ValueError for anything else."""
+    if label == ACTION_ROBOT:
+        return None, _RAW
+    if label.startswith(_CUT_PREFIX):
+        cut, sep, codec = label[len(_CUT_PREFIX) :].partition(":")
+        if cut.isdigit() and (codec or not sep):
+            return int(cut), codec or _RAW
+    raise ValueError(
+        f"not an action label: {label!r} (expected 'P', 'cut:<k>' or 'cut:<k>:<codec>')"
+    )
 
 
 def parse_action(label: str) -> int | None:
     """The cut index of an action label (None for "P"); ValueError for anything else."""
-    if label == ACTION_ROBOT:
-        return None
-    if label.startswith(_CUT_PREFIX) and label[len(_CUT_PREFIX) :].isdigit():
-        return int(label[len(_CUT_PREFIX) :])
-    raise ValueError(f"not an action label: {label!r} (expected 'P' or 'cut:<k>')")
+    return parse_action_codec(label)[0]
 
 
 @register

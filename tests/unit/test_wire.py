@@ -11,9 +11,11 @@ import numpy as np
 import pytest
 
 from common.wire import (
+    DEFAULT_MAX_PAYLOAD_BYTES,
     DTYPES,
     SCHEMA_VERSION,
     BadDtype,
+    EncodedTensor,
     ErrorCode,
     ErrorReply,
     InvalidValue,
@@ -29,10 +31,13 @@ from common.wire import (
     WireError,
     WrongFieldType,
     decode,
+    decode_encoded,
     decode_tensor,
+    decode_tensors,
     encode,
     encode_raw,
     encode_tensor,
+    encode_tensor_as,
     error_reply,
     to_jsonable,
 )
@@ -90,7 +95,11 @@ SAMPLES: list[Message] = [
         frame=7,
         model_digest=DIGEST,
         cut=2,
-        tensors={"a": _tensor(), "b": _tensor((2,), "int64")},
+        tensors={
+            "a": EncodedTensor.raw(_tensor()),
+            "b": encode_tensor_as(_tensor((2,), "int64"), "raw+zstd"),
+            "c": encode_tensor_as(_tensor((1, 2, 3, 3)), "int8"),
+        },
         deadline_s=0.25,
         sent_at=1700000000.5,
         epoch=3,
@@ -241,7 +250,12 @@ SAMPLES: list[Message] = [
 
 
 def assert_same(a: Any, b: Any) -> None:
-    """Deep equality that compares arrays by dtype, shape and values."""
+    """Deep equality that compares arrays by dtype, shape and values, and bytes-like objects (a
+    locally encoded tensor's memoryview, the decoded bytes) by content."""
+    if isinstance(a, (memoryview, bytearray)):
+        a = bytes(a)
+    if isinstance(b, (memoryview, bytearray)):
+        b = bytes(b)
     if isinstance(a, np.ndarray):
         assert isinstance(b, np.ndarray)
         assert a.dtype == b.dtype and a.shape == b.shape
@@ -304,8 +318,11 @@ def test_every_allowed_dtype_round_trips(dtype: str) -> None:
     ids=["0d", "empty", "strided", "big-endian", "fortran"],
 )
 def test_awkward_arrays_round_trip(array: np.ndarray) -> None:
-    request = dataclasses.replace(SAMPLES[0], tensors={"x": array})  # type: ignore[type-var]
-    got = InferRequest.from_wire(request.to_wire()).tensors["x"]
+    request = dataclasses.replace(
+        SAMPLES[0],  # type: ignore[type-var]
+        tensors={"x": EncodedTensor.raw(array)},
+    )
+    got = decode_encoded(InferRequest.from_wire(request.to_wire()).tensors["x"], max_bytes=1024)
     assert got.shape == array.shape
     assert got.dtype == array.dtype.newbyteorder("<")
     assert np.array_equal(got, array)
@@ -313,6 +330,8 @@ def test_awkward_arrays_round_trip(array: np.ndarray) -> None:
 
 def test_decoded_tensor_is_a_read_only_view_of_the_payload_bytes() -> None:
     got = InferRequest.from_wire(SAMPLES[0].to_wire()).tensors["a"]
+    assert isinstance(got.data, bytes)
+    got = decode_encoded(got, max_bytes=1024)  # raw: a view of the received bytes
     assert not got.flags.writeable
     assert not got.flags.owndata  # np.frombuffer over the unpacked bytes: no copy of its own
     assert isinstance(got.base, (bytes, np.ndarray))
@@ -328,13 +347,23 @@ def test_encoding_refuses_unsupported_arrays() -> None:
 # -- strict decode ---------------------------------------------------------------------------------
 def _request_map(**changes: Any) -> dict[str, Any]:
     body: dict[str, Any] = {"v": SCHEMA_VERSION, "t": "infer_request", **SAMPLES[0].to_map()}
-    body["tensors"] = {k: dict(v, bytes=bytes(v["bytes"])) for k, v in body["tensors"].items()}
+    body["tensors"] = {k: _plain_tensor(v) for k, v in body["tensors"].items()}
     body.update(changes)
     return body
 
 
+def _plain_tensor(enc: dict[str, Any]) -> dict[str, Any]:
+    """An encoded tensor's map with memoryviews as bytes, so it can be packed again."""
+    plain = dict(enc, data=bytes(enc["data"]))
+    for param in ("scale", "zero_point"):
+        if plain[param] is not None:
+            plain[param] = dict(plain[param], bytes=bytes(plain[param]["bytes"]))
+    return plain
+
+
 def _tensor_map(**changes: Any) -> dict[str, Any]:
-    return {"x": {"dtype": "float32", "shape": [2, 2], "bytes": b"\x00" * 16, **changes}}
+    raw = {"codec": "raw", "dtype": "float32", "shape": [2, 2], "data": b"\x00" * 16}
+    return {"x": {**raw, **changes}}
 
 
 def _bad(name: str, payload: bytes, error: type[WireError], words: str) -> Any:
@@ -350,7 +379,7 @@ def _raw_tensor(**changes: Any) -> bytes:
 
 
 _NO_CUT = encode_raw({k: v for k, v in _request_map().items() if k != "cut"})
-_BOOL_BYTES = {"dtype": "bool", "shape": [16], "bytes": b"\x02" * 16}
+_BOOL_BYTES = {"codec": "raw", "dtype": "bool", "shape": [16], "data": b"\x02" * 16}
 
 BAD_PAYLOADS = [
     _bad("empty", b"", MalformedPayload, "empty"),
@@ -361,6 +390,7 @@ BAD_PAYLOADS = [
     _bad("trailing", SAMPLES[0].to_wire() + b"\x00\x01", TrailingBytes, "2 trailing bytes"),
     _bad("no version", encode_raw({"t": "busy"}), UnknownSchemaVersion, "no schema version"),
     _bad("future version", _raw(v=99), UnknownSchemaVersion, "99"),
+    _bad("v1 sender", _raw(v=1), UnknownSchemaVersion, "reads schema version 2"),
     _bad("bool version", _raw(v=True), UnknownSchemaVersion, "True"),
     _bad("list version", _raw(v=[1]), UnknownSchemaVersion, "[1]"),
     _bad("unknown type", _raw(t="teleport"), UnknownMessageType, "teleport"),
@@ -373,11 +403,12 @@ BAD_PAYLOADS = [
     _bad("object dtype", _raw_tensor(dtype="object"), BadDtype, "'object' is not allowed"),
     _bad("shape/bytes", _raw_tensor(shape=[3, 2]), ShapeMismatch, "needs 24 bytes, got 16"),
     _bad("negative dim", _raw_tensor(shape=[-2, -2]), ShapeMismatch, "non-negative"),
-    _bad("shape not list", _raw_tensor(shape="2x2"), ShapeMismatch, "shape"),
+    _bad("shape not list", _raw_tensor(shape="2x2"), WrongFieldType, "x.shape: expected array"),
     _bad("huge empty", _raw_tensor(shape=[0, 2**62, 2**62], bytes=b""), ShapeMismatch, "large"),
     _bad("too many dims", _raw_tensor(shape=[1] * 17, bytes=b"\x00" * 4), ShapeMismatch, "at most"),
-    _bad("bytes as str", _raw_tensor(bytes="x" * 16), WrongFieldType, "expected bytes"),
-    _bad("tensor field", _raw(tensors={"x": {"dtype": "float32"}}), MissingField, "'shape'"),
+    _bad("bytes as str", _raw_tensor(data="x" * 16), WrongFieldType, "expected bytes"),
+    _bad("old tensor map", _raw(tensors={"x": {"dtype": "float32"}}), MissingField, "'codec'"),
+    _bad("tensor field", _raw_tensor(shape=None), WrongFieldType, "x.shape: expected array"),
     _bad("bool not 0/1", _raw(tensors={"x": _BOOL_BYTES}), InvalidValue, "bool tensor"),
     _bad("negative frame", _raw(frame=-1), InvalidValue, "frame: must be >= 0"),
     _bad("zero deadline", _raw(deadline_s=0.0), InvalidValue, "deadline_s: must be > 0"),
@@ -387,10 +418,18 @@ BAD_PAYLOADS = [
 ]
 
 
+def decode_fully(payload: bytes) -> Message:
+    """Decode, and decode an InferRequest's tensors too (what a deployment does)."""
+    message = decode(payload)
+    if isinstance(message, InferRequest):
+        decode_tensors(message.tensors, max_bytes=DEFAULT_MAX_PAYLOAD_BYTES)
+    return message
+
+
 @pytest.mark.parametrize(("payload", "error", "words"), BAD_PAYLOADS)
 def test_bad_payloads_get_a_named_error(payload: bytes, error: type[WireError], words: str) -> None:
     with pytest.raises(error) as info:
-        decode(payload)
+        decode_fully(payload)
     assert type(info.value) is error
     assert words in str(info.value)
     assert "\n" not in str(info.value)
@@ -451,12 +490,13 @@ def test_unknown_enum_value_is_a_bad_value() -> None:
 
 
 def test_unknown_error_codes_still_decode() -> None:
-    reply = ErrorReply.from_wire(encode_raw({"v": 1, "t": "error", "code": "new", "reason": "r"}))
+    body = {"v": SCHEMA_VERSION, "t": "error", "code": "new", "reason": "r"}
+    reply = ErrorReply.from_wire(encode_raw(body))
     assert reply.code == "new" and reply.error_code is None
 
 
 def test_nested_struct_errors_name_the_path() -> None:
-    body = {"v": 1, **SAMPLES[15].to_map(), "t": "rib_deployments"}
+    body = {"v": SCHEMA_VERSION, **SAMPLES[15].to_map(), "t": "rib_deployments"}
     body["rows"][0]["load"] = "high"
     with pytest.raises(WrongFieldType, match=r"rib_deployments\.rows\[0\]\.load: expected integer"):
         decode(encode_raw(body))
@@ -525,7 +565,16 @@ def test_action_labels() -> None:
 
 def test_to_jsonable_summarises_tensors_and_bytes() -> None:
     view = to_jsonable(SAMPLES[0])
-    assert view["tensors"]["a"] == {"dtype": "float32", "shape": [1, 3, 4, 4]}
+    assert view["tensors"]["a"] == {
+        "codec": "raw",
+        "dtype": "float32",
+        "shape": [1, 3, 4, 4],
+        "data": {"bytes": 192},
+        "scale": None,
+        "zero_point": None,
+    }
+    assert view["tensors"]["c"]["scale"] == {"dtype": "float32", "shape": [2]}
+    assert to_jsonable(SAMPLES[1])["outputs"]["logits"] == {"dtype": "float32", "shape": [1, 10]}
     probe = to_jsonable(SAMPLES[6])
     assert probe["padding"] == {"bytes": 512}
     assert to_jsonable(SAMPLES[7])["states"] == {"robot-1": "standby", "robot-2": "service"}

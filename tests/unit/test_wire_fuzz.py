@@ -63,7 +63,7 @@ def test_random_bytes(data: bytes) -> None:
 
 @FUZZ
 @given(
-    version=st.sampled_from([SCHEMA_VERSION, 0, 2, -1, "1", 1.0, None]),
+    version=st.sampled_from([SCHEMA_VERSION, 0, 1, SCHEMA_VERSION + 1, -1, "2", 2.0, None]),
     tag=st.sampled_from(sorted(MESSAGE_TYPES)) | st.text(max_size=12) | values,
     fields=st.dictionaries(st.text(max_size=15), values, max_size=8),
 )
