@@ -70,6 +70,7 @@ def time_parts(model_spec: str, shape: list[int], cut: int) -> dict[str, float]:
     from common.wire import decode
     from common.wire.cloud_to_robot import InferReply
     from common.wire.robot_to_cloud import InferRequest
+    from common.wire.tensor_codecs import EncodedTensor
 
     model = SplitModel(load_partition(model_spec, input_shape=tuple(shape)))
     feeds = {model.input_names[0]: np.random.default_rng(0).random((1, *shape), dtype=np.float32)}
@@ -82,7 +83,7 @@ def time_parts(model_spec: str, shape: list[int], cut: int) -> dict[str, float]:
             frame=1,
             model_digest=model.digest,
             cut=cut,
-            tensors=tensors,
+            tensors={n: EncodedTensor.raw(a) for n, a in tensors.items()},
             deadline_s=1.0,
             sent_at=time.time(),
         )

@@ -100,6 +100,7 @@ def serve(zenoh_port: int, tcp_port: int, shm: bool) -> None:
 # -- client ----------------------------------------------------------------------------------------
 def make_payload(size_mib: float) -> bytes:
     from common.wire.robot_to_cloud import InferRequest
+    from common.wire.tensor_codecs import EncodedTensor
 
     n = int(size_mib * (1 << 20)) // 4
     tensor = np.random.default_rng(0).standard_normal(n).astype(np.float32)
@@ -108,7 +109,7 @@ def make_payload(size_mib: float) -> bytes:
         frame=0,
         model_digest="0" * 64,
         cut=0,
-        tensors={"input": tensor},
+        tensors={"input": EncodedTensor.raw(tensor)},
         deadline_s=1.0,
         sent_at=time.time(),
     ).to_wire()

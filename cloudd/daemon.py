@@ -45,7 +45,7 @@ import zenoh
 
 from cloudd.faults import FaultInjector, describe
 from cloudd.state import RobotState, StateTable, Verdict
-from cloudd.validate import check_request
+from cloudd.validate import check_request, decode_tensors
 from cloudd.workers import DelayedActions, WorkerPool
 from common import keys
 from common.config import FleetConfig, MachineConfig
@@ -731,7 +731,14 @@ class CloudDaemon(Daemon):
             self._send(query, key, error.to_wire(), self._delay_s())
             return
         try:
-            outputs = self.model.run_suffix(request.cut, request.tensors)
+            # Decoding runs here, on a worker, not on Zenoh's callback thread.
+            tensors = decode_tensors(request, self._cut_specs[request.cut])
+        except WireError as exc:
+            self._warn("%s: frame %d of %s: %s", self.deployment, request.frame, robot, exc.reason)
+            self._send(query, key, error_reply(exc), self._delay_s())
+            return
+        try:
+            outputs = self.model.run_suffix(request.cut, tensors)
         except Exception as exc:
             reason = f"suffix of cut {request.cut} failed: {ort_reason(exc)}"
             log.warning("%s: frame %d of %s: %s", self.deployment, request.frame, robot, reason)

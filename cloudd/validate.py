@@ -3,17 +3,21 @@
 The codec already refused what cannot be a request (garbage, unknown schema version, bad dtype
 names, shape/byte-count mismatch, oversize payload). What is left is whether a well-formed request
 fits *this* model: the robot it names, the model digest, the cut index, and the cut's tensors by
-name, dtype and shape (`SplitModel.cut_tensor_specs`). Each problem is an `ErrorReply` with a code
-and a one-line reason the robot can log; nothing here raises.
+name and declared dtype and shape (`SplitModel.cut_tensor_specs`). Each problem is an
+`ErrorReply` with a code and a one-line reason the robot can log; nothing here raises. The
+tensors' codecs are decoded later, on a worker (`decode_tensors`), into exactly those sizes.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 
+import numpy as np
+
 from common.partition import TensorSpec
 from common.wire import ErrorCode, ErrorReply
 from common.wire.robot_to_cloud import InferRequest
+from common.wire.tensor_codecs import decode_encoded
 
 DIGEST_SHOWN_CHARS = 12
 
@@ -24,6 +28,15 @@ def _names(names: Sequence[str]) -> str:
 
 def _shape(shape: Sequence[int]) -> str:
     return "[" + ", ".join(str(d) for d in shape) + "]"
+
+
+def decode_tensors(request: InferRequest, specs: Sequence[TensorSpec]) -> dict[str, np.ndarray]:
+    """The request's tensors decoded from their codecs (after `check_request` passed): each
+    into at most its spec's bytes. Raises the codec's WireError, which names the problem."""
+    return {
+        spec.name: decode_encoded(request.tensors[spec.name], max_bytes=spec.nbytes, name=spec.name)
+        for spec in specs
+    }
 
 
 def check_request(
@@ -67,17 +80,19 @@ def check_request(
             f"cut {request.cut} takes tensor(s) {_names(expected)}; unexpected {_names(extra)}",
         )
     for spec in specs:
-        array = request.tensors[spec.name]
-        if array.dtype.name != spec.dtype:
+        # The declared dtype and shape are checked here, before any decoding: the codec then
+        # decodes into exactly the spec's size (a size bomb is refused unopened).
+        tensor = request.tensors[spec.name]
+        if tensor.dtype != spec.dtype:
             return ErrorReply.make(
                 ErrorCode.BAD_DTYPE,
-                f"tensor {spec.name!r} of cut {request.cut}: dtype {array.dtype.name}, "
+                f"tensor {spec.name!r} of cut {request.cut}: dtype {tensor.dtype}, "
                 f"expected {spec.dtype}",
             )
-        if tuple(array.shape) != tuple(spec.shape):
+        if tuple(tensor.shape) != tuple(spec.shape):
             return ErrorReply.make(
                 ErrorCode.SHAPE_MISMATCH,
-                f"tensor {spec.name!r} of cut {request.cut}: shape {_shape(array.shape)}, "
+                f"tensor {spec.name!r} of cut {request.cut}: shape {_shape(tensor.shape)}, "
                 f"expected {_shape(spec.shape)}",
             )
     return None

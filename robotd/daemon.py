@@ -65,6 +65,8 @@ from common.wire.registry import (
 )
 from common.wire.robot_to_cloud import InferRequest
 from common.wire.telemetry import ProbeReport, TelemetryRecord, action_label
+from common.wire.tensor_codecs import EncodedTensor, encode_tensor_as
+from robotd.calibration import calibration_frames, codec_table, fidelity_of, required_codecs
 from robotd.entropy import frame_entropy
 from robotd.offload import (
     FINISH_GRACE_S,
@@ -198,26 +200,31 @@ class _Frame:
 
 
 def robot_profile(
-    model: SplitModel, feeds: dict[str, np.ndarray], runs: int = PROFILE_RUNS
+    model: SplitModel,
+    feeds: dict[str, np.ndarray],
+    runs: int = PROFILE_RUNS,
+    codecs: Mapping[int, list[dict[str, Any]]] | None = None,
 ) -> dict[str, Any]:
     """The policies' profile of this robot, cheap enough for every start: the whole model's
     median time measured here, split between each cut's prefix and suffix by their FLOPs (the
     policies then learn the robot's real speed online). A cut without FLOP counts is split by
-    its position."""
+    its position. `codecs` (`robotd.calibration.codec_table`) gives each cut its measured
+    codec entries; those marked `action` become the policy's (cut, codec) actions."""
     full_ms = max(median_ms(lambda: model.run_full(feeds), runs), MIN_PROFILE_MS)
     cuts = model.partition.cuts
     rows = []
     for k, cut in enumerate(cuts):
         total = cut.prefix_flops + cut.suffix_flops
         share = cut.prefix_flops / total if total > 0 else k / max(1, len(cuts))
-        rows.append(
-            {
-                "index": cut.index,
-                "bytes": max(1, cut.bytes),
-                "prefix_ms": full_ms * share,
-                "suffix_ms": full_ms * (1.0 - share),
-            }
-        )
+        row: dict[str, Any] = {
+            "index": cut.index,
+            "bytes": max(1, cut.bytes),
+            "prefix_ms": full_ms * share,
+            "suffix_ms": full_ms * (1.0 - share),
+        }
+        if codecs is not None and cut.index in codecs:
+            row["codecs"] = [e for e in codecs[cut.index] if e.get("action")]
+        rows.append(row)
     return {"digest": model.digest, "full_ms": full_ms, "cuts": rows}
 
 
@@ -317,7 +324,7 @@ class RobotDaemon(Daemon):
         self._local = LocalRunner(f"local-run-{self.robot}")
         self._local.start()
         self._cleanups.append(("local-run thread", self._local.stop))
-        self.policy = self._policy_override or self._make_policy(robot_profile(self.model, feeds))
+        self.policy = self._policy_override or self._make_policy(self._profile(feeds))
         self._source = open_source(
             self.source_spec,
             height=self._adapter.height,
@@ -352,6 +359,27 @@ class RobotDaemon(Daemon):
         for k in range(self.model.num_cuts):
             sent = self.model.run_prefix(k, feeds)
             self.model.run_suffix(k, sent, feeds)
+
+    def _profile(self, feeds: dict[str, np.ndarray]) -> dict[str, Any]:
+        """This robot's profile, with the (cut, codec) actions measured on its own source."""
+        cfg = self.config
+        fidelity = cfg.fidelity
+        lowest = min(cut.index for cut in self.model.partition.cuts)
+        codecs = codec_table(
+            self.model,
+            lambda: calibration_frames(
+                self.source_spec, self._adapter, fidelity.calibration_frames, self.options.seed
+            ),
+            fidelity_of(fidelity),
+            required_codecs(self.policy_spec, lowest),
+            {
+                "source": self.source_spec,
+                "frames": fidelity.calibration_frames,
+                "seed": self.options.seed,
+                "threads": self.machine.threads,
+            },
+        )
+        return robot_profile(self.model, feeds, codecs=codecs)
 
     def _make_policy(self, profile: dict[str, Any]) -> Policy:
         spec = self.policy_spec.strip()
@@ -498,8 +526,10 @@ class RobotDaemon(Daemon):
         cut = self.model.partition.cuts[k]
         t = time.perf_counter()
         sent = self._compute(lambda options: model.run_prefix(k, feeds, run_options=options))
+        # Encoding is the robot's part of the action: it counts in its prefix time.
+        encoded = {name: encode_tensor_as(a, decision.codec) for name, a in sent.items()}
         f.prefix_s = time.perf_counter() - t
-        f.call = call = self._send(n, cut.index, sent, epoch, background=decision.hedge)
+        f.call = call = self._send(n, cut.index, encoded, epoch, background=decision.hedge)
         f.bytes_up = call.bytes_up
         if decision.hedge:
             self._hedged(f, k, sent)
@@ -553,7 +583,7 @@ class RobotDaemon(Daemon):
         self,
         n: int,
         cut: int,
-        tensors: dict[str, np.ndarray],
+        tensors: dict[str, EncodedTensor],
         epoch: int,
         *,
         background: bool = False,
@@ -743,7 +773,7 @@ class RobotDaemon(Daemon):
         record = TelemetryRecord(
             robot=self.robot,
             frame=f.n,
-            action=action_label(action),
+            action=action_label(action, f.decision.codec),
             bytes_up=f.bytes_up,
             bytes_down=res.bytes_down if res is not None else 0,
             prefix_s=f.prefix_s,

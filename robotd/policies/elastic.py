@@ -291,15 +291,13 @@ class ElasticPolicy(Policy):
 
     def _learn_bytes(self, j: int, sent: int) -> None:
         """Follow the bytes action j really sends (EWMA): its context and byte cost move with
-        them. Relative changes under `BYTES_CHANGE_SHARE` are left alone (no work per frame)."""
+        them, once they moved by more than `BYTES_CHANGE_SHARE` (no work on every frame)."""
         if sent <= 0:
             return
-        old = self._bytes[j]
-        new = old + self.params.bytes_ewma * (sent - old)
-        if abs(new - old) <= BYTES_CHANGE_SHARE * old:
-            return
-        self._bytes[j] = new
+        new = self._bytes[j] = self._bytes[j] + self.params.bytes_ewma * (sent - self._bytes[j])
         mb = new / BYTES_PER_MB
+        if abs(mb - self.contexts[j, 0]) <= BYTES_CHANGE_SHARE * self.contexts[j, 0]:
+            return
         self.contexts[j, 0] = mb
         self._ridge.set_context(j, self.contexts[j])
         k = self._k

@@ -96,6 +96,7 @@ def test_every_split_through_the_service_key_equals_the_full_model(make_fleet, l
     from common.split_runtime import SplitModel
     from common.wire.cloud_to_robot import InferReply
     from common.wire.robot_to_cloud import InferRequest
+    from common.wire.tensor_codecs import EncodedTensor
 
     fleet = make_fleet()
     lf = local_fleet(fleet)
@@ -123,7 +124,7 @@ def test_every_split_through_the_service_key_equals_the_full_model(make_fleet, l
                 frame=cut,
                 model_digest=model.digest,
                 cut=cut,
-                tensors=model.run_prefix(cut, feeds),
+                tensors={n: EncodedTensor.raw(a) for n, a in model.run_prefix(cut, feeds).items()},
                 deadline_s=10.0,
                 sent_at=time.time(),
                 epoch=route.epoch,

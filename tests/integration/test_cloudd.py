@@ -32,6 +32,7 @@ from common.session import open_session
 from common.split_runtime import SplitModel
 from common.wire import ErrorCode, ErrorReply, Message, decode, encode_raw
 from common.wire.cloud_to_robot import BusyReply, InferReply
+from common.wire.codec import SCHEMA_VERSION
 from common.wire.registry import (
     CtlOp,
     CtlReply,
@@ -44,6 +45,7 @@ from common.wire.registry import (
     ProbeRequest,
 )
 from common.wire.robot_to_cloud import InferRequest
+from common.wire.tensor_codecs import EncodedTensor
 from tests.integration.conftest import Router, find_free_port, loopback_endpoint
 from tests.unit.test_cloudd_validate import TINY_BATCH, TINY_DIM, write_tiny_model
 
@@ -195,7 +197,7 @@ def infer_request(
         frame=frame,
         model_digest=model.digest,
         cut=cut,
-        tensors=model.run_prefix(cut, feeds),
+        tensors={n: EncodedTensor.raw(a) for n, a in model.run_prefix(cut, feeds).items()},
         deadline_s=5.0,
         sent_at=time.time(),
     )
@@ -290,14 +292,19 @@ def test_stale_epochs_are_refused_with_the_daemons_own_state(
 
 def _raw_request(reference: SplitModel, **changes: Any) -> bytes:
     body: dict[str, Any] = {
-        "v": 1,
+        "v": SCHEMA_VERSION,
         "t": "infer_request",
         "robot": ROBOT,
         "frame": 1,
         "model_digest": reference.digest,
         "cut": 0,
         "tensors": {
-            "x": {"dtype": "float32", "shape": [TINY_BATCH, TINY_DIM], "bytes": bytes(4 * 16384)}
+            "x": {
+                "codec": "raw",
+                "dtype": "float32",
+                "shape": [TINY_BATCH, TINY_DIM],
+                "data": bytes(4 * 16384),
+            }
         },
         "deadline_s": 1.0,
         "sent_at": 0.0,
@@ -308,10 +315,11 @@ def _raw_request(reference: SplitModel, **changes: Any) -> bytes:
 
 def _bad_infer_cases(reference: SplitModel) -> list[tuple[str, bytes | None, ErrorCode, str]]:
     good = infer_request(reference, 0)
-    x = good.tensors["x"]
+    x = np.frombuffer(good.tensors["x"].data, np.float32).reshape(TINY_BATCH, TINY_DIM)
 
     def with_tensors(**tensors: np.ndarray) -> bytes:
-        return dataclasses.replace(good, tensors=tensors).to_wire()
+        encoded = {n: EncodedTensor.raw(a) for n, a in tensors.items()}
+        return dataclasses.replace(good, tensors=encoded).to_wire()
 
     return [
         ("garbage bytes", b"\xc1\xff\x00garbage", ErrorCode.MALFORMED, "not a msgpack"),
@@ -327,7 +335,10 @@ def _bad_infer_cases(reference: SplitModel) -> list[tuple[str, bytes | None, Err
         (
             "dtype not allowed",
             _raw_request(
-                reference, tensors={"x": {"dtype": "complex64", "shape": [1], "bytes": bytes(8)}}
+                reference,
+                tensors={
+                    "x": {"codec": "raw", "dtype": "complex64", "shape": [1], "data": bytes(8)}
+                },
             ),
             ErrorCode.BAD_DTYPE,
             "complex64",
@@ -336,7 +347,10 @@ def _bad_infer_cases(reference: SplitModel) -> list[tuple[str, bytes | None, Err
         (
             "byte count",
             _raw_request(
-                reference, tensors={"x": {"dtype": "float32", "shape": [32, 512], "bytes": b"1"}}
+                reference,
+                tensors={
+                    "x": {"codec": "raw", "dtype": "float32", "shape": [32, 512], "data": b"1"}
+                },
             ),
             ErrorCode.SHAPE_MISMATCH,
             "needs 65536 bytes",
@@ -396,10 +410,10 @@ def test_bad_input_gets_a_named_error_and_the_daemon_keeps_serving(
     ctl_cases: list[tuple[str, bytes | None, ErrorCode, str]] = [
         ("garbage ctl", b"\x91\x01", ErrorCode.MALFORMED, "expected a map"),
         ("empty ctl", None, ErrorCode.MALFORMED, "empty payload"),
-        ("service without robot", encode_raw({"v": 1, "t": "ctl", "op": "service"}), ErrorCode.BAD_VALUE, "robot"),  # noqa: E501
-        ("unknown op", encode_raw({"v": 1, "t": "ctl", "op": "reboot"}), ErrorCode.BAD_VALUE, "reboot"),  # noqa: E501
-        ("ctl schema", encode_raw({"v": 2, "t": "ctl", "op": "drain"}), ErrorCode.SCHEMA_VERSION, "2"),  # noqa: E501
-        ("fault drop > 1", encode_raw({"v": 1, "t": "ctl", "op": "fault", "fault": {"drop": 2.0}}), ErrorCode.BAD_VALUE, "drop"),  # noqa: E501
+        ("service without robot", encode_raw({"v": SCHEMA_VERSION, "t": "ctl", "op": "service"}), ErrorCode.BAD_VALUE, "robot"),  # noqa: E501
+        ("unknown op", encode_raw({"v": SCHEMA_VERSION, "t": "ctl", "op": "reboot"}), ErrorCode.BAD_VALUE, "reboot"),  # noqa: E501
+        ("ctl schema", encode_raw({"v": SCHEMA_VERSION + 1, "t": "ctl", "op": "drain"}), ErrorCode.SCHEMA_VERSION, str(SCHEMA_VERSION + 1)),  # noqa: E501
+        ("fault drop > 1", encode_raw({"v": SCHEMA_VERSION, "t": "ctl", "op": "fault", "fault": {"drop": 2.0}}), ErrorCode.BAD_VALUE, "drop"),  # noqa: E501
     ]  # fmt: skip
     for what, payload, code, needle in ctl_cases:
         expect_error(ctl_key(daemon), what, payload, code, needle)
@@ -407,8 +421,8 @@ def test_bad_input_gets_a_named_error_and_the_daemon_keeps_serving(
 
     probe_cases: list[tuple[str, bytes | None, ErrorCode, str]] = [
         ("garbage probe", b"\xc1garbage", ErrorCode.MALFORMED, "not a msgpack"),
-        ("negative echo", encode_raw({"v": 1, "t": "probe", "sender": "x", "sent_at": 0.0, "echo_bytes": -5}), ErrorCode.BAD_VALUE, "echo_bytes"),  # noqa: E501
-        ("huge echo", encode_raw({"v": 1, "t": "probe", "sender": "x", "sent_at": 0.0, "echo_bytes": 1 << 30}), ErrorCode.BAD_VALUE, "echo_bytes"),  # noqa: E501
+        ("negative echo", encode_raw({"v": SCHEMA_VERSION, "t": "probe", "sender": "x", "sent_at": 0.0, "echo_bytes": -5}), ErrorCode.BAD_VALUE, "echo_bytes"),  # noqa: E501
+        ("huge echo", encode_raw({"v": SCHEMA_VERSION, "t": "probe", "sender": "x", "sent_at": 0.0, "echo_bytes": 1 << 30}), ErrorCode.BAD_VALUE, "echo_bytes"),  # noqa: E501
         ("probe oversize", bytes(MAX_PAYLOAD_BYTES + 1), ErrorCode.TOO_LARGE, "exceeds"),
     ]  # fmt: skip
     for what, payload, code, needle in probe_cases:

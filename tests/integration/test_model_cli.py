@@ -5,12 +5,14 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import onnx
 import pytest
 from typer.testing import CliRunner, Result
 
 from common.cli import app
 from common.models import file_digest
 from tests.unit.test_partition import diamond, late_input, make_model, node, save, vi
+from tests.unit.test_prep import conv_net
 
 runner = CliRunner()
 
@@ -34,7 +36,7 @@ def test_zoo_list_json() -> None:
     result = invoke("zoo", "list", "--json")
     assert result.exit_code == 0, result.output
     rows = json.loads(result.stdout)
-    assert [r["name"] for r in rows] == ["vgg", "resnet", "mobilenet"]
+    assert [r["name"] for r in rows] == ["vgg", "resnet", "mobilenet", "resnet18", "mobilenet_v2"]
     assert sum(r["default"] for r in rows) == 1
 
 
@@ -53,7 +55,9 @@ def test_zoo_export(tmp_path: Path) -> None:
         "name": "vgg",
         "path": str(out),
         "digest": file_digest(out),
-        "input_shape": [1, 3, 64, 64],
+        "input_shape": [1, 64, 64, 3],
+        "input_dtype": "uint8",
+        "camera_order": "rgb",
     }
 
 
@@ -110,8 +114,72 @@ def test_profile_table(tmp_path: Path) -> None:
     assert "full model" in result.stdout and "robot ms" in result.stdout
 
 
+def test_prep_json_then_split_sends_the_uint8_image(tmp_path: Path) -> None:
+    src = save(conv_net(["N", 3, "H", "W"]), tmp_path / "m.onnx")
+    out = tmp_path / "m.prep.onnx"
+    imagenet = ["--mean", "0.485,0.456,0.406", "--std", "0.229,0.224,0.225"]
+    result = invoke("prep", str(src), "--out", str(out), "--bgr", *imagenet, "--input-shape",
+                    "48x64", "--json")  # fmt: skip
+    assert result.exit_code == 0, result.output
+    info = json.loads(result.stdout)
+    assert info["input"] == {"name": "x", "shape": ["N", 48, 64, 3], "dtype": "uint8"}
+    assert (info["camera_order"], info["model_order"], info["layout"]) == ("bgr", "rgb", "nchw")
+    assert info["outputs"] == ["y"] and info["max_abs_err"] <= info["tolerance"]
+    result = invoke("split", str(out), "--out", str(tmp_path / "split"), "--json")
+    assert result.exit_code == 0, result.output
+    manifest = json.loads(result.stdout)
+    assert manifest["specs"]["x"] == {"dtype": "uint8", "shape": [1, 48, 64, 3]}
+    assert manifest["cuts"][0]["tensors"] == ["x"] and manifest["cuts"][0]["bytes"] == 48 * 64 * 3
+    assert all(c["verified"] for c in manifest["cuts"])
+    # Regression: the front end's float tensors (0 FLOPs, 4× the bytes) lose to cut 0, and the
+    # BGR reorder is not a second uint8 cut: every later cut computes something on the robot.
+    assert all(c["prefix_flops"] > 0 for c in manifest["cuts"][1:])
+
+
+def test_prep_table(tmp_path: Path) -> None:
+    src = save(conv_net([1, 32, 40, 3], nhwc=True), tmp_path / "m.onnx")
+    result = invoke("prep", str(src), "--out", str(tmp_path / "p.onnx"), "--layout", "nhwc")
+    assert result.exit_code == 0, result.output
+    assert "uint8 1×32×40×3" in result.stdout and "RGB order" in result.stdout
+    assert "checked on a 32×40 photograph" in result.stdout
+
+
 # ---------------------------------------------------------------------------------------------
 # Bad input: one line on stderr, exit code 2
+
+
+@pytest.mark.parametrize(
+    ("model", "args", "fragments"),
+    [
+        (conv_net([1, 1, 8, 8]), [], ["has 1 channel", "3-channel"]),
+        (
+            make_model([node("Relu", ["x"], ["y"])], [vi("x", [1, 4])], [vi("y", [1, 4])]),
+            [],
+            ["not an image model"],
+        ),
+        (
+            make_model(
+                [node("Add", ["a", "b"], ["y"])],
+                [vi("a", [1, 4]), vi("b", [1, 4])],
+                [vi("y", [1, 4])],
+            ),
+            [],
+            ["has 2 inputs (a, b)"],
+        ),
+        (conv_net([1, 3, 8, 8]), ["--mean", "0.5,0.5"], ["--mean needs 3 values"]),
+        (conv_net([1, 3, 8, 8]), ["--std", "1,x,1"], ["--std"]),
+        (conv_net([1, 3, 8, 8]), ["--input-shape", "16x16"], ["its height is fixed at 8"]),
+        (conv_net([1, 3, 8, 8]), ["--input-shape", "3x16x16"], ["HxW"]),
+        (conv_net([1, 3, 8, 8]), ["--layout", "chw"], ["--layout must be nchw or nhwc"]),
+    ],
+)
+def test_prep_bad_input(
+    tmp_path: Path, model: onnx.ModelProto, args: list[str], fragments: list[str]
+) -> None:
+    src = save(model, tmp_path / "m.onnx")
+    result = invoke("prep", str(src), "--out", str(tmp_path / "p.onnx"), *args)
+    assert_one_line_error(result, *fragments)
+    assert not (tmp_path / "p.onnx").exists()
 
 
 def test_not_an_onnx_file(tmp_path: Path) -> None:

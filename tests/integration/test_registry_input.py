@@ -14,6 +14,7 @@ import zenoh
 from common import keys
 from common.config import FleetConfig
 from common.wire import ErrorCode, ErrorReply, encode_raw
+from common.wire.codec import SCHEMA_VERSION
 from common.wire.registry import (
     PROTOCOL_VERSION,
     DrainRequest,
@@ -42,7 +43,7 @@ routed = reg.routed
 start_registry = reg.start_registry
 
 GARBAGE = b"\xc1 this is not msgpack"
-OVERSIZE = encode_raw({"v": 1, "t": "rib_query", "pad": b"x" * (70 * 1024)})
+OVERSIZE = encode_raw({"v": SCHEMA_VERSION, "t": "rib_query", "pad": b"x" * (70 * 1024)})
 
 
 @pytest.fixture
@@ -73,12 +74,29 @@ def _bad_cases(fleet_name: str) -> list[tuple[str, bytes, ErrorCode, str]]:
         cases += [
             (key, GARBAGE, ErrorCode.MALFORMED, "msgpack"),
             (key, encode_raw({"v": 99, "t": tag}), ErrorCode.SCHEMA_VERSION, "99"),
-            (key, encode_raw({"v": 1, "t": "no_such_message"}), ErrorCode.UNKNOWN_TYPE, "no_such"),
+            (
+                key,
+                encode_raw({"v": SCHEMA_VERSION, "t": "no_such_message"}),
+                ErrorCode.UNKNOWN_TYPE,
+                "no_such",
+            ),
             (key, OVERSIZE, ErrorCode.TOO_LARGE, "exceeds"),
-            (key, encode_raw({"v": 1, "t": tag}) + b"\x00", ErrorCode.TRAILING_BYTES, "trailing"),
+            (
+                key,
+                encode_raw({"v": SCHEMA_VERSION, "t": tag}) + b"\x00",
+                ErrorCode.TRAILING_BYTES,
+                "trailing",
+            ),
         ]
         if tag != "rib_query":  # a view accepts an empty query; requests need their fields
-            cases.append((key, encode_raw({"v": 1, "t": tag}), ErrorCode.MISSING_FIELD, "missing"))
+            cases.append(
+                (
+                    key,
+                    encode_raw({"v": SCHEMA_VERSION, "t": tag}),
+                    ErrorCode.MISSING_FIELD,
+                    "missing",
+                )
+            )
     cases += [
         (
             keys.reg_reroute(fleet_name),
@@ -88,19 +106,19 @@ def _bad_cases(fleet_name: str) -> list[tuple[str, bytes, ErrorCode, str]]:
         ),
         (
             keys.reg_drain(fleet_name),
-            encode_raw({"v": 1, "t": "drain", "deployment": 7}),
+            encode_raw({"v": SCHEMA_VERSION, "t": "drain", "deployment": 7}),
             ErrorCode.WRONG_TYPE,
             "drain.deployment",
         ),
         (
             keys.reg_drain(fleet_name),
-            encode_raw({"v": 1, "t": "drain", "deployment": "a/b"}),
+            encode_raw({"v": SCHEMA_VERSION, "t": "drain", "deployment": "a/b"}),
             ErrorCode.BAD_VALUE,
             "'/'",
         ),
         (
             keys.rib(fleet_name, "events"),
-            encode_raw({"v": 1, "t": "rib_query", "limit": -1}),
+            encode_raw({"v": SCHEMA_VERSION, "t": "rib_query", "limit": -1}),
             ErrorCode.BAD_VALUE,
             "limit",
         ),

@@ -35,6 +35,7 @@ from common.wire.cloud_to_robot import BusyReply, InferReply
 from common.wire.registry import PROTOCOL_VERSION, ProbeReply, ProbeRequest, RouteChange
 from common.wire.robot_to_cloud import InferRequest
 from common.wire.telemetry import JSONL_FIELDS, ProbeReport, TelemetryRecord
+from common.wire.tensor_codecs import decode_tensors
 from robotd.daemon import FrameResult, RobotDaemon, RobotOptions
 from robotd.pacing import BITS_PER_BYTE
 from robotd.policies import Decision, FrameContext, Outcome, Policy
@@ -60,6 +61,9 @@ WAIT_S = 10.0
 SLOW_HOLD_S = 2.0
 # A daemon asked to stop must be gone within this (the CLI contract for SIGINT).
 STOP_WITHIN_S = 2.0
+
+# The fake cloud decodes what the robot sends; no test tensor comes near this.
+MAX_DECODED_BYTES = 64 << 20
 
 
 # -- a tiny image model ----------------------------------------------------------------------------
@@ -172,7 +176,8 @@ class FakeDeployment:
             query.reply_err(b"the deployment fell over")
         else:
             frame = request.frame + (1 if behaviour == "wrong_frame" else 0)
-            outputs = self.model.run_suffix(request.cut, request.tensors)
+            tensors = decode_tensors(request.tensors, max_bytes=MAX_DECODED_BYTES)
+            outputs = self.model.run_suffix(request.cut, tensors)
             reply = InferReply(
                 frame=frame,
                 deployment=DEPLOYMENT,

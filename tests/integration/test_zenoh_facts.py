@@ -22,6 +22,7 @@ from common import keys
 from common.wire import decode
 from common.wire.cloud_to_robot import INFER_REPLIES, InferReply
 from common.wire.robot_to_cloud import InferRequest
+from common.wire.tensor_codecs import EncodedTensor, decode_tensors
 
 FLEET = "facts"
 QUERY_TIMEOUT_S = 5.0
@@ -167,7 +168,7 @@ def test_one_mebibyte_tensor_round_trip(
             frame=request.frame,
             deployment="edge-1",
             epoch=request.epoch,
-            outputs=request.tensors,
+            outputs=decode_tensors(request.tensors, max_bytes=tensor.nbytes),
             queue_s=0.0,
             compute_s=0.0,
         )
@@ -184,7 +185,7 @@ def test_one_mebibyte_tensor_round_trip(
         frame=1,
         model_digest="ab" * 32,
         cut=0,
-        tensors={"input": tensor},
+        tensors={"input": EncodedTensor.raw(tensor)},
         deadline_s=QUERY_TIMEOUT_S,
         sent_at=0.0,
     )

@@ -19,6 +19,7 @@ from cloudd.validate import check_request
 from common.partition import TensorSpec
 from common.wire import ErrorCode
 from common.wire.robot_to_cloud import InferRequest
+from common.wire.tensor_codecs import EncodedTensor
 
 TINY_BATCH = 32
 TINY_DIM = 512
@@ -79,6 +80,10 @@ def request(**changes: object) -> InferRequest:
         "sent_at": time.time(),
     }
     fields.update(changes)
+    # Arrays stand for raw-coded tensors: what is checked here is their declared dtype and shape.
+    tensors = fields["tensors"]
+    assert isinstance(tensors, dict)
+    fields["tensors"] = {n: EncodedTensor.raw(a) for n, a in tensors.items()}
     return InferRequest(**fields)  # type: ignore[arg-type]
 
 

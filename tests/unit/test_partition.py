@@ -582,7 +582,9 @@ def test_ir_version_newer_than_onnxruntime(tmp_path: Path) -> None:
     model = relu_model()
     model.ir_version = too_new
     # Whichever refuses first names the version: onnxruntime when it lags onnx, else onnx's checker.
-    refused_by = "onnxruntime cannot run.*IR version:" if too_new <= onnx.IR_VERSION else "ir_version"
+    refused_by = (
+        "onnxruntime cannot run.*IR version:" if too_new <= onnx.IR_VERSION else "ir_version"
+    )
     with pytest.raises(UserError, match=rf"{refused_by} {too_new}") as err:
         split_model(save(model, tmp_path / "m.onnx"), tmp_path / "split")
     assert "onnxruntime_src" not in str(err.value)

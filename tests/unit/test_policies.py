@@ -460,3 +460,64 @@ def test_objective_weighs_latency_cpu_energy_and_bytes() -> None:
     split = goal.robot_rate * 0.3 + goal.cloud_part(0.1, None) + goal.bytes * 2.0
     assert split == pytest.approx(goal.frame_cost(0.4, 0.3, 0.1, 2.0))
     assert Objective.parse(None) == Objective()
+
+
+# -- (cut, codec) actions --------------------------------------------------------------------------
+CODEC_PROFILE = {
+    "full_ms": 40.0,
+    "cuts": [
+        {
+            "index": 0,
+            "bytes": 230_400,
+            "prefix_ms": 0.0,
+            "suffix_ms": 40.0,
+            "codecs": [
+                {"name": "raw", "bytes": 230_400},
+                {"name": "jpeg80", "bytes": 6_000, "encode_ms": 1.0, "decode_ms": 1.0},
+            ],
+        },
+        {"index": 1, "bytes": 120_000, "prefix_ms": 20.0, "suffix_ms": 20.0},
+    ],
+}
+
+
+def test_codecs_of_a_cut_are_separate_actions_in_profile_order() -> None:
+    table = CutTable.from_profile(CODEC_PROFILE)
+    assert table.labels == ("0", "0:jpeg80", "1", PURE_ROBOT)
+    assert table.position(0, "jpeg80") == 1
+    # Encoding is the robot's cost, decoding the cloud's; the local suffix needs neither.
+    assert table.prefix_s[1] == pytest.approx(0.001)
+    assert table.cloud_s[1] == pytest.approx(0.041)
+    assert table.suffix_s[1] == pytest.approx(0.040)
+    with pytest.raises(UserError, match="cut 1 with codec png is not in the profile"):
+        table.position(1, "png")
+
+
+def test_codec_baselines_name_their_action() -> None:
+    ctx = FrameContext(0, 0.5)
+    assert make_policy("cloud:jpeg80", CODEC_PROFILE).decide(ctx) == Decision(0, codec="jpeg80")
+    assert make_policy("cloud", CODEC_PROFILE).decide(ctx) == Decision(0)
+    assert make_policy("static:0:jpeg80", CODEC_PROFILE).decide(ctx).label == "0:jpeg80"
+    with pytest.raises(UserError, match="codec png"):
+        make_policy("cloud:png", CODEC_PROFILE)
+
+
+def test_learners_follow_the_bytes_an_action_really_sends() -> None:
+    """A JPEG's size follows the content: the profile says 6 KB, noisy frames send 200 KB. A
+    learner that kept the profile's size would read the 0.2 s as a slow 6 KB transfer (and
+    expect the raw frame to take ~8 s); following the bytes, it learns the link's 1 MB/s."""
+    seconds_per_byte = 1e-6
+    jpeg = Decision(0, codec="jpeg80")
+    outcome = Outcome(prefix_s=0.001, cloud_s=0.005 + 200_000 * seconds_per_byte, bytes_up=200_000)
+    elastic = make_policy("elastic", CODEC_PROFILE, {"forced_schedule": "off"})
+    neurosurgeon = make_policy("neurosurgeon", CODEC_PROFILE)
+    raw = Decision(0)
+    for _ in range(100):
+        elastic.observe(jpeg, outcome)
+        neurosurgeon.observe(jpeg, outcome)
+        # A few raw frames over the same link pin down the per-byte cost.
+        elastic.observe(raw, Outcome(prefix_s=0.0, cloud_s=0.005 + 230_400 * seconds_per_byte))
+    assert isinstance(elastic, ElasticPolicy)
+    assert elastic.learned_bytes()["0:jpeg80"] == pytest.approx(200_000, rel=0.02)
+    assert elastic.predicted_cloud_cost()["0:jpeg80"] == pytest.approx(0.205, rel=0.1)
+    assert neurosurgeon.state()["uplink_mbit"] == pytest.approx(8.0, rel=0.2)

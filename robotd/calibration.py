@@ -1,0 +1,121 @@
+"""The robot's (cut, codec) actions, measured on frames of its own source at start.
+
+A codec's bytes and a lossy codec's effect on the answers depend on what the camera sees, so the
+robot measures them (`common.codec_profile`) on `fidelity.calibration_frames` frames read from a
+second instance of its source, opened and closed before the run's source (a camera is not held
+twice; a file or synthetic source starts again from its first frame). Frames are spread over the
+source's first frames (every `CALIBRATION_STRIDE`-th), so a moving camera shows some variety.
+
+The measurement is cached in the user cache directory, keyed by the model digest, the source, the
+fidelity bound, the codecs the policy needs by name and the threads: a second start of the same
+robot reads it back at once.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import tempfile
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from common.codec_profile import Fidelity, profile_codecs
+from common.config import FidelityConfig
+from common.models import cache_dir
+from common.split_runtime import SplitModel
+from robotd.policies import RAW_CODEC
+from robotd.sources import InputAdapter, open_source
+
+log = logging.getLogger(__name__)
+
+CALIBRATION_STRIDE = 5
+CALIBRATION_FORMAT = 1
+
+
+def fidelity_of(config: FidelityConfig) -> Fidelity:
+    """The codec profiler's bound from the fleet file's `fidelity:` section."""
+    return Fidelity(
+        min_top1_agreement=config.min_top1_agreement,
+        max_output_rel_err=config.max_output_rel_err,
+        lossy_features=config.lossy_features,
+    )
+
+
+def required_codecs(policy_spec: str, lowest_cut: int) -> dict[int, list[str]]:
+    """The codecs a baseline names, by cut index: `cloud:jpeg80` needs jpeg80 at the lowest
+    cut, `static:3:int8` int8 at cut 3; other policies name none."""
+    name = policy_spec.strip().lower()
+    if name.startswith("cloud:"):
+        return {lowest_cut: [name.split(":", 1)[1].strip()]}
+    if name.startswith("static:"):
+        cut, _, codec = name.split(":", 1)[1].partition(":")
+        if cut.strip().isdigit() and codec.strip() and codec.strip() != RAW_CODEC:
+            return {int(cut): [codec.strip()]}
+    return {}
+
+
+def calibration_frames(
+    source: str, adapter: InputAdapter, count: int, seed: int
+) -> list[dict[str, np.ndarray]]:
+    """`count` model feeds from a fresh instance of `source` (every CALIBRATION_STRIDE-th
+    frame, except for a camera, whose frames are taken as they come)."""
+    stride = 1 if source.startswith("camera:") else CALIBRATION_STRIDE
+    name = adapter.spec.name
+    frames = []
+    with open_source(source, height=adapter.height, width=adapter.width, seed=seed) as src:
+        for i in range(count * stride):
+            frame = src.read()
+            if i % stride == 0:
+                frames.append({name: adapter(frame)})
+    return frames
+
+
+def codec_table(
+    model: SplitModel,
+    frames: Callable[[], list[dict[str, np.ndarray]]],
+    fidelity: Fidelity,
+    required: Mapping[int, list[str]],
+    key: Mapping[str, Any],
+) -> dict[int, list[dict[str, Any]]]:
+    """Every cut's measured codec entries (cached under `key` plus the model digest);
+    `frames()` is only called when nothing is cached."""
+    material = json.dumps(
+        {
+            "format": CALIBRATION_FORMAT,
+            "digest": model.digest,
+            "fidelity": fidelity.__dict__,
+            "required": {str(k): sorted(v) for k, v in required.items()},
+            **key,
+        },
+        sort_keys=True,
+    )
+    name = hashlib.sha256(material.encode()).hexdigest()[:24]
+    path = cache_dir() / "codecs" / f"{model.digest[:16]}-{name}.json"
+    cached = _read(path)
+    if cached is not None:
+        return cached
+    log.info("measuring codecs on calibration frames (once per model, source and bound)")
+    table = profile_codecs(model, frames(), fidelity, required)
+    _write(path, table)
+    return table
+
+
+def _read(path: Path) -> dict[int, list[dict[str, Any]]] | None:
+    try:
+        data = json.loads(path.read_text())
+        return {int(k): v for k, v in data.items()}
+    except (OSError, ValueError, AttributeError):
+        return None
+
+
+def _write(path: Path, table: Mapping[int, list[dict[str, Any]]]) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    with os.fdopen(fd, "w") as f:
+        json.dump({str(k): v for k, v in table.items()}, f)
+    os.replace(tmp, path)
