@@ -350,6 +350,33 @@ def _initial_entry(value: Any) -> Any:
 InitialEntry = Annotated[str | dict[str, str], BeforeValidator(_initial_entry)]
 
 
+class FidelityConfig(_Model):
+    """How close to the uncompressed model a lossy codec at a crossing must keep the answers
+    (`common.codec_profile`): the (cut, codec) pairs that meet it are the policy's actions."""
+
+    min_top1_agreement: float = Field(
+        default=0.98,
+        ge=0,
+        le=1,
+        description="Least share of calibration frames whose top-1 class (classifier outputs) "
+        "a lossy codec must leave unchanged.",
+    )
+    max_output_rel_err: float | None = Field(
+        default=None,
+        gt=0,
+        description="Largest relative L2 error of any output a lossy codec may cause; null: not "
+        "checked (a model without classifier outputs then crosses lossless only).",
+    )
+    lossy_features: bool = Field(
+        default=False,
+        description="Let non-image tensors cross lossy (fp16, int8) where they meet the bound; "
+        "by default only images may (JPEG).",
+    )
+    calibration_frames: int = Field(
+        default=8, ge=1, le=256, description="Frames from the source the codecs are measured on."
+    )
+
+
 class FleetConfig(_Model):
     """A fleet: one service, one model, a registry, machines and how robots are served."""
 
@@ -382,6 +409,10 @@ class FleetConfig(_Model):
     policy: PolicyConfig = Field(default_factory=PolicyConfig, description="The split policy.")
     objective: ObjectiveConfig = Field(
         default_factory=ObjectiveConfig, description="Per-frame cost weights."
+    )
+    fidelity: FidelityConfig = Field(
+        default_factory=FidelityConfig,
+        description="Which lossy codecs may carry a crossing (measured on calibration frames).",
     )
     zenoh: ZenohConfig = Field(default_factory=ZenohConfig, description="Zenoh settings.")
     max_payload_bytes: int = Field(
