@@ -1,9 +1,10 @@
-"""``elasticfog model ...``: split, check and profile ONNX models; export the model zoo.
+"""``elasticfog model ...``: split, check and profile ONNX models; prep them for the camera image;
+export the model zoo.
 
-Each command parses its options and calls one function of common.partition, common.profiler or
-common.zoo, imported inside the command so that other commands do not pay for onnx/torch
-imports. ``--json`` prints plain JSON on stdout (the contract other tools read); otherwise a
-rich table. Bad input is one line on stderr and exit code 2, never a traceback.
+Each command parses its options and calls one function of common.partition, common.profiler,
+common.prep or common.zoo, imported inside the command so that other commands do not pay for
+onnx/torch imports. ``--json`` prints plain JSON on stdout (the contract other tools read);
+otherwise a rich table. Bad input is one line on stderr and exit code 2, never a traceback.
 """
 
 from __future__ import annotations
@@ -37,7 +38,10 @@ MODEL_HELP = "ONNX file or zoo:NAME (see `elasticfog model zoo list`)."
 CUTS_HELP = "'auto', or cuts separated by commas; join the tensors of one cut with '+' (a,b+c)."
 # Table width when stdout is not a terminal: long tensor names stay on one line in logs.
 PIPE_WIDTH = 200
-SHAPE_HELP = "Input shape for dynamic dimensions: 3x240x320 (first input) or NAME=1x3x240x320,..."
+SHAPE_HELP = (
+    "zoo:NAME: the image as CxHxW (default 3x240x320; the model's input is uint8 1xHxWxC). "
+    "A file: its dynamic dimensions, 3x240x320 (first input) or NAME=1x3x240x320,..."
+)
 
 
 def register(app: typer.Typer) -> None:
@@ -249,13 +253,100 @@ def profile_cmd(
     _console().print(table)
 
 
+@model_app.command("prep")
+@_user_errors
+def prep_cmd(
+    model: str = typer.Argument(
+        ...,
+        help="ONNX file of a float-image model: one input, N×C×H×W (or N×H×W×C, --layout nhwc).",
+    ),
+    out: Path = typer.Option(..., "--out", help="ONNX file to write."),
+    mean: str = typer.Option(
+        "0,0,0",
+        "--mean",
+        help="Per-channel mean, R,G,B, on the [0, 1] image (ImageNet: 0.485,0.456,0.406).",
+    ),
+    std: str = typer.Option(
+        "1,1,1",
+        "--std",
+        help="Per-channel standard deviation, R,G,B (ImageNet: 0.229,0.224,0.225).",
+    ),
+    layout: str = typer.Option(
+        "nchw", "--layout", help="Layout of the original model's input: nchw or nhwc."
+    ),
+    rgb: bool = typer.Option(
+        True,
+        "--rgb/--bgr",
+        help="Channel order of the camera image; the model is taken to expect RGB, so --bgr "
+        "adds the reorder to the graph (OpenCV frames are BGR).",
+    ),
+    input_shape: str | None = typer.Option(
+        None, "--input-shape", help="HxW: fixes a dynamic height and width (e.g. 224x224)."
+    ),
+    as_json: bool = typer.Option(False, "--json", help="Print what was written as JSON."),
+) -> None:
+    """Wrap a float-image model so that it takes the camera image, uint8 N×H×W×3 (channels
+    last): the graph reorders BGR→RGB (--bgr; the model is taken to expect RGB), casts to float,
+    scales by 1/255, subtracts --mean, divides by --std and transposes to N×C×H×W (--layout
+    nchw). Input and output names stay; the result is checked on a photograph against the
+    original model fed the same image normalized by hand, and not written if it differs."""
+    from common.prep import (
+        ChannelOrder,
+        Layout,
+        parse_channel_values,
+        parse_layout,
+        parse_size,
+        prep_model,
+    )
+
+    result = prep_model(
+        model,
+        out,
+        mean=parse_channel_values(mean, "--mean"),
+        std=parse_channel_values(std, "--std"),
+        layout=parse_layout(layout),
+        camera_order=ChannelOrder.RGB if rgb else ChannelOrder.BGR,
+        input_size=None if input_shape is None else parse_size(input_shape),
+    )
+    if as_json:
+        _print_json(result.to_json())
+        return
+    order = result.camera_order.value.upper()
+    reorder = " (reordered to RGB in the graph)" if result.camera_order is ChannelOrder.BGR else ""
+    nchw = ", then NCHW" if result.layout is Layout.NCHW else ""
+    h, w = result.verify_size
+    shape = "×".join(str(d) for d in result.input_shape)
+    _console().print(
+        f"wrote {out}: input {result.input_name!r} {result.input_dtype} {shape} (N×H×W×3), "
+        f"camera image in {order} order{reorder}\n"
+        f"front end: cast, /255, mean {_fmt_values(result.mean)}, "
+        f"std {_fmt_values(result.std)}{nchw}; outputs {', '.join(result.outputs)}\n"
+        f"checked on a {h}×{w} photograph: max abs err {result.max_abs_err:.2g} "
+        f"(tolerance {result.tolerance:.2g})",
+        highlight=False,
+        soft_wrap=True,
+    )
+
+
+def _fmt_values(values: tuple[float, ...]) -> str:
+    return ",".join(f"{v:g}" for v in values)
+
+
 @zoo_app.command("list")
 @_user_errors
 def zoo_list_cmd(
     as_json: bool = typer.Option(False, "--json", help="Print the list as JSON."),
 ) -> None:
     """List the zoo models."""
-    from common.zoo import DEFAULT_INPUT_SHAPE, DEFAULT_ZOO_MODEL, ZOO_MODELS, format_shape
+    from common.zoo import (
+        CAMERA_ORDER,
+        DEFAULT_INPUT_SHAPE,
+        DEFAULT_ZOO_MODEL,
+        ZOO_INPUT_DTYPE,
+        ZOO_MODELS,
+        file_input_shape,
+        format_shape,
+    )
 
     rows = [
         {"name": m.name, "description": m.description, "default": m.name == DEFAULT_ZOO_MODEL}
@@ -264,7 +355,11 @@ def zoo_list_cmd(
     if as_json:
         _print_json(rows)
         return
-    table = Table(title=f"model zoo (default input {format_shape(DEFAULT_INPUT_SHAPE)})")
+    table = Table(
+        title=f"model zoo (default image {format_shape(DEFAULT_INPUT_SHAPE)}: input "
+        f"{ZOO_INPUT_DTYPE} {format_shape(file_input_shape(DEFAULT_INPUT_SHAPE))}, "
+        f"{CAMERA_ORDER.upper()})"
+    )
     table.add_column("name")
     table.add_column("description")
     for row in rows:
@@ -276,12 +371,19 @@ def zoo_list_cmd(
 @zoo_app.command("export")
 @_user_errors
 def zoo_export_cmd(
-    name: str = typer.Argument(..., help="Zoo model name (vgg, resnet, mobilenet)."),
+    name: str = typer.Argument(
+        ..., help="Zoo model name (vgg, resnet, mobilenet, resnet18, mobilenet_v2)."
+    ),
     out: Path = typer.Option(..., "--out", help="ONNX file to write."),
-    input_shape: str = typer.Option("3x240x320", "--input-shape", help="Input size as CxHxW."),
+    input_shape: str = typer.Option(
+        "3x240x320",
+        "--input-shape",
+        help="Image size as CxHxW; the file's input is the uint8 camera image 1xHxWxC (RGB).",
+    ),
     as_json: bool = typer.Option(False, "--json", help="Print what was written as JSON."),
 ) -> None:
-    """Export a zoo model to an ONNX file (seeded weights: the same file every time)."""
+    """Export a zoo model to an ONNX file (seeded weights: the same file every time). Its input is
+    the uint8 camera image, 1×H×W×C in RGB order, normalized in the graph."""
     from common import zoo
     from common.models import file_digest, zoo_shape
 
@@ -291,17 +393,21 @@ def zoo_export_cmd(
     if out.is_dir():
         raise UserError(f"--out {out} is a directory; give a file name such as {name}.onnx")
     zoo.export(name, out, shape)
+    file_shape = zoo.file_input_shape(shape)
     info = {
         "name": name,
         "path": str(out),
         "digest": file_digest(out),
-        "input_shape": [1, *shape],
+        "input_shape": list(file_shape),
+        "input_dtype": zoo.ZOO_INPUT_DTYPE,
+        "camera_order": zoo.CAMERA_ORDER,
     }
     if as_json:
         _print_json(info)
     else:
         _console().print(
-            f"wrote {out} (zoo:{name}, input 1x{zoo.format_shape(shape)}, "
+            f"wrote {out} (zoo:{name}, input {zoo.ZOO_INPUT_DTYPE} "
+            f"{zoo.format_shape(file_shape)} in {zoo.CAMERA_ORDER.upper()} order, "
             f"sha256 {info['digest'][:12]})",
             highlight=False,
         )

@@ -37,7 +37,7 @@ import onnxruntime as ort
 from onnx import helper, numpy_helper
 
 from common.errors import UserError
-from common.models import ModelRef, cache_dir, resolve_model
+from common.models import ZOO_PREFIX, ModelRef, cache_dir, resolve_model
 
 MANIFEST_NAME = "manifest.json"
 WEIGHTS_NAME = "weights.bin"
@@ -635,7 +635,9 @@ class _Partitioner:
         self.cuts = _parse_cuts_option(cuts)
         _check_max_cut_tensors(max_cut_tensors)
         self.max_cut_tensors = max_cut_tensors
-        self.input_shape = input_shape
+        # A zoo model's input shape (C×H×W) chose the size it was exported at; the file's input
+        # (the uint8 camera image, 1×H×W×C) is static, so nothing is left to fix.
+        self.input_shape = None if ref.spec.startswith(ZOO_PREFIX) else input_shape
         self.verify = verify
         self.atol = atol
         self.threads = threads
@@ -797,7 +799,9 @@ class _Partitioner:
         if not any(c.prefix_flops or c.suffix_flops for c in candidates):
             return candidates
         best: dict[int, _Candidate] = {}
-        for cand in candidates[1:]:
+        # Cut 0 competes too: a cut that only converts the input (e.g. a uint8 camera image cast
+        # to float) sends more bytes for no FLOPs on the robot.
+        for cand in candidates:
             if cand.reason:
                 continue
             held = best.get(cand.prefix_flops)

@@ -1,13 +1,30 @@
-"""The model zoo: small CNNs defined in code, seeded, exported to ONNX (no downloads).
+"""The model zoo: CNNs defined in code, seeded, exported to ONNX (no downloads).
 
-Three shapes of dataflow graph, so the partitioner meets each case a robot would bring:
+Every zoo model takes the camera image: input ``input``, uint8, 1×H×W×C (channels last, raw
+levels 0..255), with the front end in the graph: cast to float, scale by 1/255, subtract the
+mean and divide by the standard deviation per channel (ImageNet's for 3 channels, their average
+for any other count), then NHWC→NCHW. So cut 0 of the partitioner is the uint8 image, a quarter
+of the bytes of the float tensor the network starts from. The zoo input shape (``3x240x320``)
+keeps its meaning C×H×W in every option and config; the file's input is 1×H×W×C.
+
+Channel order: the camera image is **RGB**, because that is what the robot feeds a 3-channel
+image input (``robotd.sources.InputAdapter`` turns the sources' BGR frames into RGB for every
+3-channel input, uint8 included); 1-channel inputs get the grey image. ``CAMERA_ORDER`` says it in
+one place; a BGR camera order would add the channel reorder (a Gather) to the front end.
+
+Five networks, so the partitioner meets each case a robot would bring:
+
 - ``vgg``: a plain chain (every cut is one tensor);
 - ``resnet``: ResNet-18-like basic blocks with skip connections (cuts inside a block carry two);
-- ``mobilenet``: MobileNet-v2-like inverted residuals with depthwise convolutions.
+- ``mobilenet``: MobileNet-v2-like inverted residuals with depthwise convolutions;
+- ``resnet18``: the standard ResNet-18 layout (widths 64-128-256-512, 1000 classes);
+- ``mobilenet_v2``: the standard MobileNet-v2 (width 1.0, last conv 1280, 1000 classes).
 
-Widths are reduced from the classic networks so that export, split, verification and profiling take
-seconds on a two-core machine. torch is imported only inside :func:`export`: the daemons read the
-exported ONNX file and never need torch.
+The first three have reduced widths so that export, split, verification and profiling take seconds
+on a two-core machine; the last two are full-width, for the testbed to run a ResNet/MobileNet-class
+network at 224×224 or 240×320. Weights are seeded, not trained: the graphs, sizes and times are
+the real networks', the predictions are not. torch is imported only inside :func:`export`: the
+daemons read the exported ONNX file and never need torch.
 """
 
 from __future__ import annotations
@@ -30,8 +47,21 @@ DEFAULT_ZOO_MODEL = "resnet"
 ZOO_INPUT_NAME = "input"
 ZOO_OUTPUT_NAME = "logits"
 ZOO_OPSET = 17
+# Bumped whenever an exported model changes for the same name and shape (2: uint8 image input).
+ZOO_FORMAT = 2
 ZOO_SEED = 0
 NUM_CLASSES = 1000
+ZOO_INPUT_DTYPE = "uint8"
+# What the robot feeds a 3-channel uint8 input (robotd.sources.InputAdapter): RGB. "bgr" would
+# reorder the channels in the front end.
+CAMERA_ORDER = "rgb"
+# ImageNet statistics in RGB order (torchvision's), for 3 channels; other channel counts use
+# their averages for every channel (a grey image, typically).
+IMAGENET_MEAN: tuple[float, float, float] = (0.485, 0.456, 0.406)
+IMAGENET_STD: tuple[float, float, float] = (0.229, 0.224, 0.225)
+GREY_MEAN = 0.449
+GREY_STD = 0.226
+PIXEL_MAX = 255.0
 # The spatial dimensions are divided by 32 in every zoo model; smaller inputs would vanish.
 MIN_SPATIAL_PX = 32
 MAX_SPATIAL_PX = 4096
@@ -69,7 +99,8 @@ def _vgg(in_channels: int) -> Any:
     )
 
 
-def _resnet(in_channels: int) -> Any:
+def _resnet(in_channels: int, widths: tuple[int, ...] = (24, 48, 96, 160)) -> Any:
+    """Stem 7×7/2 + max pool, two basic blocks per width (the first strided after stage 1)."""
     import torch.nn as nn
 
     class BasicBlock(nn.Module):
@@ -92,7 +123,6 @@ def _resnet(in_channels: int) -> Any:
             out = self.bn2(self.conv2(out))
             return self.relu(out + identity)
 
-    widths = (24, 48, 96, 160)
     blocks: list[nn.Module] = []
     cin = widths[0]
     for i, width in enumerate(widths):
@@ -111,7 +141,20 @@ def _resnet(in_channels: int) -> Any:
     )
 
 
-def _mobilenet(in_channels: int) -> Any:
+def _inverted_residuals(
+    in_channels: int,
+    stem: int,
+    schedule: tuple[tuple[int, int, int, int], ...],
+    head: int,
+    *,
+    expand_at_one: bool,
+) -> Any:
+    """A MobileNet-v2 network: 3×3/2 stem, inverted residual blocks, 1×1 head, classifier.
+
+    ``schedule`` holds (expansion, out channels, repeats, first stride) per stage. The standard
+    network has no expansion convolution where the expansion is 1; ``expand_at_one`` keeps it
+    (the small ``mobilenet``).
+    """
     import torch.nn as nn
 
     def conv_bn(cin: int, cout: int, kernel: int, stride: int, groups: int = 1) -> nn.Module:
@@ -126,8 +169,11 @@ def _mobilenet(in_channels: int) -> Any:
             super().__init__()
             hidden = cin * expand
             self.skip = stride == 1 and cin == cout
+            layers: list[nn.Module] = []
+            if expand != 1 or expand_at_one:
+                layers.append(conv_bn(cin, hidden, 1, 1))
             self.body = nn.Sequential(
-                conv_bn(cin, hidden, 1, 1),
+                *layers,
                 conv_bn(hidden, hidden, 3, stride, groups=hidden),  # depthwise
                 nn.Conv2d(hidden, cout, 1, bias=False),
                 nn.BatchNorm2d(cout),
@@ -137,21 +183,88 @@ def _mobilenet(in_channels: int) -> Any:
             out = self.body(x)
             return x + out if self.skip else out
 
-    # (expansion, out channels, repeats, first stride), a shortened MobileNet-v2 schedule.
-    schedule = ((1, 16, 1, 1), (4, 24, 2, 2), (4, 32, 2, 2), (4, 64, 2, 2), (4, 96, 1, 1))
-    layers: list[nn.Module] = [conv_bn(in_channels, 16, 3, 2)]
-    cin = 16
+    layers: list[nn.Module] = [conv_bn(in_channels, stem, 3, 2)]
+    cin = stem
     for expand, cout, repeats, stride in schedule:
         for r in range(repeats):
             layers.append(InvertedResidual(cin, cout, stride if r == 0 else 1, expand))
             cin = cout
     layers += [
-        conv_bn(cin, 256, 1, 1),
+        conv_bn(cin, head, 1, 1),
         nn.AdaptiveAvgPool2d(1),
         nn.Flatten(),
-        nn.Linear(256, NUM_CLASSES),
+        nn.Linear(head, NUM_CLASSES),
     ]
     return nn.Sequential(*layers)
+
+
+def _mobilenet(in_channels: int) -> Any:
+    # A shortened MobileNet-v2 schedule with expansion 4 and a 256-wide head.
+    schedule = ((1, 16, 1, 1), (4, 24, 2, 2), (4, 32, 2, 2), (4, 64, 2, 2), (4, 96, 1, 1))
+    return _inverted_residuals(in_channels, 16, schedule, 256, expand_at_one=True)
+
+
+def _mobilenet_v2(in_channels: int) -> Any:
+    # Sandler et al. 2018, table 2 (width multiplier 1.0); the classifier's dropout is a no-op in
+    # inference and left out.
+    schedule = (
+        (1, 16, 1, 1),
+        (6, 24, 2, 2),
+        (6, 32, 3, 2),
+        (6, 64, 4, 2),
+        (6, 96, 3, 1),
+        (6, 160, 3, 2),
+        (6, 320, 1, 1),
+    )
+    return _inverted_residuals(in_channels, 32, schedule, 1280, expand_at_one=False)
+
+
+def _resnet18(in_channels: int) -> Any:
+    # He et al. 2016, table 1: two basic blocks per stage, widths 64-128-256-512.
+    return _resnet(in_channels, (64, 128, 256, 512))
+
+
+def _camera_input(channels: int, order: str = CAMERA_ORDER) -> Any:
+    """The front end as a torch module: uint8 N×H×W×C camera image → normalized float N×C×H×W.
+
+    (x/255 − mean)/std is computed as x·(1/(255·std)) − mean/std: one Mul and one Sub per pixel.
+    """
+    import torch
+    import torch.nn as nn
+
+    mean, std = zoo_normalization(channels)
+
+    class CameraInput(nn.Module):
+        def __init__(self) -> None:
+            super().__init__()
+            self.scale: torch.Tensor
+            self.offset: torch.Tensor
+            self.rgb_index: torch.Tensor
+            self.register_buffer(
+                "scale", torch.tensor([1.0 / (PIXEL_MAX * s) for s in std]).reshape(1, 1, 1, -1)
+            )
+            self.register_buffer(
+                "offset",
+                torch.tensor([m / s for m, s in zip(mean, std, strict=True)]).reshape(1, 1, 1, -1),
+            )
+            self.reorder = order == "bgr" and channels == 3
+            if self.reorder:
+                self.register_buffer("rgb_index", torch.tensor([2, 1, 0]))
+
+        def forward(self, image: torch.Tensor) -> torch.Tensor:
+            x = image.to(torch.float32)
+            if self.reorder:  # BGR → RGB: a Gather, after the cast so no cut but cut 0 is uint8
+                x = x.index_select(3, self.rgb_index)
+            return (x * self.scale - self.offset).permute(0, 3, 1, 2)
+
+    return CameraInput()
+
+
+def zoo_normalization(channels: int) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """Per-channel (mean, std) of the zoo's front end, in the model's channel order (RGB)."""
+    if channels == 3:
+        return IMAGENET_MEAN, IMAGENET_STD
+    return (GREY_MEAN,) * channels, (GREY_STD,) * channels
 
 
 ZOO_MODELS: dict[str, ZooModel] = {
@@ -160,6 +273,8 @@ ZOO_MODELS: dict[str, ZooModel] = {
         ZooModel("vgg", "VGG-like plain chain of 3x3 convolutions and max pools", _vgg),
         ZooModel("resnet", "ResNet-18-like: 8 basic blocks with skip connections", _resnet),
         ZooModel("mobilenet", "MobileNet-v2-like: inverted residuals, depthwise convs", _mobilenet),
+        ZooModel("resnet18", "ResNet-18: widths 64-128-256-512, 11.7 M parameters", _resnet18),
+        ZooModel("mobilenet_v2", "MobileNet-v2, width 1.0: 3.5 M parameters", _mobilenet_v2),
     )
 }
 
@@ -179,6 +294,12 @@ def check_input_shape(input_shape: tuple[int, ...]) -> tuple[int, int, int]:
                 f"zoo input shape: {label} must be {MIN_SPATIAL_PX}..{MAX_SPATIAL_PX} px, got {px}"
             )
     return (c, h, w)
+
+
+def file_input_shape(shape: tuple[int, int, int]) -> tuple[int, int, int, int]:
+    """The exported file's input shape for zoo shape (C, H, W): the camera image, 1×H×W×C."""
+    c, h, w = shape
+    return (1, h, w, c)
 
 
 def format_shape(shape: tuple[int, ...]) -> str:
@@ -213,6 +334,8 @@ def get(name: str) -> ZooModel:
 def export(name: str, out: Path, input_shape: tuple[int, ...] = DEFAULT_INPUT_SHAPE) -> Path:
     """Build zoo model ``name`` with seeded weights and write it to ``out`` as ONNX (batch 1).
 
+    ``input_shape`` is C×H×W; the file's input is the uint8 camera image 1×H×W×C.
+
     The file is written next to ``out`` and renamed into place, so a reader never sees half a
     model. The same name, shape and torch version give a byte-identical file, hence the same
     digest on the robot and on the cloud.
@@ -231,9 +354,11 @@ def export(name: str, out: Path, input_shape: tuple[int, ...] = DEFAULT_INPUT_SH
     out.parent.mkdir(parents=True, exist_ok=True)
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(ZOO_SEED)
-        module = entry.build(shape[0]).eval()
-        _init_weights(module)
-        dummy = torch.zeros((1, *shape), dtype=torch.float32)
+        network = entry.build(shape[0])
+        _init_weights(network)
+        # The front end first, so that the file's input (cut 0) is the uint8 camera image.
+        module = torch.nn.Sequential(_camera_input(shape[0]), network).eval()
+        dummy = torch.zeros(file_input_shape(shape), dtype=torch.uint8)
         fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent)
         os.close(fd)
         try:
