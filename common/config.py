@@ -144,7 +144,7 @@ class FaultConfig(_Model):
 # Fields that only mean something for one role: setting them on the other is an error.
 _CLOUD_ONLY = frozenset({"workers", "queue", "fault"})
 _ROBOT_ONLY = frozenset({"source", "fps", "uplink_mbit"})
-_SOURCE = re.compile(r"^(synthetic(:.*)?|video:.+|camera:\d+)$")
+_SOURCE = re.compile(r"^(synthetic(:.*)?|photo([:,].*)?|video:.+|camera:\d+)$")
 
 
 class MachineConfig(_Model):
@@ -209,7 +209,7 @@ class MachineConfig(_Model):
         if not _SOURCE.match(self.source):
             raise ValueError(
                 f"source: {self.source!r} is not a frame source; expected synthetic, "
-                "video:PATH or camera:INDEX"
+                "photo[:NAME], video:PATH or camera:INDEX"
             )
         return self
 

@@ -150,7 +150,7 @@ def table1(
         "0.5,1,2,5,20", "--uplinks", help="Robot uplink caps in Mbit/s, comma-separated."
     ),
     policies: str = typer.Option(
-        "robot,cloud,elastic,elastic-nohedge,neurosurgeon,ans",
+        "robot,cloud,cloud:jpeg80,elastic,elastic-nohedge,neurosurgeon,ans",
         "--policies",
         help="Policies, comma-separated (elastic-nohedge: elastic without hedged exploration).",
     ),
@@ -190,7 +190,7 @@ def glitch(
     from_mbit: float = typer.Option(..., "--from-mbit", help="Uplink cap before, Mbit/s."),
     to_mbit: float = typer.Option(..., "--to-mbit", help="Uplink cap after, Mbit/s."),
     policies: str = typer.Option(
-        "elastic,elastic-nohedge,cloud,robot", "--policies", help="Comma-separated."
+        "elastic,elastic-nohedge,cloud:jpeg80,cloud,robot", "--policies", help="Comma-separated."
     ),
     quick: bool = QUICK_OPTION,
     frames: int | None = FRAMES_OPTION,
@@ -233,7 +233,7 @@ def glitch(
 @bench_app.command("table2")
 def table2(
     policies: str = typer.Option(
-        "elastic,elastic-nohedge,cloud,robot", "--policies", help="Comma-separated."
+        "elastic,elastic-nohedge,cloud:jpeg80,cloud,robot", "--policies", help="Comma-separated."
     ),
     quick: bool = QUICK_OPTION,
     frames: int | None = FRAMES_OPTION,
@@ -274,7 +274,7 @@ def table2(
 @bench_app.command("table3")
 def table3(
     policies: str = typer.Option(
-        "elastic,elastic-nohedge,robot,cloud", "--policies", help="Comma-separated."
+        "elastic,elastic-nohedge,robot,cloud:jpeg80,cloud", "--policies", help="Comma-separated."
     ),
     quick: bool = QUICK_OPTION,
     frames: int | None = FRAMES_OPTION,

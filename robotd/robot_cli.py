@@ -43,7 +43,8 @@ def robot_command(
     source: str | None = typer.Option(
         None,
         "--source",
-        help="synthetic[:key=F,every=N], video:PATH or camera:N; default: the machine's.",
+        help="synthetic[:key=F,every=N], photo[:NAME][,motion=M] (real photographs through a "
+        "moving camera), video:PATH or camera:N; default: the machine's.",
     ),
     frames: int | None = typer.Option(
         None, "--frames", help="Stop after this many frames (default: run until Ctrl-C)."
@@ -64,7 +65,7 @@ def robot_command(
         "--uplink-mbit",
         help="Pace requests to this many Mbit/s in the application (single-host emulation).",
     ),
-    seed: int = typer.Option(0, "--seed", help="Seed of the synthetic frame source."),
+    seed: int = typer.Option(0, "--seed", help="Seed of the synthetic and photo frame sources."),
     json_out: bool = typer.Option(False, "--json", help="Print the summary as JSON on stdout."),
 ) -> None:
     """Run the robot daemon; exits 0 after --frames frames or on SIGINT/SIGTERM."""

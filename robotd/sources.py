@@ -7,6 +7,14 @@ A source yields uint8 BGR frames (H×W×3, OpenCV's layout) one at a time:
   flat (one grey level with a little noise: entropy near 0.2). `key=F` draws each frame as a key
   frame with probability F (default 0.25, from the seed); `every=N` makes every N-th frame a key
   frame instead. The same seed gives the same frames, so runs can be compared.
+- `photo[:NAME][,motion=pan|zoom|shake|mixed][,speed=F]`: real photographs shipped inside the
+  scikit-image wheel (nothing is downloaded) seen through a moving virtual camera: each frame is a
+  view of the photograph with a smooth pan, a slow zoom in and out and a small hand shake (one
+  `cv2.warpAffine` per frame), resized to the source's size. Without NAME the photographs take
+  turns, a scene change every `PHOTO_SCENE_FRAMES` (100) frames, so the content, and hence the
+  JPEG size, varies like a camera's; with NAME the camera stays on that photograph. `motion`
+  picks which movements are made (default `mixed`: all three) and `speed=F` scales their pace
+  (default 1; 0 is a still camera). The same seed gives the same frames.
 - `video:PATH`: a video file read with OpenCV, looped at its end (a file stands in for a camera,
   so `--frames N` is honoured whatever the file's length).
 - `camera:N`: the camera with index N through OpenCV.
@@ -19,6 +27,8 @@ from __future__ import annotations
 
 import abc
 import contextlib
+import enum
+import functools
 import math
 from pathlib import Path
 from typing import Any
@@ -30,6 +40,10 @@ from common.errors import UserError
 from common.partition import TensorSpec
 
 SYNTHETIC = "synthetic"
+PHOTO = "photo"
+# The source the demo and the benchmarks use when none is given: it looks like a camera. Tests
+# keep `synthetic` (their defaults do not change), whose entropy they control.
+DEFAULT_CAMERA_SOURCE = PHOTO
 VIDEO_PREFIX = "video:"
 CAMERA_PREFIX = "camera:"
 DEFAULT_KEY_FRACTION = 0.25
@@ -38,6 +52,36 @@ DEFAULT_KEY_FRACTION = 0.25
 FLAT_NOISE_LEVELS = 3
 KEY_BLOCKS = 12
 CAMERA_READ_TRIES = 3
+# Photographs of the `photo` source: name → how skimage.data returns it (function, and the item
+# of a tuple it returns, if any). All of them ship inside the scikit-image wheel.
+PHOTOS: dict[str, tuple[str, int | None]] = {
+    "astronaut": ("astronaut", None),
+    "coffee": ("coffee", None),
+    "chelsea": ("chelsea", None),
+    "rocket": ("rocket", None),
+    "motorcycle": ("stereo_motorcycle", 0),
+    "immunohistochemistry": ("immunohistochemistry", None),
+}
+# Without a NAME the camera moves to the next photograph every this many frames.
+PHOTO_SCENE_FRAMES = 100
+# At zoom 1 the view covers this share of the largest rectangle of the frame's aspect that fits in
+# the photograph: the rest is room to pan.
+PHOTO_BASE_VIEW = 0.75
+# The slow zoom goes from 1 to this (the view shrinks by it) and back.
+PHOTO_ZOOM_MAX = 1.35
+PHOTO_ZOOM_PERIOD_FRAMES = 240.0
+# The pan: two sinusoids per axis (periods in frames, amplitudes as shares of the room to pan).
+PHOTO_PAN_PERIODS_FRAMES = (240.0, 90.0)
+PHOTO_PAN_WEIGHTS = (0.8, 0.2)
+# Hand shake: a translation of about this many output pixels and a rotation of this many degrees,
+# at a few hertz at 30 frames/s (periods in frames).
+PHOTO_SHAKE_PX = 1.0
+PHOTO_SHAKE_DEG = 0.2
+PHOTO_SHAKE_PERIODS_FRAMES = (7.0, 11.0)
+PHOTO_SHAKE_ROT_PERIOD_FRAMES = 7.1
+# Periods are varied by up to this share per scene, so no two scenes move alike.
+PHOTO_PERIOD_JITTER = 0.2
+MAX_PHOTO_SPEED = 20.0
 MAX_SOURCE_SIDE_PX = 8192
 CHANNELS = (1, 3)
 
@@ -122,6 +166,211 @@ class SyntheticSource(FrameSource):
         return np.repeat(grey, 3, axis=2)
 
 
+class CameraMotion(str, enum.Enum):
+    """Which movements the virtual camera of the `photo` source makes."""
+
+    PAN = "pan"
+    ZOOM = "zoom"
+    SHAKE = "shake"
+    MIXED = "mixed"
+
+
+class PhotoSource(FrameSource):
+    """Photographs seen through a moving virtual camera (see the module docstring).
+
+    Frame `n` depends only on the seed and `n`: the scene (which photograph, in an order drawn
+    from the seed) is `n // PHOTO_SCENE_FRAMES`, and the camera's path in a scene is a sum of
+    sinusoids whose phases and periods are drawn from (seed, scene). The photographs are loaded
+    and scaled down to about the frame's size when the source opens; a frame is then one
+    `cv2.warpAffine` (a fraction of a millisecond at 320×240).
+    """
+
+    def __init__(
+        self,
+        height: int,
+        width: int,
+        *,
+        seed: int = 0,
+        name: str | None = None,
+        motion: CameraMotion | str = CameraMotion.MIXED,
+        speed: float = 1.0,
+    ) -> None:
+        _check_size(height, width, kind=PHOTO)
+        if name is not None and name not in PHOTOS:
+            raise SourceError(f"photo source: unknown photo {name!r}; known: {', '.join(PHOTOS)}")
+        try:
+            self.motion = CameraMotion(motion)
+        except ValueError:
+            raise SourceError(
+                f"photo source: motion must be one of {_motion_names()}, got {motion!r}"
+            ) from None
+        if not 0.0 <= speed <= MAX_PHOTO_SPEED or not math.isfinite(speed):
+            raise SourceError(
+                f"photo source: speed must be in [0, {MAX_PHOTO_SPEED:g}], got {speed}"
+            )
+        if seed < 0:
+            raise SourceError(f"photo source: seed must be >= 0, got {seed}")
+        self.height, self.width = height, width
+        self.seed, self.name, self.speed = seed, name, speed
+        self.index = 0
+        if name is None:
+            order = np.random.default_rng(seed).permutation(len(PHOTOS))
+            self.names = [list(PHOTOS)[int(i)] for i in order]
+        else:
+            self.names = [name]
+        self._photos = [self._fit(_photo_bgr(n)) for n in self.names]
+        self._scene: tuple[int, _CameraPath] | None = None
+        shown = name or "all photos"
+        self.description = (
+            f"photo {shown} {width}x{height} (seed {seed}, motion={self.motion.value}, "
+            f"speed={speed:g})"
+        )
+
+    def scene(self, n: int) -> int:
+        """The scene frame `n` belongs to (always 0 with a NAME: the camera stays on it)."""
+        return n // PHOTO_SCENE_FRAMES if self.name is None else 0
+
+    def photo_name(self, n: int) -> str:
+        """The photograph frame `n` shows."""
+        return self.names[self.scene(n) % len(self.names)]
+
+    def read(self) -> np.ndarray:
+        frame = self.frame_at(self.index)
+        self.index += 1
+        return frame
+
+    def frame_at(self, n: int) -> np.ndarray:
+        """Frame `n` of this source (what the `n`-th `read()` returns)."""
+        scene = self.scene(n)
+        if self._scene is None or self._scene[0] != scene:
+            # One independent stream per scene (a child of the seed's), so any frame can be made
+            # without drawing those before it.
+            stream = np.random.SeedSequence(self.seed, spawn_key=(scene,))
+            self._scene = (scene, _CameraPath(np.random.default_rng(stream)))
+        path = self._scene[1]
+        photo = self._photos[scene % len(self._photos)]
+        t = (n - scene * PHOTO_SCENE_FRAMES) * self.speed  # frames since the scene began
+        matrix = path.view(t, self.motion, photo.shape[0], photo.shape[1], self.height, self.width)
+        return cv2.warpAffine(
+            photo,
+            matrix,
+            (self.width, self.height),
+            flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+            # Shake and rotation may reach a pixel or two past the photograph's edge: mirror it
+            # rather than show black corners.
+            borderMode=cv2.BORDER_REFLECT_101,
+        )
+
+    def _fit(self, photo: np.ndarray) -> np.ndarray:
+        """The photograph scaled down (area interpolation, once) so that the view at zoom 1 maps
+        about one photo pixel to one frame pixel: warping then never shrinks by much, so it
+        needs no anti-aliasing. Photographs smaller than that are kept and magnified."""
+        view_w = (
+            PHOTO_BASE_VIEW * _fit_rect(photo.shape[0], photo.shape[1], self.height, self.width)[1]
+        )
+        factor = self.width / view_w
+        if factor >= 1.0:
+            return photo
+        size = (max(1, round(photo.shape[1] * factor)), max(1, round(photo.shape[0] * factor)))
+        return cv2.resize(photo, size, interpolation=cv2.INTER_AREA)
+
+
+class _CameraPath:
+    """The virtual camera's movement during one scene, drawn from `rng`."""
+
+    def __init__(self, rng: np.random.Generator) -> None:
+        def periods(base: tuple[float, ...]) -> list[float]:
+            jitter = rng.uniform(1 - PHOTO_PERIOD_JITTER, 1 + PHOTO_PERIOD_JITTER, len(base))
+            return [p * float(j) for p, j in zip(base, jitter, strict=True)]
+
+        self.pan_periods = [periods(PHOTO_PAN_PERIODS_FRAMES) for _ in range(2)]
+        self.pan_phases = rng.uniform(0, 2 * math.pi, (2, len(PHOTO_PAN_PERIODS_FRAMES)))
+        # Where the camera points when it does not pan, as a share of the room to pan (x, y).
+        self.still = rng.uniform(-0.6, 0.6, 2)
+        self.zoom_period = periods((PHOTO_ZOOM_PERIOD_FRAMES,))[0]
+        self.zoom_phase = float(rng.uniform(0, 2 * math.pi))
+        self.shake_periods = [periods(PHOTO_SHAKE_PERIODS_FRAMES) for _ in range(2)]
+        self.shake_phases = rng.uniform(0, 2 * math.pi, (2, len(PHOTO_SHAKE_PERIODS_FRAMES)))
+        self.rot_period = periods((PHOTO_SHAKE_ROT_PERIOD_FRAMES,))[0]
+        self.rot_phase = float(rng.uniform(0, 2 * math.pi))
+
+    def view(
+        self, t: float, motion: CameraMotion, photo_h: int, photo_w: int, height: int, width: int
+    ) -> np.ndarray:
+        """The 2×3 affine map from frame pixels to photograph pixels at time `t` (frames)."""
+        mixed = motion is CameraMotion.MIXED
+        zoom = 1.0
+        if mixed or motion is CameraMotion.ZOOM:
+            wave = 0.5 - 0.5 * math.cos(2 * math.pi * t / self.zoom_period + self.zoom_phase)
+            zoom += (PHOTO_ZOOM_MAX - 1.0) * wave
+        rect_h, rect_w = _fit_rect(photo_h, photo_w, height, width)
+        view_h, view_w = PHOTO_BASE_VIEW * rect_h / zoom, PHOTO_BASE_VIEW * rect_w / zoom
+        aim = [float(v) for v in self.still]
+        if mixed or motion is CameraMotion.PAN:
+            aim = [
+                sum(
+                    w * math.sin(2 * math.pi * t / p + float(phase))
+                    for w, p, phase in zip(
+                        PHOTO_PAN_WEIGHTS,
+                        self.pan_periods[axis],
+                        self.pan_phases[axis],
+                        strict=True,
+                    )
+                )
+                for axis in range(2)
+            ]
+        cx = (photo_w - 1) / 2 + aim[0] * (photo_w - view_w) / 2
+        cy = (photo_h - 1) / 2 + aim[1] * (photo_h - view_h) / 2
+        scale = view_w / width  # photograph pixels per frame pixel
+        angle = 0.0
+        if mixed or motion is CameraMotion.SHAKE:
+            shake = [
+                sum(
+                    w * math.sin(2 * math.pi * t / p + float(phase))
+                    for w, p, phase in zip(
+                        (0.6, 0.4), self.shake_periods[axis], self.shake_phases[axis], strict=True
+                    )
+                )
+                for axis in range(2)
+            ]
+            cx += PHOTO_SHAKE_PX * shake[0] * scale
+            cy += PHOTO_SHAKE_PX * shake[1] * scale
+            angle = math.radians(PHOTO_SHAKE_DEG) * math.sin(
+                2 * math.pi * t / self.rot_period + self.rot_phase
+            )
+        a, b = scale * math.cos(angle), scale * math.sin(angle)
+        qx, qy = (width - 1) / 2, (height - 1) / 2
+        return np.array(
+            [[a, -b, cx - (a * qx - b * qy)], [b, a, cy - (b * qx + a * qy)]], dtype=np.float64
+        )
+
+
+def _fit_rect(photo_h: int, photo_w: int, height: int, width: int) -> tuple[float, float]:
+    """(h, w) of the largest rectangle of the frame's aspect that fits in the photograph."""
+    aspect = width / height
+    if photo_w / photo_h > aspect:
+        return float(photo_h), photo_h * aspect
+    return photo_w / aspect, float(photo_w)
+
+
+@functools.cache
+def _photo_bgr(name: str) -> np.ndarray:
+    """A photograph of PHOTOS as uint8 BGR, loaded once per process (read-only)."""
+    # skimage is slow to import and only this source needs it.
+    import skimage.data
+
+    function, item = PHOTOS[name]
+    loaded = getattr(skimage.data, function)()
+    rgb = loaded[item] if item is not None else loaded
+    bgr = np.ascontiguousarray(cv2.cvtColor(np.asarray(rgb, dtype=np.uint8), cv2.COLOR_RGB2BGR))
+    bgr.setflags(write=False)
+    return bgr
+
+
+def _motion_names() -> str:
+    return ", ".join(m.value for m in CameraMotion)
+
+
 class VideoSource(FrameSource):
     """A video file through OpenCV, looped at its end."""
 
@@ -204,12 +453,49 @@ def parse_synthetic_options(spec: str) -> dict[str, Any]:
     return options
 
 
+def parse_photo_options(spec: str) -> dict[str, Any]:
+    """The options of `photo[:NAME][,motion=M][,speed=F]` as keyword arguments of PhotoSource."""
+    text = spec.strip()[len(PHOTO) :]
+    options: dict[str, Any] = {}
+    if text[:1] in (":", ","):
+        text = text[1:]
+    if not text.strip():
+        return options
+    for position, item in enumerate(text.split(",")):
+        name, sep, value = (part.strip() for part in item.partition("="))
+        if not sep and position == 0 and name:
+            if name not in PHOTOS:
+                raise SourceError(
+                    f"source {spec!r}: unknown photo {name!r}; known: {', '.join(PHOTOS)}"
+                )
+            options["name"] = name
+            continue
+        if not sep or not value:
+            raise SourceError(f"source {spec!r}: expected name=value options, got {item!r}")
+        if name == "motion":
+            if value not in {m.value for m in CameraMotion}:
+                raise SourceError(
+                    f"source {spec!r}: motion={value!r} is not one of {_motion_names()}"
+                )
+            options["motion"] = CameraMotion(value)
+        elif name == "speed":
+            try:
+                options["speed"] = float(value)
+            except ValueError:
+                raise SourceError(f"source {spec!r}: speed={value!r} is not a number") from None
+        else:
+            raise SourceError(f"source {spec!r}: unknown option {name!r}; known: motion, speed")
+    return options
+
+
 def open_source(spec: str, *, height: int, width: int, seed: int = 0) -> FrameSource:
-    """Open the source named by `spec` (synthetic[:OPTIONS], video:PATH or camera:N); synthetic
-    frames are made `height`×`width` (the model's input size)."""
+    """Open the source named by `spec` (synthetic[:OPTIONS], photo[:NAME][,OPTIONS], video:PATH
+    or camera:N); synthetic and photo frames are made `height`×`width` (the model's input size)."""
     spec = spec.strip()
     if spec == SYNTHETIC or spec.startswith(SYNTHETIC + ":"):
         return SyntheticSource(height, width, seed=seed, **parse_synthetic_options(spec))
+    if spec == PHOTO or spec.startswith((PHOTO + ":", PHOTO + ",")):
+        return PhotoSource(height, width, seed=seed, **parse_photo_options(spec))
     if spec.startswith(VIDEO_PREFIX) and spec[len(VIDEO_PREFIX) :].strip():
         return VideoSource(Path(spec[len(VIDEO_PREFIX) :].strip()).expanduser())
     if spec.startswith(CAMERA_PREFIX):
@@ -218,8 +504,8 @@ def open_source(spec: str, *, height: int, width: int, seed: int = 0) -> FrameSo
             raise SourceError(f"source {spec!r}: camera needs an index, e.g. camera:0")
         return CameraSource(int(text))
     raise SourceError(
-        f"unknown frame source {spec!r}; expected synthetic[:key=F,every=N], video:PATH or "
-        "camera:INDEX"
+        f"unknown frame source {spec!r}; expected synthetic[:key=F,every=N], "
+        "photo[:NAME][,motion=pan|zoom|shake|mixed][,speed=F], video:PATH or camera:INDEX"
     )
 
 
@@ -290,10 +576,10 @@ def _as_bgr(frame: np.ndarray) -> np.ndarray:
     return frame
 
 
-def _check_size(height: int, width: int) -> None:
+def _check_size(height: int, width: int, *, kind: str = SYNTHETIC) -> None:
     for name, value in (("height", height), ("width", width)):
         if not 1 <= value <= MAX_SOURCE_SIDE_PX:
-            raise SourceError(f"synthetic source: {name} must be 1..{MAX_SOURCE_SIDE_PX}")
+            raise SourceError(f"{kind} source: {name} must be 1..{MAX_SOURCE_SIDE_PX}")
 
 
 def _quiet_opencv() -> None:

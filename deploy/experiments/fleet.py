@@ -19,6 +19,7 @@ import yaml
 
 from common.config import FleetConfig, fleet_from_dict
 from deploy.procs import merge_into
+from robotd.sources import DEFAULT_CAMERA_SOURCE
 
 REGISTRY_HOST = "registry"
 ROBOT_HOST = "robot"
@@ -91,7 +92,7 @@ def fleet_dict(spec: FleetSpec, addresses: Mapping[str, str], db: Path) -> dict[
         "role": "robot",
         "listen": [endpoint(addresses[ROBOT_HOST], PEER_PORT)],
         "threads": spec.robot_threads,
-        "source": "synthetic",
+        "source": DEFAULT_CAMERA_SOURCE,
     }
     if spec.fps is not None:
         robot["fps"] = spec.fps

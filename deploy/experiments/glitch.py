@@ -23,7 +23,7 @@ from .report import fmt, md_table, save_plot, use_agg
 from .runner import TestbedFleet
 from .stats import by_frame, lost_frames, phases
 
-POLICIES = ("elastic", "elastic-nohedge", "cloud", "robot")
+POLICIES = ("elastic", "elastic-nohedge", "cloud:jpeg80", "cloud", "robot")
 TABLE2_GLITCHES = ((10.0, 3.0), (5.0, 1.0), (10.0, 1.0))
 # Frames of one run: warm-up (left out), before the change, after it.
 FULL_SPLIT = (10, 20, 50)

@@ -81,7 +81,10 @@ def parse_names(text: str, what: str, allowed: Sequence[str] | None = None) -> l
         raise UserError(f"{what}: expected at least one name")
     if allowed is not None:
         known = [*allowed, *POLICY_VARIANTS]
-        bad = [n for n in names if n not in known and not n.startswith("static:")]
+        # Codec baselines and static cuts take any cut and codec; the robot checks them against
+        # its profile when it starts.
+        parametric = ("static:", "cloud:")
+        bad = [n for n in names if n not in known and not n.startswith(parametric)]
         if bad:
             raise UserError(
                 f"{what}: unknown {', '.join(bad)}; expected some of {', '.join(known)}"

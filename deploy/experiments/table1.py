@@ -19,7 +19,7 @@ from .report import fmt, md_table, save_plot, use_agg
 from .stats import between, by_frame, lost_frames, summary
 
 UPLINKS_MBIT = (0.5, 1.0, 2.0, 5.0, 20.0)
-POLICIES = ("robot", "cloud", "elastic", "elastic-nohedge", "neurosurgeon", "ans")
+POLICIES = ("robot", "cloud", "cloud:jpeg80", "elastic", "elastic-nohedge", "neurosurgeon", "ans")
 FULL_FRAMES, QUICK_FRAMES = 40, 14
 FULL_WARMUP, QUICK_WARMUP = 10, 4
 DEADLINE_S = 15.0

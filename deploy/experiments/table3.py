@@ -20,7 +20,7 @@ from .report import fmt, md_table, save_plot, use_agg
 from .runner import TestbedFleet
 from .stats import by_frame, lost_frames, phases
 
-POLICIES = ("elastic", "elastic-nohedge", "robot", "cloud")
+POLICIES = ("elastic", "elastic-nohedge", "robot", "cloud:jpeg80", "cloud")
 UPLINK_MBIT = 10.0
 HIGH_CPU = 1.0
 # Frames of one run: warm-up (left out), whole core, low quota, whole core again.

@@ -25,7 +25,7 @@ from typer.testing import CliRunner
 
 from common.errors import UserError
 from deploy import cli as testbed_cli
-from deploy.cgroups import find_cpu_mount
+from deploy.cgroups import DEFAULT_CFS_PERIOD_US, MIN_QUOTA_US, find_cpu_mount
 from deploy.testbed import ETC_NETNS_DIR, NETNS_DIR, SH, Testbed, TestbedError
 
 pytestmark = [
@@ -337,6 +337,7 @@ def test_cpu_fraction_caps_all_processes_of_a_host_together(testbed: Testbed) ->
         pytest.skip("no cgroup-v1 cpu controller mounted")
     testbed.cpu("edge-2", 0.25)
     assert testbed.cpu_fraction("edge-2") == 0.25
+    assert group.bandwidth_us() == (1250, DEFAULT_CFS_PERIOD_US)  # a 5 ms period, not 100 ms
     throttled_before = group.throttled()["nr_throttled"]
     busy = [_python(testbed, "edge-2", BUSY, 1.5) for _ in range(2)]
     try:
@@ -353,6 +354,29 @@ def test_cpu_fraction_caps_all_processes_of_a_host_together(testbed: Testbed) ->
     assert 0.12 <= share <= 0.30
     assert group.throttled()["nr_throttled"] > throttled_before
     assert testbed.cpu_fraction("edge-2") is None
+
+
+def test_small_cpu_shares_lengthen_the_period_only_as_far_as_the_kernel_needs(
+    testbed: Testbed,
+) -> None:
+    # Regression: quotas were set against the kernel's 100 ms default period, so a 0.02-core
+    # robot ran 2 ms then stood still 98 ms and its frame times moved in 0.1 s steps. The kernel
+    # refuses quotas under 1 ms: a small share gets exactly 1 ms in the shortest period it allows.
+    group = testbed.cgroup("edge-2")
+    if group is None:
+        pytest.skip("no cgroup-v1 cpu controller mounted")
+    try:
+        for share, period_us in ((0.2, DEFAULT_CFS_PERIOD_US), (0.05, 20_000), (0.02, 50_000)):
+            testbed.cpu("edge-2", share)
+            assert group.bandwidth_us() == (MIN_QUOTA_US, period_us)
+            assert testbed.cpu_fraction("edge-2") == share
+        testbed.cpu("edge-2", 0.03)
+        assert testbed.cpu_fraction("edge-2") == 0.03  # 1000 µs per 33334 µs, read back rounded
+        with pytest.raises(UserError, match=r"cpu fraction 0.0005 is out of range: use 0.001"):
+            testbed.cpu("edge-2", 0.0005)
+    finally:
+        testbed.cpu("edge-2", None)
+    assert group.bandwidth_us() == (-1, DEFAULT_CFS_PERIOD_US)
 
 
 def test_compose_robot_shaping_commands_work_in_a_host(testbed: Testbed) -> None:

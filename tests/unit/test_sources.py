@@ -1,9 +1,12 @@
 """Frame sources: synthetic frames whose entropy really differs between key and flat frames (and
-repeats with the seed), a video file written here with cv2.VideoWriter and read back (looping at
-its end), clear errors for sources that cannot be opened, and the frame → model input adapter."""
+repeats with the seed), photographs through a moving virtual camera (deterministic, camera-like
+motion, scene changes, natural-image JPEG sizes), a video file written here with cv2.VideoWriter
+and read back (looping at its end), clear errors for sources that cannot be opened, and the
+frame → model input adapter."""
 
 from __future__ import annotations
 
+import itertools
 from pathlib import Path
 
 import cv2
@@ -14,11 +17,18 @@ from common.errors import UserError
 from common.partition import TensorSpec
 from robotd.entropy import frame_entropy
 from robotd.sources import (
+    DEFAULT_CAMERA_SOURCE,
+    PHOTO_SCENE_FRAMES,
+    PHOTOS,
+    CameraMotion,
     CameraSource,
     InputAdapter,
+    PhotoSource,
+    SourceError,
     SyntheticSource,
     VideoSource,
     open_source,
+    parse_photo_options,
     parse_synthetic_options,
 )
 
@@ -29,6 +39,11 @@ VIDEO_FRAMES = 5
 VIDEO_FPS = 10.0
 # A camera index no test machine has.
 MISSING_CAMERA = 97
+# The photo source at a camera's size: QVGA.
+CAM_H, CAM_W = 240, 320
+# JPEG (quality 80) of a 320×240 photograph: noise takes far more, a flat frame far less.
+JPEG_QUALITY = 80
+PHOTO_JPEG_MIN_BYTES, PHOTO_JPEG_MAX_BYTES = 2_000, 40_000
 
 
 def test_synthetic_key_frames_have_far_more_entropy_than_flat_ones() -> None:
@@ -67,6 +82,130 @@ def test_synthetic_options_are_parsed_and_bad_ones_named() -> None:
         open_source("synthetic:key=2", height=H, width=W)
     with pytest.raises(UserError, match="expected name=value"):
         open_source("synthetic:key", height=H, width=W)
+
+
+def mean_abs_diff(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.abs(a.astype(np.int16) - b.astype(np.int16)).mean())
+
+
+def jpeg_bytes(frame: np.ndarray) -> int:
+    ok, data = cv2.imencode(".jpg", frame, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+    assert ok
+    return len(data)
+
+
+def test_photo_frames_have_the_requested_shape_and_repeat_with_the_seed() -> None:
+    source = open_source("photo", height=CAM_H, width=CAM_W, seed=7)
+    assert isinstance(source, PhotoSource)
+    frames = [source.read() for _ in range(5)]
+    assert all(f.shape == (CAM_H, CAM_W, 3) and f.dtype == np.uint8 for f in frames)
+    again = open_source("photo", height=CAM_H, width=CAM_W, seed=7)
+    assert all(np.array_equal(f, again.read()) for f in frames)
+    # frame_at gives the same frames in any order (what read() returns at that index).
+    assert np.array_equal(again.frame_at(2), frames[2])
+    other = open_source("photo", height=CAM_H, width=CAM_W, seed=8)
+    assert not np.array_equal(other.read(), frames[0])
+    assert open_source("photo", height=48, width=100).read().shape == (48, 100, 3)
+
+
+def test_photo_frames_are_bgr_like_opencv_frames() -> None:
+    # The coffee photograph is mostly a red cup and saucer: red must come out last (BGR).
+    frame = PhotoSource(CAM_H, CAM_W, name="coffee", motion="zoom").read()
+    blue, _, red = (float(frame[:, :, c].mean()) for c in range(3))
+    assert red > blue + 30, (red, blue)
+
+
+@pytest.mark.parametrize("motion", [m.value for m in CameraMotion])
+def test_consecutive_photo_frames_differ_a_little_like_a_moving_camera(motion: str) -> None:
+    source = open_source(f"photo,motion={motion}", height=CAM_H, width=CAM_W, seed=3)
+    frames = [source.read() for _ in range(PHOTO_SCENE_FRAMES)]  # one scene: one photograph
+    steps = [mean_abs_diff(a, b) for a, b in itertools.pairwise(frames)]
+    assert min(steps) > 0.0, "the camera must move every frame"
+    # Different photographs differ by tens of grey levels per pixel; one frame of camera motion
+    # far less.
+    firsts = [PhotoSource(CAM_H, CAM_W, name=name).read() for name in PHOTOS]
+    between = [mean_abs_diff(a, b) for i, a in enumerate(firsts) for b in firsts[i + 1 :]]
+    assert float(np.median(steps)) < 0.5 * float(np.median(between)), (steps, between)
+    assert max(steps) < min(between), (max(steps), min(between))
+
+
+def test_photo_speed_zero_is_a_still_camera_and_speed_scales_the_motion() -> None:
+    still = PhotoSource(CAM_H, CAM_W, name="chelsea", speed=0.0)
+    first = still.read()
+    assert all(np.array_equal(first, still.read()) for _ in range(3))
+
+    def mean_step(speed: float) -> float:
+        source = PhotoSource(CAM_H, CAM_W, name="chelsea", motion="pan", seed=2, speed=speed)
+        frames = [source.read() for _ in range(20)]
+        return float(np.mean([mean_abs_diff(a, b) for a, b in itertools.pairwise(frames)]))
+
+    assert mean_step(4.0) > 2 * mean_step(1.0)
+
+
+def test_photo_scene_changes_cycle_through_the_photographs() -> None:
+    source = PhotoSource(CAM_H, CAM_W, seed=0)
+    n = PHOTO_SCENE_FRAMES
+    shown = [source.photo_name(i * n) for i in range(len(PHOTOS))]
+    assert sorted(shown) == sorted(PHOTOS), "every photograph takes a turn"
+    assert source.photo_name(len(PHOTOS) * n) == shown[0], "then the cycle starts again"
+    assert source.photo_name(n - 1) == shown[0] and source.photo_name(n) == shown[1]
+    before, cut, after = source.frame_at(n - 2), source.frame_at(n - 1), source.frame_at(n)
+    assert mean_abs_diff(cut, after) > 3 * mean_abs_diff(before, cut)
+    # The order of the photographs comes from the seed.
+    orders = {tuple(PhotoSource(8, 8, seed=s).names) for s in range(4)}
+    assert len(orders) > 1
+    # With a NAME the camera stays on that photograph: no cut at the scene boundary.
+    named = PhotoSource(CAM_H, CAM_W, name="astronaut")
+    assert {named.photo_name(i) for i in range(0, 5 * n, 7)} == {"astronaut"}
+    assert mean_abs_diff(named.frame_at(n - 1), named.frame_at(n)) < 0.5 * mean_abs_diff(cut, after)
+
+
+def test_photo_frames_have_natural_image_statistics() -> None:
+    # A JPEG of a photograph is neither the size of noise nor that of a flat wall, and the size
+    # varies with the scene as a camera's does.
+    source = PhotoSource(CAM_H, CAM_W, seed=1)
+    sizes = [jpeg_bytes(source.frame_at(n)) for n in range(0, len(PHOTOS) * PHOTO_SCENE_FRAMES, 25)]
+    assert min(sizes) >= PHOTO_JPEG_MIN_BYTES and max(sizes) <= PHOTO_JPEG_MAX_BYTES, sizes
+    assert max(sizes) > 1.5 * min(sizes), sizes
+    noise = SyntheticSource(CAM_H, CAM_W, key_every=1).read()
+    assert jpeg_bytes(noise) > PHOTO_JPEG_MAX_BYTES, "the bound must tell noise apart"
+    flat = SyntheticSource(CAM_H, CAM_W, key_fraction=0.0).read()
+    assert frame_entropy(source.frame_at(0)) > frame_entropy(flat)
+
+
+def test_photo_options_are_parsed_and_bad_ones_named() -> None:
+    assert parse_photo_options("photo") == {}
+    assert parse_photo_options("photo:rocket") == {"name": "rocket"}
+    assert parse_photo_options("photo:coffee,motion=pan,speed=2") == {
+        "name": "coffee",
+        "motion": CameraMotion.PAN,
+        "speed": 2.0,
+    }
+    assert parse_photo_options("photo,motion=shake") == {"motion": CameraMotion.SHAKE}
+    assert parse_photo_options("photo:speed=0.5") == {"speed": 0.5}
+    assert open_source("photo,motion=zoom", height=H, width=W).description.startswith("photo")
+    errors = {
+        "photo:kitten": r"unknown photo 'kitten'; known: astronaut, coffee",
+        "photo:coffee,motion=dolly": r"motion='dolly' is not one of pan, zoom, shake, mixed",
+        "photo:coffee,speed=fast": r"speed='fast' is not a number",
+        "photo:coffee,speed=-1": r"speed must be in \[0, 20\], got -1",
+        "photo,speed=nan": r"speed must be in \[0, 20\], got nan",
+        "photo:coffee,zoom=2": r"unknown option 'zoom'; known: motion, speed",
+        "photo:coffee,pan": r"expected name=value options, got 'pan'",
+    }
+    for spec, message in errors.items():
+        with pytest.raises(SourceError, match=message):
+            open_source(spec, height=H, width=W)
+    with pytest.raises(SourceError, match="photo source: height must be"):
+        PhotoSource(0, W)
+
+
+def test_camera_like_default_is_the_photo_source_and_synthetic_keeps_its_defaults() -> None:
+    assert DEFAULT_CAMERA_SOURCE == "photo"
+    assert isinstance(open_source(DEFAULT_CAMERA_SOURCE, height=H, width=W), PhotoSource)
+    assert open_source("synthetic", height=H, width=W).description == (
+        f"synthetic {W}x{H} (seed 0, key=0.25)"
+    )
 
 
 def write_video(path: Path, frames: int = VIDEO_FRAMES) -> list[np.ndarray]:
@@ -114,8 +253,12 @@ def test_camera_that_cannot_be_opened_is_a_clear_error() -> None:
 
 
 def test_unknown_source_names_the_accepted_forms() -> None:
-    with pytest.raises(UserError, match=r"expected synthetic.*video:PATH or camera:INDEX"):
+    with pytest.raises(
+        UserError, match=r"expected synthetic.*photo\[:NAME\].*video:PATH or camera:INDEX"
+    ):
         open_source("rtsp://robot/stream", height=H, width=W)
+    with pytest.raises(UserError, match="unknown frame source 'photos'"):
+        open_source("photos", height=H, width=W)
 
 
 def test_input_adapter_resizes_and_scales_to_the_model_input() -> None:
