@@ -35,6 +35,7 @@ from rich.table import Table
 
 from common.errors import UserError
 from deploy.procs import DaemonError, LocalFleet, write_local_fleet
+from robotd.sources import DEFAULT_CAMERA_SOURCE
 
 ROBOT_ID = "robot-1"
 CLOUD_IDS = ("edge-1", "edge-2")
@@ -57,6 +58,7 @@ class DemoOptions:
     kill_service_at: int | None = None
     fps: float | None = DEFAULT_FPS
     model: str | None = None
+    source: str = DEFAULT_CAMERA_SOURCE
     keep: bool = False
     workdir: Path | None = None
 
@@ -83,8 +85,11 @@ def _check_policy(spec: str) -> None:
     from robotd.policies import REAL_TIME_POLICIES
 
     name = spec.strip().lower()
-    fixed = [p for p in REAL_TIME_POLICIES if p != "static:K"]
-    if name in fixed or (name.startswith("static:") and name[len("static:") :].isdigit()):
+    if name in [p for p in REAL_TIME_POLICIES if ":" not in p]:
+        return
+    kind, _, rest = name.partition(":")
+    cut, sep, codec = rest.partition(":")
+    if (kind == "cloud" and rest) or (kind == "static" and cut.isdigit() and (codec or not sep)):
         return
     raise UserError(f"--policy {spec}: expected one of {', '.join(REAL_TIME_POLICIES)}")
 
@@ -339,7 +344,7 @@ def _run(options: DemoOptions, workdir: Path, console: Console, show: bool) -> D
         with console.status("starting edge-1 and edge-2"):
             fleet.start_clouds(CLOUD_IDS)
         tap = fleet.tap(ROBOT_ID, on_record)
-        robot_args: list[str] = []
+        robot_args: list[str] = ["--source", options.source]
         if options.policy:
             robot_args += ["--policy", options.policy]
         if options.uplink_mbit is not None:
@@ -410,7 +415,8 @@ def demo(
     policy: str | None = typer.Option(
         None,
         "--policy",
-        help="Split policy (elastic, robot, cloud, static:K, ...); default: the fleet's (elastic).",
+        help="Split policy (elastic, robot, cloud, cloud:jpeg80, static:K[:CODEC], ...); default: "
+        "the fleet's (elastic).",
     ),
     uplink_mbit: float | None = typer.Option(
         None, "--uplink-mbit", help="Pace the robot's uplink to this many Mbit/s (emulation)."
@@ -425,6 +431,12 @@ def demo(
     model: str | None = typer.Option(
         None, "--model", help="zoo:NAME or an ONNX file; default: init's model (zoo:vgg)."
     ),
+    source: str = typer.Option(
+        DEFAULT_CAMERA_SOURCE,
+        "--source",
+        help="Frame source of the robot: photo (real photographs through a moving camera), "
+        "synthetic, video:PATH or camera:N.",
+    ),
     keep: bool = typer.Option(False, "--keep", help="Keep the temporary folder (fleet, logs)."),
     as_json: bool = typer.Option(False, "--json", help="Print the summary as JSON on stdout."),
 ) -> None:
@@ -437,6 +449,7 @@ def demo(
         kill_service_at=kill_service_at,
         fps=fps,
         model=model,
+        source=source,
         keep=keep,
     )
     try:
