@@ -41,10 +41,10 @@ WAIT_S = 30.0
 """Bound of a wait for a frame the robot should report within seconds."""
 RUN_S = 45.0
 """Bound of a whole robot run in a test."""
-INPUT_BYTES = 4 * 3 * 64 * 64
-"""A raw float32 frame of TEST_INPUT_SHAPE: what a full offload sends."""
+INPUT_BYTES = 3 * 64 * 64
+"""A raw uint8 camera frame of TEST_INPUT_SHAPE: what a full offload sends uncoded."""
 BIG_INPUT_SHAPE = [3, 120, 160]
-BIG_INPUT_BYTES = 4 * 3 * 120 * 160
+BIG_INPUT_BYTES = 3 * 120 * 160
 NO_HEDGE = {"hedge": False, "robot_probe_frames": 0}
 
 

@@ -92,7 +92,7 @@ def _first_answer(lf: LocalFleet, tap: Any, deployment: str, robot: Any, **kw: A
 def test_every_split_through_the_service_key_equals_the_full_model(make_fleet, local_fleet):
     """The test plays robot-1 (its liveliness token, its service key): the registry routes it to
     edge-1, and every cut's suffix computed by the cloud daemon matches the full model."""
-    from common.partition import load_partition
+    from common.partition import load_partition, sample_feeds
     from common.split_runtime import SplitModel
     from common.wire.cloud_to_robot import InferReply
     from common.wire.robot_to_cloud import InferRequest
@@ -111,10 +111,7 @@ def test_every_split_through_the_service_key_equals_the_full_model(make_fleet, l
         )
         assert route.deployment == "edge-1", "initial_policy puts edge-1 in service"
         model = SplitModel(load_partition(TEST_MODEL, input_shape=tuple(TEST_INPUT_SHAPE)))
-        rng = np.random.default_rng(7)
-        feeds = {
-            model.input_names[0]: rng.standard_normal((1, *TEST_INPUT_SHAPE)).astype(np.float32)
-        }
+        feeds = sample_feeds(model.input_specs(), seed=7)
         full = model.run_full(feeds)
         service_key = keys.svc_infer(fleet.name, fleet.data["service"], ROBOT)
 
