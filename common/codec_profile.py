@@ -58,9 +58,15 @@ class Fidelity:
     checked) to every output; a model with no classifier output needs `max_output_rel_err` for
     any lossy codec. `lossy_features` lets non-image tensors cross lossy (fp16, int8)."""
 
+    def allows(self, name: str) -> bool:
+        """True when the codec list (if any) lets `name` be tried."""
+        return name == CODEC_RAW or self.codecs is None or name in self.codecs
+
     min_top1_agreement: float = 0.98
     max_output_rel_err: float | None = None
     lossy_features: bool = False
+    codecs: tuple[str, ...] | None = None
+    """Only these codecs (and raw) are tried; None: every codec that applies."""
 
     def admits(self, top1: float | None, rel_err: float) -> bool:
         """True when measured answers meet the bound (a bound that cannot be checked fails)."""
@@ -87,7 +93,9 @@ def candidate_codecs(specs: Sequence[TensorSpec], fidelity: Fidelity) -> list[st
         names = [CODEC_RAW, "raw+zstd"]
         if fidelity.lossy_features:
             names += LOSSY_FEATURE_CODECS
-    return [n for n in names if _applies(n, specs)]
+    if fidelity.codecs is not None:
+        names += [n for n in fidelity.codecs if n not in names]
+    return [n for n in names if fidelity.allows(n) and _applies(n, specs)]
 
 
 def _applies(name: str, specs: Sequence[TensorSpec]) -> bool:

@@ -375,6 +375,12 @@ class FidelityConfig(_Model):
     calibration_frames: int = Field(
         default=8, ge=1, le=256, description="Frames from the source the codecs are measured on."
     )
+    codecs: list[str] | None = Field(
+        default=None,
+        min_length=1,
+        description="Only these codecs may carry a crossing (raw always may); null: every "
+        "codec that applies and meets the bound.",
+    )
 
 
 class FleetConfig(_Model):
