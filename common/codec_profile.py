@@ -147,7 +147,8 @@ def measure_codecs(
             encoded = {s.name: encode_tensor_as(tensors[s.name], name) for s in specs}
             t1 = time.perf_counter()
             decoded = {
-                n: decode_encoded(e, max_bytes=specs_bytes(specs) + 1) for n, e in encoded.items()
+                s.name: decode_encoded(encoded[s.name], max_bytes=s.nbytes, name=s.name)
+                for s in specs
             }
             t2 = time.perf_counter()
             m.bytes.append(sum(e.nbytes for e in encoded.values()))
@@ -161,11 +162,6 @@ def measure_codecs(
                 m.rel_err.append(err)
         out.append(m.entry())
     return out
-
-
-def specs_bytes(specs: Sequence[TensorSpec]) -> int:
-    """The largest decoded size of any of the tensors (the decode limit while calibrating)."""
-    return max(s.nbytes for s in specs)
 
 
 def compare_outputs(

@@ -7,9 +7,12 @@ entry (exported zoo models, partitions, profiles) under the user cache directory
 from __future__ import annotations
 
 import hashlib
+import json
 import os
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import platformdirs
 
@@ -39,6 +42,25 @@ def cache_dir() -> Path:
     except OSError as exc:
         raise UserError(f"cannot create cache directory {root}: {exc.strerror}") from None
     return root
+
+
+def read_cached_json(path: Path) -> Any:
+    """A cache entry written by `write_cached_json`, or None if missing or unreadable (a
+    broken entry is measured again, never an error)."""
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def write_cached_json(path: Path, data: Any) -> None:
+    """Write a cache entry beside its final name and rename it into place, so a concurrent
+    reader never sees half of it."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    with os.fdopen(fd, "w") as f:
+        json.dump(data, f, indent=2)
+    os.replace(tmp, path)
 
 
 def file_digest(path: Path) -> str:

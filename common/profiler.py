@@ -16,8 +16,6 @@ from __future__ import annotations
 import functools
 import hashlib
 import json
-import os
-import tempfile
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -27,7 +25,7 @@ import numpy as np
 import onnxruntime as ort
 
 from common.errors import UserError
-from common.models import cache_dir
+from common.models import cache_dir, read_cached_json, write_cached_json
 from common.partition import (
     DEFAULT_MAX_CUT_TENSORS,
     InputShape,
@@ -69,7 +67,7 @@ def profile_model(
         if cached is not None:
             return cached
     result = _measure(part, runs, threads, progress)
-    _write(path, result)
+    write_cached_json(path, result)
     return result
 
 
@@ -167,18 +165,7 @@ def _cache_key(digest: str, options: dict[str, Any], runs: int, threads: int | N
 
 
 def _read(path: Path) -> dict[str, Any] | None:
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, ValueError):
-        return None
+    data = read_cached_json(path)
     if not isinstance(data, dict) or not {"digest", "full_ms", "cuts"} <= data.keys():
         return None
     return data
-
-
-def _write(path: Path, data: dict[str, Any]) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    with os.fdopen(fd, "w") as f:
-        json.dump(data, f, indent=2)
-    os.replace(tmp, path)

@@ -82,14 +82,10 @@ class DemoOptions:
 
 def _check_policy(spec: str) -> None:
     """Refuse an unknown policy before starting anything (the robot would, seconds later)."""
-    from robotd.policies import REAL_TIME_POLICIES
+    from robotd.policies import REAL_TIME_POLICIES, fixed_action
 
     name = spec.strip().lower()
-    if name in [p for p in REAL_TIME_POLICIES if ":" not in p]:
-        return
-    kind, _, rest = name.partition(":")
-    cut, sep, codec = rest.partition(":")
-    if (kind == "cloud" and rest) or (kind == "static" and cut.isdigit() and (codec or not sep)):
+    if name in REAL_TIME_POLICIES or fixed_action(name) is not None:
         return
     raise UserError(f"--policy {spec}: expected one of {', '.join(REAL_TIME_POLICIES)}")
 

@@ -13,11 +13,10 @@ robot reads it back at once.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import logging
-import os
-import tempfile
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
@@ -27,11 +26,11 @@ import numpy as np
 from common.codec_profile import Fidelity, profile_codecs
 from common.config import FidelityConfig
 from common.errors import UserError
-from common.models import cache_dir
+from common.models import cache_dir, read_cached_json, write_cached_json
 from common.split_runtime import SplitModel
 from common.wire import WireError
 from common.wire.tensor_codecs import parse_codec
-from robotd.policies import RAW_CODEC
+from robotd.policies import RAW_CODEC, fixed_action
 from robotd.sources import InputAdapter, open_source
 
 log = logging.getLogger(__name__)
@@ -59,14 +58,10 @@ def fidelity_of(config: FidelityConfig) -> Fidelity:
 def required_codecs(policy_spec: str, lowest_cut: int) -> dict[int, list[str]]:
     """The codecs a baseline names, by cut index: `cloud:jpeg80` needs jpeg80 at the lowest
     cut, `static:3:int8` int8 at cut 3; other policies name none."""
-    name = policy_spec.strip().lower()
-    if name.startswith("cloud:"):
-        return {lowest_cut: [name.split(":", 1)[1].strip()]}
-    if name.startswith("static:"):
-        cut, _, codec = name.split(":", 1)[1].partition(":")
-        if cut.strip().isdigit() and codec.strip() and codec.strip() != RAW_CODEC:
-            return {int(cut): [codec.strip()]}
-    return {}
+    fixed = fixed_action(policy_spec)
+    if fixed is None or fixed.codec == RAW_CODEC:
+        return {}
+    return {lowest_cut if fixed.cut is None else fixed.cut: [fixed.codec]}
 
 
 def calibration_frames(
@@ -98,7 +93,7 @@ def codec_table(
         {
             "format": CALIBRATION_FORMAT,
             "digest": model.digest,
-            "fidelity": fidelity.__dict__,
+            "fidelity": dataclasses.asdict(fidelity),
             "required": {str(k): sorted(v) for k, v in required.items()},
             **key,
         },
@@ -111,21 +106,12 @@ def codec_table(
         return cached
     log.info("measuring codecs on calibration frames (once per model, source and bound)")
     table = profile_codecs(model, frames(), fidelity, required)
-    _write(path, table)
+    write_cached_json(path, {str(k): v for k, v in table.items()})
     return table
 
 
 def _read(path: Path) -> dict[int, list[dict[str, Any]]] | None:
-    try:
-        data = json.loads(path.read_text())
-        return {int(k): v for k, v in data.items()}
-    except (OSError, ValueError, AttributeError):
+    data = read_cached_json(path)
+    if not isinstance(data, dict) or not all(k.isdigit() for k in data):
         return None
-
-
-def _write(path: Path, table: Mapping[int, list[dict[str, Any]]]) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    with os.fdopen(fd, "w") as f:
-        json.dump({str(k): v for k, v in table.items()}, f)
-    os.replace(tmp, path)
+    return {int(k): v for k, v in data.items()}

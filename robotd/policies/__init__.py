@@ -13,6 +13,7 @@ action); `params` and `objective` are plain dicts from the config file, validate
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 from pydantic import BaseModel
@@ -54,6 +55,7 @@ __all__ = [
     "Policy",
     "PowerModel",
     "action_label",
+    "fixed_action",
     "make_policy",
     "params_model",
     "parse_assignments",
@@ -81,6 +83,34 @@ def policy_names() -> tuple[str, ...]:
     return REAL_TIME_POLICIES + SIM_ONLY_POLICIES
 
 
+@dataclass(frozen=True)
+class FixedAction:
+    """The one action of a fixed policy: a cut (None: the profile's lowest) and a codec."""
+
+    cut: int | None
+    codec: str
+
+
+def fixed_action(spec: str) -> FixedAction | None:
+    """The action of `cloud[:CODEC]` and `static:K[:CODEC]`; None for every other policy;
+    UserError naming the problem for a malformed one. The one parser of these specs."""
+    name = spec.strip().lower()
+    kind, sep, rest = name.partition(":")
+    rest = rest.strip()
+    if kind == "cloud":
+        if sep and not rest:
+            raise UserError(f"policy {spec!r}: cloud: needs a codec, e.g. cloud:jpeg80")
+        return FixedAction(None, rest or RAW_CODEC)
+    if kind == "static":
+        cut, _, codec = rest.partition(":")
+        if not cut.isdigit():
+            raise UserError(
+                f"policy {spec!r}: static needs a cut index, e.g. static:3 or static:3:int8"
+            )
+        return FixedAction(int(cut), codec.strip() or RAW_CODEC)
+    return None
+
+
 def params_model(spec: str) -> type[BaseModel]:
     """The pydantic model that validates the params of policy `spec`; UserError if unknown."""
     name = spec.strip().lower() if isinstance(spec, str) else ""
@@ -91,7 +121,7 @@ def params_model(spec: str) -> type[BaseModel]:
     }
     if name in models:
         return models[name]
-    if name in ("robot", "cloud", "oracle") or name.startswith(("static:", "cloud:")):
+    if name in ("robot", "oracle") or fixed_action(name) is not None:
         return NoParams
     raise UserError(f"unknown policy {spec!r}; expected one of {', '.join(policy_names())}")
 
@@ -146,20 +176,14 @@ def make_policy(
         return ElasticPolicy(cuts, elastic_params_for_ans(ans), goal, name)
     if name == "neurosurgeon":
         return NeurosurgeonPolicy(cuts, parse_params(NeurosurgeonParams, params, name), goal)
-    if name in ("robot", "cloud", "oracle") or name.startswith(("static:", "cloud:")):
+    fixed = fixed_action(name)
+    if name in ("robot", "oracle") or fixed is not None:
         parse_params(NoParams, params, name)
     if name == "robot":
         return FixedPolicy(cuts, PURE_ROBOT, name)
-    if name == "cloud" or name.startswith("cloud:"):
-        codec = name.split(":", 1)[1].strip() if ":" in name else RAW_CODEC
-        return FixedPolicy(cuts, min(cuts.indices), name, codec)
     if name == "oracle":
         return OraclePolicy(cuts)
-    if name.startswith("static:"):
-        text, _, codec = name.split(":", 1)[1].strip().partition(":")
-        if not text.isdigit():
-            raise UserError(
-                f"policy {spec!r}: static needs a cut index, e.g. static:3 or static:3:int8"
-            )
-        return FixedPolicy(cuts, int(text), name, codec.strip() or RAW_CODEC)
+    if fixed is not None:
+        cut = min(cuts.indices) if fixed.cut is None else fixed.cut
+        return FixedPolicy(cuts, cut, name, fixed.codec)
     raise UserError(f"unknown policy {spec!r}; expected one of {', '.join(policy_names())}")
