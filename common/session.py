@@ -10,6 +10,10 @@ What every session gets, and why (zenoh 1.10; keys checked against the installed
 - A short link lease (`transport/link/tx/lease`, 1 s by default, with 4 keep-alives per lease as
   Zenoh recommends): a frozen host or cut link is noticed (tokens dropped) in about a second
   instead of the default 10 s. A killed process is noticed at once anyway (its sockets close).
+- A long wait before a blocked link is closed (`.../congestion_control/block/wait_before_close`,
+  `BLOCK_WAIT_BEFORE_CLOSE_S`): a crossing of a few MB on a 1 Mbit/s uplink queues for tens of
+  seconds, and with Zenoh's default (5 s) the sender then closes the whole session (its route,
+  its liveliness token) instead of finishing the send. A dead link is still noticed by the lease.
 - Shared memory switchable: on by default between processes of one host, but it bypasses the
   network, so it must be off when traffic shaping between namespaces is to mean anything.
 - TLS file paths from fleet.yaml go to `transport/link/tls/*` (for `tls/...` endpoints).
@@ -43,6 +47,7 @@ from common.config import FleetConfig, ZenohConfig
 from common.errors import UserError
 
 KEEP_ALIVES_PER_LEASE = 4
+BLOCK_WAIT_BEFORE_CLOSE_S = 120.0
 # Zenoh's reception runtime threads (its default is 2): each link to a host that vanished holds
 # one for up to 10 s while it closes (see the module docstring), and a peer may hold two links to
 # another (one each way). Idle threads cost nothing; 16 leave room for several hosts lost at once.
@@ -121,6 +126,9 @@ def zenoh_settings(
         "transport/link/tx/lease": int(lease_ms if lease_ms is not None else z.lease_ms),
         "transport/link/tx/keep_alive": KEEP_ALIVES_PER_LEASE,
         "transport/shared_memory/enabled": bool(shared_memory),
+        "transport/link/tx/queue/congestion_control/block/wait_before_close": round(
+            BLOCK_WAIT_BEFORE_CLOSE_S * 1e6
+        ),
     }
     if listen:
         # Left unset, Zenoh listens on its own default (tcp/[::]:0 for peers).

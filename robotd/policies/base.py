@@ -270,6 +270,49 @@ class CutTable:
         """The cut (or P) of the action in column `position`."""
         return PURE_ROBOT if position == self.size else self.indices[position]
 
+    def undominated(self, slack: float) -> CutTable:
+        """The actions that some link speed can make the best, given a robot no faster than the
+        cloud (else nothing pays for offloading).
+
+        Action a beats action b at every link speed when a sends no more bytes, leaves no more
+        work to the robot and no more work in all (robot plus cloud, on the profiling host) than
+        b: the extra work a gives the cloud is then work the slower robot is spared. P is such an
+        action too (no bytes, all the work on the robot). Times within `slack` of the whole
+        model's time count as equal (profiling noise, and a codec's encode/decode, are smaller
+        than what they would keep). A learner that tries a dominated action spends its link on
+        it: a 7 MB early-layer crossing ties a 1 Mbit/s uplink up for a minute, to learn what the
+        profile already says. The order of the remaining actions is kept; at least one stays."""
+        tol = slack * self.full_s
+        robot = self.prefix_s.tolist()
+        work = (self.prefix_s + self.cloud_s).tolist()
+        size = self.bytes.tolist()
+        rows = [(size[j], robot[j], work[j], j) for j in range(self.size)]
+        rows.append((0.0, self.full_s, self.full_s, -1))  # P, which always stays
+
+        def beats(a: tuple[float, float, float, int], b: tuple[float, float, float, int]) -> bool:
+            # The tuple order breaks ties, so of two equal actions exactly one stays.
+            close = a[1] <= b[1] + tol and a[2] <= b[2] + tol
+            return a[0] <= b[0] and close and (a[3] < 0 or a < b)
+
+        keep = [j for j in range(self.size) if not any(beats(a, rows[j]) for a in rows)]
+        if not keep:
+            keep = [min(range(self.size), key=lambda j: rows[j])]
+        return self.subset(keep)
+
+    def subset(self, columns: Sequence[int]) -> CutTable:
+        """The table of the actions in `columns` (in that order)."""
+        cols = list(columns)
+        return CutTable(
+            indices=tuple(self.indices[j] for j in cols),
+            codecs=tuple(self.codecs[j] for j in cols),
+            bytes=self.bytes[cols],
+            prefix_s=self.prefix_s[cols],
+            suffix_s=self.suffix_s[cols],
+            cloud_s=self.cloud_s[cols],
+            full_s=self.full_s,
+            output_bytes=self.output_bytes,
+        )
+
     def decision_at(self, position: int, **fields: Any) -> Decision:
         """A decision for the action in column `position` (its cut and codec)."""
         if position == self.size:

@@ -80,6 +80,9 @@ UNKNOWN_WAIT_FACTOR = 2.0
 FIT_BIAS_SHARE = 0.5
 # Learned bytes of an action change its context only when they moved by more than this share.
 BYTES_CHANGE_SHARE = 0.02
+# Action costs within this share of the whole model's time count as equal when dominated
+# actions are left out (`CutTable.undominated`).
+DOMINANCE_SLACK = 0.05
 # Without hedging, a robot probe serves a frame on the robot (P). Each probe that finds the
 # estimate right doubles the interval to the next, up to this multiple of robot_probe_frames.
 ROBOT_PROBE_MAX_FACTOR = 4
@@ -93,6 +96,8 @@ class ElasticPolicy(Policy):
     def __init__(
         self, cuts: CutTable, params: ElasticParams, objective: Objective, name: str = "elastic"
     ) -> None:
+        if params.prune_dominated:
+            cuts = cuts.undominated(DOMINANCE_SLACK)
         super().__init__(cuts)
         self.name = name
         self.params = params

@@ -86,6 +86,12 @@ class AnsParams(RobotCostParams):
     forced_every_frames: int = Field(
         default=10, ge=1, description="Interval of the `every` schedule (ElasticROS's I)."
     )
+    prune_dominated: bool = Field(
+        default=True,
+        description="Leave out the actions another action (or P) beats at every link speed: "
+        "more bytes and no less robot work (CutTable.undominated); exploring them only ties "
+        "the uplink up.",
+    )
 
     @model_validator(mode="after")
     def _sigma_order(self) -> AnsParams:

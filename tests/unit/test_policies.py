@@ -509,7 +509,10 @@ def test_learners_follow_the_bytes_an_action_really_sends() -> None:
     seconds_per_byte = 1e-6
     jpeg = Decision(0, codec="jpeg80")
     outcome = Outcome(prefix_s=0.001, cloud_s=0.005 + 200_000 * seconds_per_byte, bytes_up=200_000)
-    elastic = make_policy("elastic", CODEC_PROFILE, {"forced_schedule": "off"})
+    # Both codecs stay actions (the profile's JPEG size would make the raw frame dominated).
+    elastic = make_policy(
+        "elastic", CODEC_PROFILE, {"forced_schedule": "off", "prune_dominated": False}
+    )
     neurosurgeon = make_policy("neurosurgeon", CODEC_PROFILE)
     raw = Decision(0)
     for _ in range(100):
@@ -521,3 +524,52 @@ def test_learners_follow_the_bytes_an_action_really_sends() -> None:
     assert elastic.learned_bytes()["0:jpeg80"] == pytest.approx(200_000, rel=0.02)
     assert elastic.predicted_cloud_cost()["0:jpeg80"] == pytest.approx(0.205, rel=0.1)
     assert neurosurgeon.state()["uplink_mbit"] == pytest.approx(8.0, rel=0.2)
+
+
+def _profile(rows: list[tuple[int, str, int, float]], full_ms: float = 40.0) -> dict[str, Any]:
+    """A profile of (cut, codec, bytes, prefix ms) rows (suffix: the rest of the model)."""
+    cuts: dict[int, dict[str, Any]] = {}
+    for index, codec, size, prefix_ms in rows:
+        cut = cuts.setdefault(
+            index,
+            {
+                "index": index,
+                "bytes": size,
+                "prefix_ms": prefix_ms,
+                "suffix_ms": full_ms - prefix_ms,
+                "codecs": [],
+            },
+        )
+        cut["codecs"].append({"name": codec, "bytes": size})
+    return {"full_ms": full_ms, "cuts": list(cuts.values())}
+
+
+def test_actions_beaten_at_every_link_speed_are_left_out() -> None:
+    table = CutTable.from_profile(
+        _profile(
+            [
+                (0, "raw", 230_400, 0.0),  # the JPEG of the same frame sends less for no work
+                (0, "jpeg80", 7_000, 0.0),
+                (4, "raw", 7_300_000, 4.0),  # more bytes and more robot work than the JPEG
+                (20, "int8", 5_000, 30.0),  # less than the JPEG: stays
+                (20, "raw", 20_000, 30.0),  # the same cut sends less in int8
+                (52, "int8", 1_300, 39.9),  # P does all but 0.1 ms of it, sending nothing
+            ]
+        )
+    )
+    kept = table.undominated(0.05)
+    assert kept.labels == ("0:jpeg80", "20:int8", PURE_ROBOT)
+    assert kept.bytes.tolist() == [7_000, 5_000]
+    # P beats the only offloading action, which still stays: a learner needs one.
+    alone = CutTable.from_profile(_profile([(52, "raw", 1_300, 39.9)]))
+    assert alone.undominated(0.05).labels == ("52", PURE_ROBOT)
+
+
+def test_learners_never_explore_a_dominated_action() -> None:
+    profile = _profile([(0, "jpeg80", 7_000, 0.0), (4, "raw", 7_300_000, 4.0)])
+    for spec in ("elastic", "ans"):
+        policy = make_policy(spec, profile)
+        seen = {policy.decide(FrameContext(index=i)).label for i in range(200)}
+        assert "4" not in seen, spec
+        kept = make_policy(spec, profile, {"prune_dominated": False})
+        assert "4" in kept.cuts.labels

@@ -161,10 +161,14 @@ def test_a_robot_that_gets_its_cpu_back_is_noticed(hedge: bool) -> None:
             {"hedge": hedge}, [(100.0, 10.0, 30), (2.0, 10.0, 50), (100.0, 10.0, 80)], seed
         )
         assert main_action(low[20:]) == 0, seed
-        # Back on the robot: P, or the last cut (all but 512 bytes of the model computed here).
-        assert main_action(back[-20:]) in (PURE_ROBOT, 9), seed
-        # (Forced samples of the cloud, 0.2 s each, are not hedged without hedging.)
-        assert np.mean([f.latency_s for f in back[-20:]]) < 0.1, seed
+        # Back on the robot: P (cut 9, all but 512 bytes of the model on the robot, is no action:
+        # P beats it at any link speed). Forced and confirming samples of the cloud still come.
+        settled = back[-40:]
+        assert main_action(settled) == PURE_ROBOT, seed
+        # The typical frame takes P's 6 ms; the samples (0.03-0.2 s each, not hedged without
+        # hedging) keep the mean well below full offload's 0.2-0.4 s.
+        assert np.median([f.latency_s for f in settled]) < 0.008, seed
+        assert np.mean([f.latency_s for f in settled]) < 0.05, seed
 
 
 def test_without_hedging_the_robot_is_timed_by_p_probes_that_back_off() -> None:
