@@ -1,15 +1,19 @@
 """Decision cost of ElasticAction per frame: Sherman–Morrison against inverting Q every frame.
 
 Both implementations run side by side in one process on the same synthetic profile (16 cuts by
-default, context d = 3) and the same stream of frames and outcomes, and must make the same
-decisions. For each, `decide` (what delays a frame), `observe` (the learning after it) and their
-sum per frame (the policy's whole per-frame work) are timed; the table gives medians in µs.
+default, each with 4 codecs: 64 offloading actions and P, context d = 3) and the same stream of
+frames and outcomes, and must make the same decisions. For each, `decide` (what delays a frame),
+`observe` (the learning after it) and their sum per frame (the policy's whole per-frame work) are
+timed; the table gives medians in µs.
 
 - "Sherman–Morrison": the shipped `elastic` policy (Q⁻¹ kept current at each update).
 - "inverts Q every frame": the same policy whose `observe` only accumulates Q and p, and whose
   `decide` inverts Q (numpy) and recomputes α̂, the predictions and widths before choosing.
 
-    python benchmarks/decision_cost.py [--frames 20000] [--cuts 16] [--uplink-mbit 10] [--seed 0]
+    python benchmarks/decision_cost.py [--frames 20000] [--cuts 16] [--codecs 4] [--uplink-mbit 10]
+                                       [--seed 0]
+
+Every (cut, codec) stays an action (`prune_dominated` off): the worst case for the decision.
 """
 
 from __future__ import annotations
@@ -36,18 +40,34 @@ BITS_PER_BYTE = 8
 MBIT = 1e6
 
 
-def synthetic_profile(cuts: int) -> dict[str, Any]:
-    """A chain CNN-like profile: time grows along the net, bytes shrink (cut 0 = raw input)."""
+# (codec, share of the raw bytes, encode ms, decode ms): the first N are each cut's codecs.
+CODECS = (
+    ("raw", 1.0, 0.0, 0.0),
+    ("raw+zstd", 0.7, 0.4, 0.2),
+    ("fp16", 0.5, 0.2, 0.1),
+    ("int8", 0.25, 0.3, 0.1),
+    ("int8+zstd", 0.15, 0.5, 0.2),
+)
+
+
+def synthetic_profile(cuts: int, codecs: int = 4) -> dict[str, Any]:
+    """A chain CNN-like profile: time grows along the net, bytes shrink (cut 0 = raw input);
+    every cut crosses in each of the first `codecs` of CODECS."""
     full_ms = 72.9
     rows = []
     for k in range(cuts):
         share = k / cuts
+        raw = int(921_600 * 0.72**k) + 4096
         rows.append(
             {
                 "index": k,
-                "bytes": int(921_600 * 0.72**k) + 4096,
+                "bytes": raw,
                 "prefix_ms": round(full_ms * share, 3),
                 "suffix_ms": round(full_ms * (1 - share), 3),
+                "codecs": [
+                    {"name": name, "bytes": raw * ratio, "encode_ms": enc, "decode_ms": dec}
+                    for name, ratio, enc, dec in CODECS[:codecs]
+                ],
             }
         )
     return {"full_ms": full_ms, "cuts": rows}
@@ -106,29 +126,32 @@ def outcome_for(
         full = profile["full_ms"] / 1000 * ROBOT_SLOWDOWN * noise[0]
         return Outcome(prefix_s=full, latency_s=full)
     cut = profile["cuts"][int(decision.action)]
+    sent = int(next(c["bytes"] for c in cut["codecs"] if c["name"] == decision.codec))
     prefix = cut["prefix_ms"] / 1000 * ROBOT_SLOWDOWN * noise[0]
     compute = cut["suffix_ms"] / 1000 / CLOUD_SPEEDUP * noise[1]
-    uplink_s = cut["bytes"] * BITS_PER_BYTE / (uplink_mbit * MBIT)
+    uplink_s = sent * BITS_PER_BYTE / (uplink_mbit * MBIT)
     y = (uplink_s + RTT_S) * noise[2] + compute
     local = cut["suffix_ms"] / 1000 * ROBOT_SLOWDOWN * noise[0] if decision.hedge else None
     return Outcome(
         prefix_s=prefix,
         cloud_s=y,
         cloud_compute_s=compute,
-        bytes_up=cut["bytes"],
+        bytes_up=sent,
         local_s=local,
         latency_s=prefix + (y if local is None else min(y, local)),
     )
 
 
 def _key(d: Decision) -> tuple[Any, ...]:
-    return (d.action, d.hedge, d.forced, d.updating)
+    return (d.action, d.codec, d.hedge, d.forced, d.updating)
 
 
-def run(frames: int, cuts: int, seed: int, uplink_mbit: float = 10.0) -> dict[str, Any]:
+def run(
+    frames: int, cuts: int, seed: int, uplink_mbit: float = 10.0, codecs: int = 4
+) -> dict[str, Any]:
     """Time both implementations on the same frames; µs medians per implementation."""
-    profile = synthetic_profile(cuts)
-    fast = make_policy("elastic", profile)
+    profile = synthetic_profile(cuts, codecs)
+    fast = make_policy("elastic", profile, {"prune_dominated": False})
     assert isinstance(fast, ElasticPolicy)
     slow = InvertEveryFrame(fast.cuts, fast.params, fast.objective, "elastic-invert")
     policies = {"fast": fast, "slow": slow}
@@ -182,7 +205,10 @@ def run(frames: int, cuts: int, seed: int, uplink_mbit: float = 10.0) -> dict[st
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=20_000, help="timed frames")
-    parser.add_argument("--cuts", type=int, default=16, help="number of cuts (actions besides P)")
+    parser.add_argument("--cuts", type=int, default=16, help="number of cuts")
+    parser.add_argument(
+        "--codecs", type=int, default=4, help=f"codecs per cut (1 to {len(CODECS)})"
+    )
     parser.add_argument(
         "--uplink-mbit", type=float, default=10.0, help="uplink of the simulated link, Mbit/s"
     )
@@ -190,9 +216,12 @@ def main() -> None:
     args = parser.parse_args()
     if args.frames < 1 or args.cuts < 1 or args.uplink_mbit <= 0:
         parser.error("--frames and --cuts must be >= 1 and --uplink-mbit > 0")
-    report = run(args.frames, args.cuts, args.seed, args.uplink_mbit)
+    if not 1 <= args.codecs <= len(CODECS):
+        parser.error(f"--codecs must be 1 to {len(CODECS)}")
+    report = run(args.frames, args.cuts, args.seed, args.uplink_mbit, args.codecs)
     print(
-        f"ElasticAction decision cost: {args.cuts} cuts, d=3, {args.frames} frames "
+        f"ElasticAction decision cost: {args.cuts} cuts x {args.codecs} codecs, d=3, "
+        f"{args.frames} frames "
         f"({report['offloaded_share']:.0%} offloaded, {report['hedged_share']:.0%} hedged), "
         f"{args.uplink_mbit:g} Mbit/s, seed {args.seed}\n"
     )

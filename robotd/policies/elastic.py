@@ -175,6 +175,7 @@ class ElasticPolicy(Policy):
         self._allowed_base: list[float] = []
         self._width: list[float] = []
         self._bonus_scale = 0.0
+        self._best_key = self._best_nonkey = self._cheapest = (math.inf, 0)
         self._refresh(learned=True)
 
     # -- decisions -------------------------------------------------------------------------
@@ -186,13 +187,7 @@ class ElasticPolicy(Policy):
         robot.tick()
         self._since_probe += 1
         params = self.params
-        factor = self._key_factor if ctx.entropy >= params.key_entropy else self._nonkey_factor
-        base = self._allowed_base
-        c = factor * self._bonus_scale
-        # Equal lengths by construction (strict=True would cost a check every frame).
-        scores = [b - c * w for b, w in zip(base, self._width, strict=False)]
-        best = min(scores)
-        j = scores.index(best)  # the first of equal scores, as argmin would
+        best, j = self._best_key if ctx.entropy >= params.key_entropy else self._best_nonkey
         p_cost = robot.full_cost
         regular_p = self._p_allowed and p_cost <= best
         forced = self._confirm or self._schedule.is_forced(n)
@@ -210,8 +205,9 @@ class ElasticPolicy(Policy):
                 j, forced=forced, updating=self._updating, predicted_cost=self._base[j]
             )
         # Exploring = serving something else than the estimates alone would choose.
-        cheapest = min(base)
-        greedy = -1 if self._p_allowed and p_cost <= cheapest else base.index(cheapest)
+        cheapest, greedy = self._cheapest
+        if self._p_allowed and p_cost <= cheapest:
+            greedy = -1
         hedge = greedy != j or self._updating or probe
         after_s = 0.0
         if hedge:
@@ -460,6 +456,24 @@ class ElasticPolicy(Policy):
             else [b if ok else math.inf for b, ok in zip(base, mask, strict=True)]
         )
         self._bonus_scale = self.params.beta * robot.full_cost
+        self._choose()
+
+    def _choose(self) -> None:
+        """The best score for key and for other frames, and the cheapest action. The scores
+        change only in `_refresh`, and σ takes two values: each frame's choice is ready before
+        the frame comes, so `decide` costs the same for 4 actions or 64."""
+        self._best_key = self._best(self._key_factor)
+        self._best_nonkey = self._best(self._nonkey_factor)
+        cheapest = min(self._allowed_base)
+        self._cheapest = (cheapest, self._allowed_base.index(cheapest))
+
+    def _best(self, factor: float) -> tuple[float, int]:
+        """(lowest score, its column; the first of equal ones) for frames of this sqrt(1−σ)."""
+        c = factor * self._bonus_scale
+        # Equal lengths by construction (strict=True would cost a check on every refresh).
+        scores = [b - c * w for b, w in zip(self._allowed_base, self._width, strict=False)]
+        best = min(scores)
+        return best, scores.index(best)
 
     # -- introspection ---------------------------------------------------------------------
 

@@ -175,6 +175,7 @@ def test_key_frames_explore_less() -> None:
     policy._base = policy._allowed_base = [p_cost + 0.5, p_cost + 0.5, p_cost + 0.5]
     policy._bonus_scale = 1.0
     policy._width = [0.0, 0.0, 0.8]  # score = base - sqrt(1-σ)·bonus
+    policy._choose()
     nonkey = policy.decide(FrameContext(0, entropy=0.1))  # sqrt(0.8)·0.8 = 0.72 > 0.5
     key = policy.decide(FrameContext(1, entropy=0.95))  # sqrt(0.2)·0.8 = 0.36 < 0.5
     assert nonkey.action == 2
