@@ -69,10 +69,15 @@ class RobotCostModel:
         faster."""
         if measured_s is None or measured_s <= 0 or profiled_s < MIN_TIMED_S:
             return None
+        share = profiled_s / self._cuts.full_s
+        if self.ratio is None and share < SHORT_RUN_SHARE:
+            # A short run must not set the first estimate: a JPEG encode of 0.3 ms took 3 ms
+            # under a 0.5-core quota, and P then looked 10x dearer than it is, so it was never
+            # tried. The profile's own scale (1: the robot daemon profiles on the robot) stands.
+            return None
         self.frames_since_timed = 0
         # float(): a numpy scalar would make every later operation on the ratio slower.
         sample = float(measured_s) / profiled_s
-        share = profiled_s / self._cuts.full_s
         sign = 0
         if self.ratio is None:
             self.ratio = sample

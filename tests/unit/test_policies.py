@@ -185,6 +185,20 @@ def test_key_frames_explore_less() -> None:
 # -- robot-side cost -------------------------------------------------------------------------
 
 
+def test_a_short_run_does_not_set_the_first_robot_speed() -> None:
+    # Under a CPU quota a 0.3 ms JPEG encode took 3 ms: taken as the robot's speed, it made P
+    # look 10x dearer than it is. The profile (measured on the robot) keeps its scale until a
+    # run of a real share of the model is timed.
+    cuts = CutTable.from_profile(
+        {"full_ms": 60.0, "cuts": [{"index": 0, "bytes": 5_000, "prefix_ms": 0.3, "suffix_ms": 60}]}
+    )
+    model = RobotCostModel(cuts, Objective(), RobotCostParams())
+    assert model.observe(0.003, 0.0003) is None
+    assert model.full_cost == pytest.approx(0.060)
+    model.observe(0.066, cuts.full_s)  # the whole model: now the robot's speed is known
+    assert model.full_cost == pytest.approx(0.066)
+
+
 def test_robot_cost_follows_a_cpu_drop_in_two_measurements() -> None:
     cuts = CutTable.from_profile(TINY)
     model = RobotCostModel(cuts, Objective(), RobotCostParams())
