@@ -33,12 +33,12 @@ update the regression.
   moment that still finishes it when the greedy choice would have served the frame; one expected
   to lose to it once the reply is overdue. A local run that cannot beat the expected reply then
   does not compete with the offload for the robot's CPU.
-- robot probes: when the robot has not been timed for `robot_probe_frames` frames (it only sends
-  raw input, cut 0), the next offloaded frame is hedged at once, so a robot that got faster
-  again is noticed. Without hedging the probe serves the frame on the robot (P) instead, and
-  each probe that finds the estimate right doubles the interval to the next (up to
-  `ROBOT_PROBE_MAX_FACTOR` times), as these probes cost latency; one that finds it wrong is
-  confirmed by a probe on the next frame.
+- robot probes: when the robot has not been timed for `robot_probe_frames` frames (its actions run
+  less than `SHORT_RUN_SHARE` of the model there, e.g. cut 0 with a JPEG encode), the next offloaded
+  frame is hedged at once, so a robot that got faster again is noticed. Without hedging the probe
+  serves the frame on the robot (P) instead, and each probe that finds the estimate right doubles
+  the interval to the next (up to `ROBOT_PROBE_MAX_FACTOR` times), as these probes cost latency; one
+  that finds it wrong is confirmed by a probe on the next frame.
 - confirmation: after a single miss the next frame is a forced frame (so it samples the cloud,
   hedged if the policy would not otherwise offload), and a change is confirmed within
   `change_frames` frames rather than `change_frames` forced intervals.
@@ -67,7 +67,7 @@ from robotd.policies.base import (
 from robotd.policies.objective import Objective, cloud_cost
 from robotd.policies.params import AnsParams, ElasticParams
 from robotd.policies.ridge import RidgeEstimator, quadratic_features
-from robotd.policies.robotcost import MIN_TIMED_S, RobotCostModel
+from robotd.policies.robotcost import SHORT_RUN_SHARE, RobotCostModel
 from robotd.policies.schedule import ForcedSchedule
 
 # Relative residuals are taken against at least this prediction (objective units), so a
@@ -118,7 +118,8 @@ class ElasticPolicy(Policy):
             params.forced_every_frames,
         )
         self._position = cuts.positions()
-        self._untimed = (cuts.prefix_s < MIN_TIMED_S).tolist()
+        # Actions whose robot part is too short to time the robot (`RobotCostModel.observe`).
+        self._untimed = (cuts.prefix_s < SHORT_RUN_SHARE * cuts.full_s).tolist()
         self._known_width = 1.0 / math.sqrt(params.known_samples)
         self._key_factor = math.sqrt(1.0 - params.sigma_key)
         self._nonkey_factor = math.sqrt(1.0 - params.sigma_nonkey)

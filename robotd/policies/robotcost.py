@@ -64,16 +64,23 @@ class RobotCostModel:
     def observe(self, measured_s: float | None, profiled_s: float) -> int | None:
         """Learn from a run that took `measured_s` on the robot and `profiled_s` when profiled.
 
-        Returns None when the run carries nothing to learn (not run, or too short to time), else
-        how it compared with the estimate before it: 0 within the tolerance, 1 slower, -1
+        Returns None when the run does not time the robot (not run, or shorter than
+        SHORT_RUN_SHARE of the model: it only nudges the estimate), else how it compared with the
+        estimate before it: 0 within the tolerance, 1 slower, -1
         faster."""
         if measured_s is None or measured_s <= 0 or profiled_s < MIN_TIMED_S:
             return None
         share = profiled_s / self._cuts.full_s
-        if self.ratio is None and share < SHORT_RUN_SHARE:
-            # A short run must not set the first estimate: a JPEG encode of 0.3 ms took 3 ms
-            # under a 0.5-core quota, and P then looked 10x dearer than it is, so it was never
-            # tried. The profile's own scale (1: the robot daemon profiles on the robot) stands.
+        if share < SHORT_RUN_SHARE:
+            # A short run only nudges an estimate and does not count as timing the robot: a JPEG
+            # encode of 0.3 ms took 3 ms under a 0.5-core quota. Taken as the first estimate it
+            # made P look 10x dearer than it is (so P was never tried); counted as timing, it kept
+            # the robot probes away that would have seen P was cheap again. The profile's own
+            # scale (1: the robot daemon profiles on the robot) stands until a real run is timed.
+            if self.ratio is not None:
+                sample = float(measured_s) / profiled_s
+                self.ratio += self._ewma * (share / SHORT_RUN_SHARE) * (sample - self.ratio)
+                self._rescale()
             return None
         self.frames_since_timed = 0
         # float(): a numpy scalar would make every later operation on the ratio slower.
@@ -84,9 +91,7 @@ class RobotCostModel:
         else:
             miss = sample / self.ratio - 1.0
             sign = 0 if abs(miss) <= self._tolerance else (1 if miss > 0 else -1)
-            if share < SHORT_RUN_SHARE:
-                self.ratio += self._ewma * (share / SHORT_RUN_SHARE) * (sample - self.ratio)
-            elif sign != 0 and sign == self._suspect_sign:
+            if sign != 0 and sign == self._suspect_sign:
                 # Second miss in the same direction: the robot changed; adopt the new speed.
                 self.ratio = 0.5 * (sample + self._suspect_ratio)
                 self._suspect_sign = 0
@@ -95,6 +100,10 @@ class RobotCostModel:
             else:
                 self._suspect_sign = 0
                 self.ratio += self._ewma * (sample - self.ratio)
-        self.unit_cost = self._rate * self.ratio
-        self.full_cost = self._cuts.full_s * self._rate * self.ratio
+        self._rescale()
         return sign
+
+    def _rescale(self) -> None:
+        ratio = self.scale
+        self.unit_cost = self._rate * ratio
+        self.full_cost = self._cuts.full_s * self._rate * ratio
