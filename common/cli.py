@@ -16,6 +16,10 @@ from rich.console import Console
 from common.errors import UserError
 
 ENTRY_POINT_GROUP = "elasticfog.commands"
+# typer coerces a parameter's value through a pydantic TypeAdapter unless it is already a bool.
+# The root's `--help` flag is unset (None) whenever a subcommand runs, so `elasticfog routes --help`
+# would import pydantic (~0.1 s) just for it; False from the default map is a bool, taken as is.
+ROOT_DEFAULTS = {"help": False}
 
 app = typer.Typer(
     name="elasticfog",
@@ -23,10 +27,13 @@ app = typer.Typer(
     no_args_is_help=True,
     add_completion=False,
     pretty_exceptions_enable=False,
+    context_settings={"default_map": ROOT_DEFAULTS},
 )
 
 
 def _register_commands() -> None:
+    # Each module imports only what its options need; heavy imports wait for the command to run
+    # (`elasticfog --help` must stay fast, tests/unit/test_cli_startup.py).
     for ep in sorted(entry_points(group=ENTRY_POINT_GROUP), key=lambda e: e.name):
         ep.load()(app)
 

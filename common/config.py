@@ -34,11 +34,11 @@ from pydantic import (
     model_validator,
 )
 
+from common.defaults import DEFAULT_REGISTRY_PORT
 from common.errors import UserError
 from common.keys import DEFAULT_FLEET, validate_id
 from common.wire.codec import DEFAULT_MAX_PAYLOAD_BYTES
 
-DEFAULT_REGISTRY_PORT = 7447
 DEFAULT_REGISTRY_ENDPOINT = f"tcp/127.0.0.1:{DEFAULT_REGISTRY_PORT}"
 DEFAULT_LEASE_MS = 1000
 ZOO_PREFIX = "zoo:"

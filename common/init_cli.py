@@ -11,9 +11,8 @@ import json
 from pathlib import Path
 
 import typer
-import yaml
 
-from common.config import DEFAULT_REGISTRY_PORT, ZOO_PREFIX, fleet_from_dict
+from common.defaults import DEFAULT_REGISTRY_PORT
 from common.errors import UserError
 from common.keys import DEFAULT_FLEET, validate_id
 
@@ -136,6 +135,12 @@ def write_fleet(
 ) -> Path:
     """Write DIR/fleet.yaml (creating DIR) and return its path; UserError on bad input or if the
     file exists and `force` is false."""
+    # Heavy imports (pydantic, the wire codec) where the command runs: `elasticfog --help` must
+    # stay fast.
+    import yaml
+
+    from common.config import ZOO_PREFIX, fleet_from_dict
+
     validate_id(fleet, "fleet name")
     if not 1 <= port <= 65535:
         raise UserError(f"--port {port}: expected a TCP port in 1..65535")

@@ -18,7 +18,7 @@ from rich.console import Console
 from rich.table import Table
 
 from common.errors import UserError
-from deploy.testbed import DEFAULT_HOSTS, DEFAULT_NAME, DEFAULT_SUBNET, NAME_ENV, Testbed
+from deploy.testbed_defaults import DEFAULT_HOSTS, DEFAULT_NAME, DEFAULT_SUBNET, NAME_ENV
 
 testbed_app = typer.Typer(
     name="testbed",
@@ -70,6 +70,10 @@ def up(
     as_json: bool = JSON_OPTION,
 ) -> None:
     """Create one network namespace per host, joined by a bridge; print host → address."""
+    # deploy.testbed (psutil, tc shaping, cgroups) where a command runs: `elasticfog --help` must
+    # stay fast.
+    from deploy.testbed import Testbed
+
     with _user_errors():
         testbed = Testbed(
             name, hosts=[h.strip() for h in hosts.split(",") if h.strip()], subnet=subnet
@@ -96,6 +100,8 @@ def up(
 @testbed_app.command("down")
 def down(name: str = NAME_OPTION, as_json: bool = JSON_OPTION) -> None:
     """Remove the testbed: processes, namespaces, cgroups (also what a crashed run left)."""
+    from deploy.testbed import Testbed
+
     with _user_errors():
         removed = Testbed(name).down()
     if as_json:
@@ -120,6 +126,8 @@ def shape(
     name: str = NAME_OPTION,
 ) -> None:
     """Cap a host's link with tc (htb); run again to change it while traffic flows."""
+    from deploy.testbed import Testbed
+
     with _user_errors():
         testbed = Testbed.attach(name)
         testbed.shape(host, uplink_mbit, downlink_mbit)
@@ -139,6 +147,8 @@ def cpu(
     name: str = NAME_OPTION,
 ) -> None:
     """Cap the CPU of everything started on a host (cgroup-v1 CFS quota); changeable at run time."""
+    from deploy.testbed import Testbed
+
     with _user_errors():
         if (fraction is None) == (not unlimited):
             raise UserError("give either --fraction F (cores, e.g. 0.5) or --unlimited")
@@ -155,6 +165,8 @@ def exec_(
     name: str = NAME_OPTION,
 ) -> None:
     """Run a command on a host (its namespace and CPU cgroup); exits with the command's code."""
+    from deploy.testbed import Testbed
+
     with _user_errors():
         testbed = Testbed.attach(name)
         # Same process group as this CLI: Ctrl-C at the terminal reaches the command as well.
@@ -174,6 +186,8 @@ def exec_(
 @testbed_app.command("status")
 def status(name: str = NAME_OPTION, as_json: bool = JSON_OPTION) -> None:
     """Show hosts, addresses, link caps, CPU caps, processes and byte counters."""
+    from deploy.testbed import Testbed
+
     with _user_errors():
         info: dict[str, Any] = Testbed.attach(name).status()
     if as_json:

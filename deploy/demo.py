@@ -26,16 +26,17 @@ from collections import Counter
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import typer
 from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
 from common.errors import UserError
-from deploy.procs import DaemonError, LocalFleet, write_local_fleet
-from robotd.sources import DEFAULT_CAMERA_SOURCE
+from robotd.source_names import DEFAULT_CAMERA_SOURCE
+
+if TYPE_CHECKING:
+    from deploy.procs import LocalFleet
 
 ROBOT_ID = "robot-1"
 CLOUD_IDS = ("edge-1", "edge-2")
@@ -259,6 +260,8 @@ class KillSwitch:
             self.failovers.append(Failover(at_frame=frame, killed=target, killed_at=killed_at))
 
     def _route(self) -> str | None:
+        from deploy.procs import DaemonError
+
         try:
             row = self.fleet.route(self.robot)
         except DaemonError:
@@ -304,7 +307,18 @@ def run_demo(
 
 
 def _run(options: DemoOptions, workdir: Path, console: Console, show: bool) -> DemoResult:
+    # Imports where the demo runs (pydantic, the daemons' supervision, progress bars):
+    # `elasticfog --help` must stay fast.
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+    )
+
     from common.config import load_fleet
+    from deploy.procs import DaemonError, LocalFleet, write_local_fleet
 
     cfg_path = write_local_fleet(workdir, fleet=f"demo-{os.getpid()}", model=options.model)
     cfg = load_fleet(cfg_path)

@@ -41,11 +41,8 @@ import psutil
 from common.errors import UserError
 from deploy import shaping
 from deploy.cgroups import CGROUP_ROOT_DIR, CpuGroup, find_cpu_mount, remove_empty_dir
+from deploy.testbed_defaults import DEFAULT_HOSTS, DEFAULT_NAME, DEFAULT_SUBNET
 
-DEFAULT_NAME = "ef"
-DEFAULT_HOSTS = ("registry", "robot", "edge-1", "edge-2", "cloud-1")
-DEFAULT_SUBNET = "10.77.0.0/24"
-NAME_ENV = "ELASTICFOG_TESTBED"
 STATE_DIR_ENV = "ELASTICFOG_TESTBED_STATE_DIR"
 DEFAULT_STATE_DIR = Path("/run/elasticfog/testbed")
 NETNS_DIR = Path("/run/netns")

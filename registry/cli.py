@@ -12,7 +12,6 @@ from pathlib import Path
 
 import typer
 
-from common.config import load_fleet
 from common.errors import UserError
 
 LOG_LEVEL_ENV = "ELASTICFOG_LOG_LEVEL"
@@ -41,6 +40,9 @@ def registry(
 ) -> None:
     """Run the registry: the routing information base, the scheduler and the embedded Zenoh
     router. Stops cleanly on Ctrl-C / SIGTERM."""
+    # Heavy imports (pydantic, zenoh, the wire codec) where the command runs: `elasticfog --help`
+    # must stay fast.
+    from common.config import load_fleet
     from registry.daemon import run_registry
 
     try:

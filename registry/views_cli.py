@@ -22,30 +22,28 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import typer
-import zenoh
-from pydantic import TypeAdapter, ValidationError
 from rich.console import Console, Group
-from rich.live import Live
 from rich.table import Table
 from rich.text import Text
 
 from common import keys
-from common.config import Endpoint, FleetConfig, load_fleet
 from common.errors import UserError
-from common.session import open_session, zenoh_error_text
-from common.wire import ErrorReply, WireError, decode, to_jsonable
-from common.wire.registry import (
-    RIB_VIEW_REPLIES,
-    DeploymentRow,
-    EventRow,
-    ProfileRow,
-    RibQuery,
-    RobotRow,
-    RouteRow,
-)
+
+if TYPE_CHECKING:
+    import zenoh
+
+    from common.config import FleetConfig
+    from common.wire.registry import (
+        DeploymentRow,
+        EventRow,
+        ProfileRow,
+        RibQuery,
+        RobotRow,
+        RouteRow,
+    )
 
 VIEW_TIMEOUT_S = 3.0
 # How long a client keeps trying to reach the endpoint (a registry restarting is back within it;
@@ -55,8 +53,6 @@ WATCH_INTERVAL_S = 1.0
 DEFAULT_EVENTS = 50
 MAX_VIEW_BYTES = 16 * 1024 * 1024
 DIGEST_SHOWN_CHARS = 12
-
-_ENDPOINT = TypeAdapter(Endpoint)
 
 
 @dataclass(frozen=True)
@@ -71,10 +67,16 @@ class Target:
 def resolve_target(config: Path | None, connect: str | None, fleet: str | None = None) -> Target:
     """The registry to ask: `--connect` wins over the file's endpoint; the fleet name comes from
     `--fleet`, else the file, else `default`. UserError when neither is given or one is bad."""
+    # Imports where a command runs (pydantic, zenoh, the wire codec): `elasticfog --help` must
+    # stay fast.
+    from pydantic import TypeAdapter, ValidationError
+
+    from common.config import Endpoint, load_fleet
+
     cfg = load_fleet(config) if config is not None else None
     if connect is not None:
         try:
-            endpoint = _ENDPOINT.validate_python(connect)
+            endpoint = TypeAdapter(Endpoint).validate_python(connect)
         except ValidationError as exc:
             problem = exc.errors(include_url=False)[0]["msg"].removeprefix("Value error, ")
             raise UserError(f"--connect: {problem}") from None
@@ -98,6 +100,8 @@ class RegistryClient:
         timeout_s: float = VIEW_TIMEOUT_S,
         connect_timeout_s: float = CONNECT_TIMEOUT_S,
     ) -> None:
+        from common.session import open_session
+
         self.target = target
         self.timeout_s = timeout_s
         self.session: zenoh.Session = open_session(
@@ -121,6 +125,12 @@ class RegistryClient:
     def view(self, name: str, query: RibQuery | None = None) -> tuple[Any, ...]:
         """The rows of view `name` (keys.RIB_VIEWS); UserError naming the endpoint when no
         registry answers in time or it refuses."""
+        import zenoh
+
+        from common.session import zenoh_error_text
+        from common.wire import ErrorReply, WireError, decode
+        from common.wire.registry import RIB_VIEW_REPLIES
+
         key = keys.rib(self.target.fleet, name)
         expected = RIB_VIEW_REPLIES[name]
         where = f"the registry of fleet {self.target.fleet!r} at {self.target.endpoint}"
@@ -350,6 +360,8 @@ def _show(
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(exc.exit_code) from None
     if as_json:
+        from common.wire import to_jsonable
+
         typer.echo(json.dumps([to_jsonable(r) for r in rows], indent=2))
         return
     console = Console()
@@ -402,6 +414,9 @@ def events(
     robot: str | None = typer.Option(None, "--robot", help="Only this robot's events."),
 ) -> None:
     """The registry's event log (every transition, with its reason), oldest first."""
+    from common.wire import WireError
+    from common.wire.registry import RibQuery
+
     try:
         query = RibQuery(robot=robot, limit=limit)
     except WireError as exc:
@@ -441,6 +456,8 @@ def watch(
     timeout: float = TIMEOUT_OPTION,
 ) -> None:
     """A live table of the robots: deployment, state, epoch, latency window vs bound, cut."""
+    from rich.live import Live
+
     stop = threading.Event()
     try:
         target = resolve_target(config, connect, fleet)

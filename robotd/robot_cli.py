@@ -69,6 +69,8 @@ def robot_command(
     json_out: bool = typer.Option(False, "--json", help="Print the summary as JSON on stdout."),
 ) -> None:
     """Run the robot daemon; exits 0 after --frames frames or on SIGINT/SIGTERM."""
+    # Heavy imports (pydantic, zenoh, onnxruntime, cv2) where the command runs: `elasticfog --help`
+    # must stay fast.
     from common.config import load_fleet
     from robotd.daemon import RobotDaemon, RobotOptions
 

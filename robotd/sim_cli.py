@@ -13,16 +13,16 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import typer
 from rich.console import Console
 
 from common.errors import UserError
-from robotd.policies import parse_assignments, split_overrides
-from robotd.policies.base import CutTable
-from robotd.sim import SimResult, Simulator, markdown_table, parse_policy_list, plot_results
-from robotd.trace import load_profile, load_trace
+
+if TYPE_CHECKING:
+    from robotd.policies.base import CutTable
+    from robotd.sim import SimResult
 
 DEFAULT_COMPARE_PLOT = Path("sim-compare.png")
 
@@ -74,6 +74,11 @@ def sim_command(
 
 
 def _cuts(model: str | None, profile: Path | None, quiet: bool) -> CutTable:
+    # Heavy imports (numpy, pydantic, the policies) where the command runs: `elasticfog --help`
+    # must stay fast.
+    from robotd.policies.base import CutTable
+    from robotd.trace import load_profile
+
     if (model is None) == (profile is None):
         raise UserError("give exactly one of --model MODEL or --profile FILE")
     if profile is not None:
@@ -100,6 +105,10 @@ def _run(
     json_out: bool,
     plot: Path | None,
 ) -> None:
+    from robotd.policies import parse_assignments, split_overrides
+    from robotd.sim import Simulator, markdown_table, parse_policy_list, plot_results
+    from robotd.trace import load_trace
+
     if (policy is None) == (compare is None):
         raise UserError("give exactly one of --policy NAME or --compare A,B,...")
     names = [str(policy)] if compare is None else parse_policy_list(compare)

@@ -38,14 +38,8 @@ import numpy as np
 
 from common.errors import UserError
 from common.partition import TensorSpec
+from robotd.source_names import CAMERA_PREFIX, PHOTO, SYNTHETIC, VIDEO_PREFIX
 
-SYNTHETIC = "synthetic"
-PHOTO = "photo"
-# The source the demo and the benchmarks use when none is given: it looks like a camera. Tests
-# keep `synthetic` (their defaults do not change), whose entropy they control.
-DEFAULT_CAMERA_SOURCE = PHOTO
-VIDEO_PREFIX = "video:"
-CAMERA_PREFIX = "camera:"
 DEFAULT_KEY_FRACTION = 0.25
 # Flat frames: one grey level, moving slowly, with noise of this amplitude (grey levels): a few
 # histogram bins are used, so the normalized entropy stays around 0.2-0.3.

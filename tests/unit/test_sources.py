@@ -16,8 +16,8 @@ import pytest
 from common.errors import UserError
 from common.partition import TensorSpec
 from robotd.entropy import frame_entropy
+from robotd.source_names import DEFAULT_CAMERA_SOURCE
 from robotd.sources import (
-    DEFAULT_CAMERA_SOURCE,
     PHOTO_SCENE_FRAMES,
     PHOTOS,
     CameraMotion,

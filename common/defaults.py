@@ -1,0 +1,9 @@
+"""Defaults that the fleet models (common.config) and the CLI's options share.
+
+They live apart from common.config so that building the CLI (`elasticfog --help`) reads them
+without importing pydantic and the wire codec.
+"""
+
+from __future__ import annotations
+
+DEFAULT_REGISTRY_PORT = 7447
