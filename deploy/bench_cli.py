@@ -37,11 +37,17 @@ QUICK_OPTION = typer.Option(False, "--quick", help="A short run (fewer frames)."
 FRAMES_OPTION = typer.Option(
     None, "--frames", help="Frames per robot run (default: the experiment's, less with --quick)."
 )
+# Defaults as in deploy.experiments (options.DEFAULT_ROBOT_CPU, fleet.DEFAULT_MODEL and
+# DEFAULT_INPUT_SHAPE), spelled out here so `--help` imports nothing of the testbed.
 ROBOT_CPU_OPTION = typer.Option(
-    0.02, "--robot-cpu", help="The robot host's CPU quota, in cores (how slow the robot is)."
+    0.5, "--robot-cpu", help="The robot host's CPU quota, in cores (how slow the robot is)."
 )
-MODEL_OPTION = typer.Option("zoo:vgg", "--model", help="zoo:NAME or an ONNX file.")
-SHAPE_OPTION = typer.Option("3x120x160", "--input-shape", help="Frame shape CxHxW (float32).")
+MODEL_OPTION = typer.Option("zoo:mobilenet_v2", "--model", help="zoo:NAME or an ONNX file.")
+SHAPE_OPTION = typer.Option(
+    "3x240x320",
+    "--input-shape",
+    help="Camera image CxHxW (zoo models take it as uint8 1xHxWxC; a file: its dynamic dims).",
+)
 PLOTS_OPTION = typer.Option(DEFAULT_PLOTS_DIR, "--plots-dir", help="Where PNG plots are written.")
 NO_PLOTS_OPTION = typer.Option(False, "--no-plots", help="Write no plots.")
 WORKDIR_OPTION = typer.Option(

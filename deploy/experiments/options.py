@@ -1,10 +1,11 @@
 """Settings every experiment shares, and the one place that opens a testbed fleet for it.
 
 What stands for what (see docs/experiments.md): the robot is the `robot` host with a cgroup CPU
-quota of `robot_cpu` of one core (0.02 by default: the whole model then takes about as long on
-the robot, 0.4 s, as a full offload takes at 5 Mbit/s), the uplink is the `tc` cap on the
-robot's link, the deployments are cloud daemons on hosts of their own with the rest of the
-machine, and a frame is a synthetic camera image of `input_shape` sent as float32.
+quota of `robot_cpu` of one core (0.5 by default: MobileNetV2 at 320x240 then takes about 60 ms
+there, the pace of a small robot computer's CPU such as a Raspberry Pi 4 class board, about as
+long as its JPEG frame takes to cross 1 Mbit/s and be classified in the cloud), the uplink is the
+`tc` cap on the robot's link, the deployments are cloud daemons on hosts of their own with the
+rest of the machine, and a frame is a photograph with camera motion (`photo` source) as uint8.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from common.errors import UserError
 from .fleet import DEFAULT_INPUT_SHAPE, DEFAULT_MODEL, POLICY_VARIANTS
 from .runner import DEFAULT_HOSTS, TestbedFleet
 
-DEFAULT_ROBOT_CPU = 0.02
+DEFAULT_ROBOT_CPU = 0.5
 DOCS_IMG_DIR = Path(__file__).resolve().parents[2] / "docs" / "img"
 
 
