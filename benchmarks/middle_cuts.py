@@ -27,13 +27,13 @@ from typing import Any
 import numpy as np
 
 from common.codec_profile import Fidelity, profile_codecs
+from common.image_input import InputAdapter
 from common.partition import load_partition, sample_feeds
 from common.split_runtime import SplitModel
 from common.zoo import parse_shape
 from robotd.calibration import calibration_frames
 from robotd.daemon import robot_profile
 from robotd.policies.base import PURE_ROBOT, CutTable
-from robotd.sources import InputAdapter
 
 PAYS = 1.2
 BITS_PER_BYTE = 8.0

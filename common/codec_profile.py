@@ -30,10 +30,13 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from common.errors import UserError
 from common.partition import TensorSpec
+from common.wire import WireError
 from common.wire.tensor_codecs import CODEC_RAW, decode_encoded, encode_tensor_as, parse_codec
 
 if TYPE_CHECKING:
+    from common.config import FidelityConfig
     from common.split_runtime import SplitModel
 
 # JPEG qualities tried on image crossings, best first; the lowest that meets the bound is kept.
@@ -44,7 +47,6 @@ LOSSY_FEATURE_CODECS = ("fp16", "int8", "int8+zstd")
 MIN_SAVING_SHARE = 0.1
 # Offloading actions per cut, raw included: keeps the decision cost flat (16 cuts × 4 codecs).
 MAX_CODECS_PER_CUT = 4
-DEFAULT_CALIBRATION_FRAMES = 8
 MS_PER_S = 1000.0
 
 Feeds = dict[str, np.ndarray]
@@ -75,6 +77,22 @@ class Fidelity:
         if top1 is not None and top1 < self.min_top1_agreement:
             return False
         return self.max_output_rel_err is None or rel_err <= self.max_output_rel_err
+
+
+def fidelity_of(config: FidelityConfig) -> Fidelity:
+    """The codec profiler's bound from the fleet file's `fidelity:` section; UserError for a
+    codec name that does not exist."""
+    for name in config.codecs or ():
+        try:
+            parse_codec(name)
+        except WireError as exc:
+            raise UserError(f"fidelity.codecs: {exc.reason}") from None
+    return Fidelity(
+        min_top1_agreement=config.min_top1_agreement,
+        max_output_rel_err=config.max_output_rel_err,
+        lossy_features=config.lossy_features,
+        codecs=tuple(config.codecs) if config.codecs is not None else None,
+    )
 
 
 def is_image(spec: TensorSpec) -> bool:

@@ -34,7 +34,7 @@ from pydantic import (
     model_validator,
 )
 
-from common.defaults import DEFAULT_REGISTRY_PORT
+from common.defaults import DEFAULT_CALIBRATION_FRAMES, DEFAULT_REGISTRY_PORT
 from common.errors import UserError
 from common.keys import DEFAULT_FLEET, validate_id
 from common.wire.codec import DEFAULT_MAX_PAYLOAD_BYTES
@@ -373,7 +373,10 @@ class FidelityConfig(_Model):
         "by default only images may (JPEG).",
     )
     calibration_frames: int = Field(
-        default=8, ge=1, le=256, description="Frames from the source the codecs are measured on."
+        default=DEFAULT_CALIBRATION_FRAMES,
+        ge=1,
+        le=256,
+        description="Frames from the source the codecs are measured on.",
     )
     codecs: list[str] | None = Field(
         default=None,

@@ -7,3 +7,5 @@ without importing pydantic and the wire codec.
 from __future__ import annotations
 
 DEFAULT_REGISTRY_PORT = 7447
+# Frames the (cut, codec) pairs are measured on (fleet.yaml `fidelity.calibration_frames`).
+DEFAULT_CALIBRATION_FRAMES = 8

@@ -20,6 +20,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
+from common.defaults import DEFAULT_CALIBRATION_FRAMES
 from common.errors import UserError
 
 F = TypeVar("F", bound=Callable[..., Any])
@@ -213,12 +214,35 @@ def profile_cmd(
     ),
     input_shape: str | None = typer.Option(None, "--input-shape", help=SHAPE_HELP),
     fresh: bool = typer.Option(False, "--fresh", help="Measure again even if a profile is cached."),
+    codecs: bool = typer.Option(
+        False,
+        "--codecs",
+        help="Also measure every (cut, codec) pair on photographs: bytes, encode/decode time, "
+        "fidelity to the uncompressed model, and which pairs the bound admits as actions.",
+    ),
+    fidelity: str | None = typer.Option(
+        None,
+        "--fidelity",
+        help="With --codecs: the bound, as fleet.yaml's fidelity: keys, e.g. "
+        "min_top1_agreement=0.99,max_output_rel_err=0.02,lossy_features=true,codecs=jpeg80,"
+        "codecs=int8+zstd "
+        "(default: top-1 agreement 0.98, lossless only for feature maps).",
+    ),
+    calibration_frames: int = typer.Option(
+        DEFAULT_CALIBRATION_FRAMES, "--calibration-frames", help="With --codecs: photographs used."
+    ),
     as_json: bool = typer.Option(False, "--json", help="Print the profile as JSON."),
 ) -> None:
-    """Time every cut's prefix and suffix on this host (cached by model digest)."""
+    """Time every cut's prefix and suffix on this host (cached by model digest); with --codecs,
+    the (cut, codec) fidelity table."""
     from common.partition import parse_cuts, parse_input_shape
     from common.profiler import profile_model
 
+    if fidelity is not None and not codecs:
+        raise UserError("--fidelity needs --codecs")
+    bound = _parse_fidelity(fidelity) if codecs else None
+    if calibration_frames < 1:
+        raise UserError(f"--calibration-frames {calibration_frames}: expected at least 1")
     profile = profile_model(
         model,
         runs=runs,
@@ -229,6 +253,19 @@ def profile_cmd(
         max_cut_tensors=max_cut_tensors,
         refresh=fresh,
     )
+    if bound is not None:
+        measured = _measure_codecs(
+            model,
+            parse_input_shape(input_shape),
+            parse_cuts(cuts),
+            max_cut_tensors,
+            threads,
+            bound,
+            calibration_frames,
+            progress=not as_json,
+        )
+        for cut in profile["cuts"]:
+            cut["codecs"] = measured.get(cut["index"], [])
     if as_json:
         _print_json(profile)
         return
@@ -251,6 +288,95 @@ def profile_cmd(
             " + ".join(cut["tensors"]),
         )
     _console().print(table)
+    if bound is not None:
+        _console().print(_codec_table(profile, calibration_frames))
+
+
+def _parse_fidelity(text: str | None) -> Any:
+    """`--fidelity k=v,...` as the profiler's bound; UserError naming a bad key or value.
+    Values are read as YAML scalars (as in fleet.yaml); `codecs=NAME` may be repeated."""
+    import yaml
+    from pydantic import ValidationError
+
+    from common.codec_profile import fidelity_of
+    from common.config import FidelityConfig, format_validation_error
+
+    values: dict[str, Any] = {}
+    for item in (text or "").split(","):
+        if not item.strip():
+            continue
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise UserError(f"--fidelity {text!r}: expected key=value pairs separated by commas")
+        key = key.strip()
+        if key == "codecs":  # names may hold '+' (int8+zstd): repeat the key for a list
+            values.setdefault("codecs", []).append(value.strip())
+        else:
+            values[key] = yaml.safe_load(value)
+    try:
+        return fidelity_of(FidelityConfig.model_validate(values))
+    except ValidationError as exc:
+        raise UserError(f"--fidelity: {format_validation_error(exc)}") from None
+
+
+def _measure_codecs(
+    model: str,
+    input_shape: Any,
+    cuts: Any,
+    max_cut_tensors: int,
+    threads: int | None,
+    bound: Any,
+    frames: int,
+    progress: bool,
+) -> dict[int, list[dict[str, Any]]]:
+    """Every candidate codec of every cut measured on `frames` still photographs."""
+    from rich.progress import Progress
+
+    from common.codec_profile import profile_codecs
+    from common.image_input import InputAdapter
+    from common.partition import load_partition
+    from common.photos import still_views
+    from common.split_runtime import SplitModel
+
+    split = SplitModel(load_partition(model, cuts, max_cut_tensors, input_shape), threads=threads)
+    specs = split.input_specs()
+    if len(specs) != 1:
+        names = ", ".join(s.name for s in specs)
+        raise UserError(f"--codecs feeds one camera image; {model} has inputs {names}")
+    adapter = InputAdapter(specs[0])
+    feeds = [{specs[0].name: adapter(view)} for view in still_views(frames)]
+    with Progress(console=Console(stderr=True), transient=True, disable=not progress) as bar:
+        task = bar.add_task("measuring codecs", total=split.num_cuts)
+        return profile_codecs(split, feeds, bound, advance=lambda: bar.advance(task))
+
+
+def _codec_table(profile: dict[str, Any], frames: int) -> Table:
+    table = Table(
+        title=f"(cut, codec) on {frames} photographs: action = admitted by the fidelity bound",
+        title_justify="left",
+    )
+    columns = ("cut", "codec", "bytes (p10-p90)", "of raw", "enc ms", "dec ms", "top-1", "rel err")
+    for name in columns:
+        table.add_column(name, justify="right", no_wrap=True)
+    table.add_column("action", justify="center")
+    for cut in profile["cuts"]:
+        entries = cut.get("codecs") or []
+        raw = next((e["bytes"] for e in entries if e["name"] == "raw"), None)
+        for e in entries:
+            top1 = e["top1_agreement"]
+            table.add_row(
+                str(cut["index"]),
+                e["name"],
+                f"{_fmt_bytes(int(e['bytes']))} ({_fmt_bytes(int(e['bytes_p10']))}-"
+                f"{_fmt_bytes(int(e['bytes_p90']))})",
+                f"{e['bytes'] / raw:.3f}" if raw else "-",
+                f"{e['encode_ms']:.2f}",
+                f"{e['decode_ms']:.2f}",
+                "-" if top1 is None else f"{top1:.2f}",
+                f"{e['rel_err']:.3f}" if e["lossy"] else "-",
+                "yes" if e.get("action") else "",
+            )
+    return table
 
 
 @model_app.command("prep")

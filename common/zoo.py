@@ -8,7 +8,7 @@ of the bytes of the float tensor the network starts from. The zoo input shape (`
 keeps its meaning C×H×W in every option and config; the file's input is 1×H×W×C.
 
 Channel order: the camera image is **RGB**, because that is what the robot feeds a 3-channel
-image input (``robotd.sources.InputAdapter`` turns the sources' BGR frames into RGB for every
+image input (``common.image_input.InputAdapter`` turns the sources' BGR frames into RGB for every
 3-channel input, uint8 included); 1-channel inputs get the grey image. ``CAMERA_ORDER`` says it in
 one place; a BGR camera order would add the channel reorder (a Gather) to the front end.
 
@@ -52,7 +52,7 @@ ZOO_FORMAT = 2
 ZOO_SEED = 0
 NUM_CLASSES = 1000
 ZOO_INPUT_DTYPE = "uint8"
-# What the robot feeds a 3-channel uint8 input (robotd.sources.InputAdapter): RGB. "bgr" would
+# What the robot feeds a 3-channel uint8 input (common.image_input.InputAdapter): RGB. "bgr" would
 # reorder the channels in the front end.
 CAMERA_ORDER = "rgb"
 # ImageNet statistics in RGB order (torchvision's), for 3 channels; other channel counts use

@@ -24,35 +24,16 @@ from typing import Any
 import numpy as np
 
 from common.codec_profile import Fidelity, profile_codecs
-from common.config import FidelityConfig
-from common.errors import UserError
+from common.image_input import InputAdapter
 from common.models import cache_dir, read_cached_json, write_cached_json
 from common.split_runtime import SplitModel
-from common.wire import WireError
-from common.wire.tensor_codecs import parse_codec
 from robotd.policies import RAW_CODEC, fixed_action
-from robotd.sources import InputAdapter, open_source
+from robotd.sources import open_source
 
 log = logging.getLogger(__name__)
 
 CALIBRATION_STRIDE = 5
 CALIBRATION_FORMAT = 1
-
-
-def fidelity_of(config: FidelityConfig) -> Fidelity:
-    """The codec profiler's bound from the fleet file's `fidelity:` section; UserError for a
-    codec name that does not exist."""
-    for name in config.codecs or ():
-        try:
-            parse_codec(name)
-        except WireError as exc:
-            raise UserError(f"fidelity.codecs: {exc.reason}") from None
-    return Fidelity(
-        min_top1_agreement=config.min_top1_agreement,
-        max_output_rel_err=config.max_output_rel_err,
-        lossy_features=config.lossy_features,
-        codecs=tuple(config.codecs) if config.codecs is not None else None,
-    )
 
 
 def required_codecs(policy_spec: str, lowest_cut: int) -> dict[int, list[str]]:

@@ -48,6 +48,7 @@ from common import keys
 from common.config import FleetConfig
 from common.daemon import Daemon
 from common.errors import UserError
+from common.image_input import InputAdapter
 from common.partition import load_partition, sample_feeds
 from common.profiler import median_ms
 from common.session import open_session
@@ -89,7 +90,7 @@ from robotd.policies import (
     make_policy,
 )
 from robotd.probes import PROBE_INTERVAL_S, CloudTime, Prober, probe_padding_bytes
-from robotd.sources import FrameSource, InputAdapter, open_source
+from robotd.sources import FrameSource, open_source
 from robotd.telemetry import (
     SERVED_BY_CLOUD,
     SERVED_BY_ROBOT,

@@ -1,4 +1,4 @@
-"""Frame sources of the robot daemon, and the conversion of a frame to the model's input.
+"""Frame sources of the robot daemon.
 
 A source yields uint8 BGR frames (H×W×3, OpenCV's layout) one at a time:
 
@@ -19,8 +19,8 @@ A source yields uint8 BGR frames (H×W×3, OpenCV's layout) one at a time:
   so `--frames N` is honoured whatever the file's length).
 - `camera:N`: the camera with index N through OpenCV.
 
-A source that cannot be opened is a `UserError` naming it. `InputAdapter` resizes a frame to the
-model's input (N×C×H×W or N×H×W×C, 1 or 3 channels) and scales it to [0, 1] for float inputs.
+A source that cannot be opened is a `UserError` naming it. `common.image_input.InputAdapter` turns
+a frame into the model's input; the photographs themselves are `common.photos`.
 """
 
 from __future__ import annotations
@@ -28,7 +28,6 @@ from __future__ import annotations
 import abc
 import contextlib
 import enum
-import functools
 import math
 from pathlib import Path
 from typing import Any
@@ -37,7 +36,7 @@ import cv2
 import numpy as np
 
 from common.errors import UserError
-from common.partition import TensorSpec
+from common.photos import PHOTOS, photo_bgr
 from robotd.source_names import CAMERA_PREFIX, PHOTO, SYNTHETIC, VIDEO_PREFIX
 
 DEFAULT_KEY_FRACTION = 0.25
@@ -46,16 +45,6 @@ DEFAULT_KEY_FRACTION = 0.25
 FLAT_NOISE_LEVELS = 3
 KEY_BLOCKS = 12
 CAMERA_READ_TRIES = 3
-# Photographs of the `photo` source: name → how skimage.data returns it (function, and the item
-# of a tuple it returns, if any). All of them ship inside the scikit-image wheel.
-PHOTOS: dict[str, tuple[str, int | None]] = {
-    "astronaut": ("astronaut", None),
-    "coffee": ("coffee", None),
-    "chelsea": ("chelsea", None),
-    "rocket": ("rocket", None),
-    "motorcycle": ("stereo_motorcycle", 0),
-    "immunohistochemistry": ("immunohistochemistry", None),
-}
 # Without a NAME the camera moves to the next photograph every this many frames.
 PHOTO_SCENE_FRAMES = 100
 # At zoom 1 the view covers this share of the largest rectangle of the frame's aspect that fits in
@@ -77,7 +66,6 @@ PHOTO_SHAKE_ROT_PERIOD_FRAMES = 7.1
 PHOTO_PERIOD_JITTER = 0.2
 MAX_PHOTO_SPEED = 20.0
 MAX_SOURCE_SIDE_PX = 8192
-CHANNELS = (1, 3)
 
 
 class SourceError(UserError):
@@ -212,7 +200,7 @@ class PhotoSource(FrameSource):
             self.names = [list(PHOTOS)[int(i)] for i in order]
         else:
             self.names = [name]
-        self._photos = [self._fit(_photo_bgr(n)) for n in self.names]
+        self._photos = [self._fit(photo_bgr(n)) for n in self.names]
         self._scene: tuple[int, _CameraPath] | None = None
         shown = name or "all photos"
         self.description = (
@@ -345,20 +333,6 @@ def _fit_rect(photo_h: int, photo_w: int, height: int, width: int) -> tuple[floa
     if photo_w / photo_h > aspect:
         return float(photo_h), photo_h * aspect
     return photo_w / aspect, float(photo_w)
-
-
-@functools.cache
-def _photo_bgr(name: str) -> np.ndarray:
-    """A photograph of PHOTOS as uint8 BGR, loaded once per process (read-only)."""
-    # skimage is slow to import and only this source needs it.
-    import skimage.data
-
-    function, item = PHOTOS[name]
-    loaded = getattr(skimage.data, function)()
-    rgb = loaded[item] if item is not None else loaded
-    bgr = np.ascontiguousarray(cv2.cvtColor(np.asarray(rgb, dtype=np.uint8), cv2.COLOR_RGB2BGR))
-    bgr.setflags(write=False)
-    return bgr
 
 
 def _motion_names() -> str:
@@ -501,62 +475,6 @@ def open_source(spec: str, *, height: int, width: int, seed: int = 0) -> FrameSo
         f"unknown frame source {spec!r}; expected synthetic[:key=F,every=N], "
         "photo[:NAME][,motion=pan|zoom|shake|mixed][,speed=F], video:PATH or camera:INDEX"
     )
-
-
-class InputAdapter:
-    """Turns a BGR uint8 frame into the model's one image input.
-
-    The input must be an image: N×C×H×W (or C×H×W) or N×H×W×C (or H×W×C) with N = 1 and
-    C in {1, 3}. Frames are resized to H×W (OpenCV, area interpolation when shrinking), converted
-    to RGB or grey, and scaled to [0, 1] for float inputs (uint8 inputs get the raw levels).
-    """
-
-    def __init__(self, spec: TensorSpec) -> None:
-        self.spec = spec
-        self.dtype = np.dtype(spec.dtype)
-        shape = tuple(spec.shape)
-        layout = _layout(shape)
-        if layout is None or self.dtype.kind not in "fu":
-            raise UserError(
-                f"model input {spec.name!r} ({spec.dtype}, shape {list(shape)}) is not an image "
-                "the robot can feed: expected float or uint8, N×C×H×W or N×H×W×C with N = 1 "
-                "and 1 or 3 channels"
-            )
-        self.channels_first, self.channels, self.height, self.width = layout
-
-    def __call__(self, frame: np.ndarray) -> np.ndarray:
-        if frame.shape[:2] != (self.height, self.width):
-            shrink = frame.shape[0] > self.height or frame.shape[1] > self.width
-            interpolation = cv2.INTER_AREA if shrink else cv2.INTER_LINEAR
-            frame = cv2.resize(frame, (self.width, self.height), interpolation=interpolation)
-        if self.channels == 1:
-            image = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)[:, :, None]
-        else:
-            image = cv2.cvtColor(frame, cv2.COLOR_BGR2RGB)
-        if self.channels_first:
-            image = image.transpose(2, 0, 1)
-        if self.dtype.kind == "f":
-            array = image.astype(self.dtype) / self.dtype.type(255.0)
-        else:
-            array = image.astype(self.dtype)
-        return np.ascontiguousarray(array.reshape(self.spec.shape))
-
-
-def _layout(shape: tuple[int, ...]) -> tuple[bool, int, int, int] | None:
-    """(channels_first, C, H, W) of an image shape, or None."""
-    if len(shape) == 4:
-        if shape[0] != 1:
-            return None
-        shape = shape[1:]
-    if len(shape) != 3:
-        return None
-    if shape[0] in CHANNELS and shape[2] not in CHANNELS:
-        return True, shape[0], shape[1], shape[2]
-    if shape[2] in CHANNELS and shape[0] not in CHANNELS:
-        return False, shape[2], shape[0], shape[1]
-    if shape[0] in CHANNELS:  # e.g. 3×3×3: take the ONNX convention, channels first
-        return True, shape[0], shape[1], shape[2]
-    return None
 
 
 def _as_bgr(frame: np.ndarray) -> np.ndarray:

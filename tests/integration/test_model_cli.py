@@ -114,6 +114,25 @@ def test_profile_table(tmp_path: Path) -> None:
     assert "full model" in result.stdout and "robot ms" in result.stdout
 
 
+def test_profile_codecs_measures_every_cut_on_photographs() -> None:
+    shape = ["--input-shape", "3x48x64", "--runs", "2", "--threads", "1"]
+    bound = ["--fidelity", "lossy_features=true,codecs=jpeg80,codecs=int8+zstd"]
+    result = invoke("profile", "zoo:resnet", *shape, "--codecs", *bound, "--json")
+    assert result.exit_code == 0, result.output
+    cuts = json.loads(result.stdout)["cuts"]
+    first = {e["name"]: e for e in cuts[0]["codecs"]}
+    assert set(first) == {"raw", "jpeg80"}  # the image: the codec list leaves png and zstd out
+    assert first["jpeg80"]["bytes"] < first["raw"]["bytes"] == 48 * 64 * 3
+    assert first["jpeg80"]["bytes_p10"] <= first["jpeg80"]["bytes"] <= first["jpeg80"]["bytes_p90"]
+    middle = {e["name"]: e for e in cuts[1]["codecs"]}
+    assert set(middle) == {"raw", "int8+zstd"}  # a feature map: no JPEG
+    assert middle["int8+zstd"]["lossy"] and middle["int8+zstd"]["top1_agreement"] is not None
+    assert middle["raw"]["action"]  # raw is always an action
+    table = invoke("profile", "zoo:resnet", *shape, "--codecs")
+    assert table.exit_code == 0, table.output
+    assert "jpeg80" in table.stdout and "top-1" in table.stdout
+
+
 def test_prep_json_then_split_sends_the_uint8_image(tmp_path: Path) -> None:
     src = save(conv_net(["N", 3, "H", "W"]), tmp_path / "m.onnx")
     out = tmp_path / "m.prep.onnx"
@@ -221,6 +240,13 @@ def test_unsupported_opset(tmp_path: Path) -> None:
         (["check", "zoo:vgg", "--input-shape", "3xfoo"], ["bad shape"]),
         (["check", "zoo:vgg", "--max-cut-tensors", "0"], ["--max-cut-tensors"]),
         (["profile", "zoo:vgg", "--runs", "0"], ["--runs"]),
+        (
+            ["profile", "zoo:vgg", "--fidelity", "lossy_features=true"],
+            ["--fidelity needs --codecs"],
+        ),
+        (["profile", "zoo:vgg", "--codecs", "--fidelity", "min_top1=0.9"], ["min_top1"]),
+        (["profile", "zoo:vgg", "--codecs", "--fidelity", "codecs=jpeg"], ["unknown tensor codec"]),
+        (["profile", "zoo:vgg", "--codecs", "--fidelity", "min_top1_agreement=2"], ["less than"]),
         (["zoo", "export", "nope", "--out", "x.onnx"], ["unknown zoo model"]),
     ],
 )

@@ -14,15 +14,15 @@ import numpy as np
 import pytest
 
 from common.errors import UserError
+from common.image_input import InputAdapter
 from common.partition import TensorSpec
+from common.photos import PHOTOS
 from robotd.entropy import frame_entropy
 from robotd.source_names import DEFAULT_CAMERA_SOURCE
 from robotd.sources import (
     PHOTO_SCENE_FRAMES,
-    PHOTOS,
     CameraMotion,
     CameraSource,
-    InputAdapter,
     PhotoSource,
     SourceError,
     SyntheticSource,
