@@ -45,6 +45,7 @@ import numpy as np
 import zenoh
 
 from common import keys
+from common.codec_profile import fidelity_of
 from common.config import FleetConfig
 from common.daemon import Daemon
 from common.errors import UserError
@@ -67,7 +68,7 @@ from common.wire.registry import (
 from common.wire.robot_to_cloud import InferRequest
 from common.wire.telemetry import ProbeReport, TelemetryRecord, action_label
 from common.wire.tensor_codecs import EncodedTensor, encode_tensor_as
-from robotd.calibration import calibration_frames, codec_table, fidelity_of, required_codecs
+from robotd.calibration import calibration_frames, codec_table, required_codecs
 from robotd.entropy import frame_entropy
 from robotd.offload import (
     FINISH_GRACE_S,
