@@ -5,14 +5,19 @@ Lifecycle (`common.daemon.Daemon`: startup -> main loop -> shutdown, in reverse 
 1. Load the fleet's model split from the partition cache (`load_partition`; split on first use)
    and warm one onnxruntime suffix session per cut by running it once. Every session shares one
    copy of the weights (`SplitModel`), so memory stays flat in the number of cuts.
-2. Start the bounded worker pool and the timer thread (delayed replies, held queries).
-3. Open a Zenoh peer session: it connects to the registry's endpoint and listens on the machine's
+2. Open a Zenoh peer session: it connects to the registry's endpoint and listens on the machine's
    own. An unreachable registry does not stop a peer from opening (Zenoh keeps retrying in the
    background, backing off from 1 s to 4 s): the daemon says so, naming the endpoint, and serves
    meanwhile. A client session cannot open without the registry: that is retried here with
    backoff until it opens or the daemon is stopped.
-4. Declare `dep/<id>/probe` (answered in every state) and `dep/<id>/ctl`.
-5. Declare the liveliness token `alive/cloud/<id>`: from now on the registry may use us.
+3. Start the timer thread (delayed replies, held queries), then the bounded worker pool (its jobs
+   use the timer, so it stops before the timer does).
+4. Declare `dep/<id>/probe` (answered in every state) and `dep/<id>/ctl`, and follow the
+   registry's membership (`common.membership`): logged when it comes and goes.
+5. Announce the liveliness token `alive/cloud/<id>`: from now on the registry may use us.
+
+Each step hands what it made to the lifecycle (`Daemon.hold`, `on_release`, `announce`), which
+releases it all at shutdown in reverse order, the token first, also after a failed startup.
 
 Every robot starts in standby: only a ctl `service(robot, epoch)` from the registry declares the
 robot's anycast key `svc/<service>/<robot>/infer` (complete=True), and the ack is sent only after
@@ -21,7 +26,8 @@ the declaration; `standby` undeclares it, then acks. The epoch rules are in `clo
 Threads: Zenoh runs each queryable's callback on a thread of its own. Callbacks only decode,
 check and admit a request, then return; suffixes run on the worker pool, which answers "busy" at
 once when it is full. Bad input of any kind gets an error reply naming the problem and one
-WARNING line (rate-limited), never a traceback; the daemon keeps serving.
+WARNING line (rate-limited by the daemon's `throttled` log), never a traceback; the daemon keeps
+serving. Every callback is `guarded`: an unexpected error is logged and answered as INTERNAL.
 
 Stopping: SIGINT (or `stop()`) stops at once: the token goes first, then the service keys, then
 in-flight requests finish (bounded) and the session is closed explicitly. SIGTERM (or
@@ -38,7 +44,6 @@ import signal
 import threading
 import time
 from collections.abc import Callable
-from typing import Any
 
 import numpy as np
 import zenoh
@@ -51,6 +56,7 @@ from common import keys
 from common.config import FleetConfig, MachineConfig
 from common.daemon import Daemon
 from common.errors import UserError
+from common.membership import MemberChange, MembershipView
 from common.partition import TensorSpec, load_partition, ort_reason
 from common.session import open_session, zenoh_error_text, zenoh_settings
 from common.split_runtime import SplitModel
@@ -93,11 +99,6 @@ OPEN_RETRY_FIRST_S = 0.5
 OPEN_RETRY_MAX_S = 8.0
 """Backoff between attempts to open a client session while the registry is unreachable."""
 
-WARN_BURST = 50
-WARN_WINDOW_S = 10.0
-"""Bad-input warnings logged per window; the rest are counted and summarized (a flood of garbage
-must not flood the log)."""
-
 
 def _payload(query: zenoh.Query) -> bytes:
     payload = query.payload
@@ -133,29 +134,24 @@ class CloudDaemon(Daemon):
         self.registry_seen = threading.Event()
         self.drained = threading.Event()
 
+        # Guards the states, the counters and the service queryables; `closing` is set under it
+        # too, so no service key is declared once shutdown has collected them.
         self._lock = threading.Lock()
         self._states = StateTable(cfg.robot_ids)
         self._served: dict[str, int] = {}
         self._unanswered: set[str] = set()  # robots in service not answered since they entered
-        self._service_queryables: dict[str, Any] = {}
-        self._closing = False
+        self._service_queryables: dict[str, zenoh.Queryable[None]] = {}
         self._drain_on_exit = False
 
+        # Made in startup (None before), released by the lifecycle.
         self._model: SplitModel | None = None
         self._cut_specs: list[list[TensorSpec]] = []
         self._pool: WorkerPool | None = None
         self._timer: DelayedActions | None = None
         self._session: zenoh.Session | None = None
-        self._control_queryables: list[Any] = []
-        self._registry_watch: Any = None
-        self._token: Any = None
 
         self._probe_key = keys.dep_probe(cfg.fleet, deployment)
         self._ctl_key = keys.dep_ctl(cfg.fleet, deployment)
-        self._warn_lock = threading.Lock()
-        self._warn_window_start = 0.0
-        self._warn_count = 0
-        self._warn_suppressed = 0
 
     # -- public ----------------------------------------------------------------------------
     @property
@@ -207,36 +203,40 @@ class CloudDaemon(Daemon):
 
     # -- lifecycle -------------------------------------------------------------------------
     def startup(self) -> None:
-        try:
-            self._load_model()
-            if self.should_exit.is_set():
-                return
-            self._pool = WorkerPool(
-                self.machine.workers, self.machine.queue, name=f"{self.deployment}-worker"
-            )
-            self._timer = DelayedActions(name=f"{self.deployment}-timer")
-            self._timer.start()
-            self._session = self._open_session()
-            if self._session is None:
-                return  # stopped while waiting for the registry
-            session = self._session
-            self._control_queryables = [
-                session.declare_queryable(
-                    self._probe_key, self._guard(self._probe_key, self._on_probe)
-                ),
-                session.declare_queryable(self._ctl_key, self._guard(self._ctl_key, self._on_ctl)),
-            ]
-            self._registry_watch = session.liveliness().declare_subscriber(
-                keys.alive_registries(self.cfg.fleet), self._on_registry_token, history=True
-            )
-            self._token = session.liveliness().declare_token(
-                keys.alive_cloud(self.cfg.fleet, self.deployment)
-            )
-        except BaseException:
-            self.shutdown()
-            raise
+        self._load_model()
+        if self.should_exit.is_set():
+            return
+        session = self._open_session()
+        if session is None:
+            return  # stopped while waiting for the registry
+        self._session = self.hold(session, "zenoh session")
+        self._timer = timer = DelayedActions(name=f"{self.deployment}-timer")
+        timer.start()
+        # Delayed replies go out now; held queries are let go.
+        self.on_release(timer.flush_and_stop, what="timer thread")
+        self._pool = pool = WorkerPool(
+            self.machine.workers, self.machine.queue, name=f"{self.deployment}-worker"
+        )
+        self.on_release(self._stop_pool, pool, what="worker pool")
+        for key, handler, what in [
+            (self._probe_key, self._on_probe, "probe queryable"),
+            (self._ctl_key, self._on_ctl, "ctl queryable"),
+        ]:
+            on_error = functools.partial(self._internal_error, key)
+            callback = self.guarded(handler, what=f"a query on {key}", on_error=on_error)
+            self.hold(session.declare_queryable(key, callback), what)
+        # Released before the ctl queryable: a ctl arriving meanwhile is refused (closing).
+        self.on_release(self._undeclare_services, what="service queryables")
+        self.hold(
+            MembershipView(
+                session, self.cfg.fleet, roles=("registry",), on_change=self._on_registry
+            ),
+            "registry membership",
+        )
+        self.announce(
+            session.liveliness().declare_token(keys.alive_cloud(self.cfg.fleet, self.deployment))
+        )
         self.ready.set()
-        pool = self._pool
         log.info(
             "%s: ready: service %r, %d cuts warm, %d workers + %d queue slots, faults: %s",
             self.deployment,
@@ -253,43 +253,32 @@ class CloudDaemon(Daemon):
             self._drain()
 
     def shutdown(self) -> None:
-        """Release everything startup acquired, in reverse order; safe to call twice."""
+        """Refuse new work, then release everything startup made: the token first (the registry
+        reroutes at once instead of waiting for a timeout), then in reverse order. Safe twice."""
         self.ready.clear()
         with self._lock:
-            self._closing = True
+            self.closing.set()
+        super().shutdown()
+        log.info("%s: stopped", self.deployment)
+
+    def _undeclare_services(self) -> None:
+        with self._lock:
             service = list(self._service_queryables.values())
             self._service_queryables.clear()
-        # The token first: the registry reroutes at once instead of waiting for a timeout.
-        for resource in [self._token, self._registry_watch, *service, *self._control_queryables]:
-            if resource is not None:
-                try:
-                    resource.undeclare()
-                except Exception as exc:  # the session may already be gone
-                    log.debug("%s: undeclare failed: %s", self.deployment, exc)
-        self._token = None
-        self._registry_watch = None
-        self._control_queryables = []
-        if self._pool is not None:
-            if not self._pool.shutdown(INFLIGHT_WAIT_S):
-                log.warning(
-                    "%s: %d request(s) still running after %.1f s; closing anyway",
-                    self.deployment,
-                    self._pool.load,
-                    INFLIGHT_WAIT_S,
-                )
-            self._pool = None
-        if self._timer is not None:
-            self._timer.flush_and_stop()  # delayed replies go out now; held queries are let go
-            self._timer = None
-        if self._session is not None:
-            session, self._session = self._session, None
+        for queryable in service:
             try:
-                session.close()
-            except Exception as exc:
-                log.debug("%s: closing the session failed: %s", self.deployment, exc)
-        if self._model is not None:
-            self._model.close()
-        log.info("%s: stopped", self.deployment)
+                queryable.undeclare()
+            except zenoh.ZError as exc:  # keep undeclaring the others
+                log.warning("%s: undeclaring a service key failed: %s", self.deployment, exc)
+
+    def _stop_pool(self, pool: WorkerPool) -> None:
+        if not pool.shutdown(INFLIGHT_WAIT_S):
+            log.warning(
+                "%s: %d request(s) still running after %.1f s; closing anyway",
+                self.deployment,
+                pool.load,
+                INFLIGHT_WAIT_S,
+            )
 
     # -- startup steps ---------------------------------------------------------------------
     def _load_model(self) -> None:
@@ -306,7 +295,7 @@ class CloudDaemon(Daemon):
             threads=self.machine.threads or None,
             lazy=True,
         )
-        self._model = model
+        self._model = self.hold(model, "model sessions")
         cut_specs = [model.cut_tensor_specs(k) for k in range(model.num_cuts)]
         # Build and run every suffix once now: nothing is built on the frame path, and the first
         # frame of each cut costs what later ones do.
@@ -367,19 +356,18 @@ class CloudDaemon(Daemon):
         return None
 
     # -- registry --------------------------------------------------------------------------
-    def _on_registry_token(self, sample: zenoh.Sample) -> None:
-        parts = keys.parse_key(str(sample.key_expr))
-        registry = parts.id if parts is not None else str(sample.key_expr)
-        if sample.kind == zenoh.SampleKind.PUT:
+    def _on_registry(self, change: MemberChange) -> None:
+        if change.alive:
             self.registry_seen.set()
-            log.info("%s: registry %s is up", self.deployment, registry)
-        else:
+            log.info("%s: registry %s is up", self.deployment, change.id)
+            return
+        if not change.alive_ids:
             self.registry_seen.clear()
-            log.warning(
-                "%s: registry %s is gone; robots keep their current routes meanwhile",
-                self.deployment,
-                registry,
-            )
+        log.warning(
+            "%s: registry %s is gone; robots keep their current routes meanwhile",
+            self.deployment,
+            change.id,
+        )
 
     def _drain(self) -> None:
         """Mark every robot draining and ask the registry to move them; bounded in time."""
@@ -441,41 +429,15 @@ class CloudDaemon(Daemon):
             log.warning("%s: still serving %s at exit", self.deployment, ", ".join(left))
 
     # -- callbacks -------------------------------------------------------------------------
-    def _guard(
-        self, key: str, handler: Callable[[zenoh.Query], None]
-    ) -> Callable[[zenoh.Query], None]:
-        """A Zenoh callback for the queryable on `key` that never raises: an unexpected error is
-        logged (a bug, with its traceback) and answered."""
-
-        def guarded(query: zenoh.Query) -> None:
-            try:
-                handler(query)
-            except Exception:
-                log.exception("%s: internal error handling a query on %s", self.deployment, key)
-                reply = ErrorReply.make(ErrorCode.INTERNAL, "internal error; see the daemon log")
-                self._send(query, key, reply.to_wire(), 0.0)
-
-        return guarded
-
-    def _warn(self, message: str, *args: object) -> None:
-        """A bad-input warning, rate-limited."""
-        now = time.monotonic()
-        with self._warn_lock:
-            if now - self._warn_window_start > WARN_WINDOW_S:
-                suppressed = self._warn_suppressed
-                self._warn_window_start, self._warn_count, self._warn_suppressed = now, 0, 0
-                if suppressed:
-                    log.warning(
-                        "%s: %d more bad-input warnings were not logged in the last %.0f s",
-                        self.deployment,
-                        suppressed,
-                        WARN_WINDOW_S,
-                    )
-            if self._warn_count >= WARN_BURST:
-                self._warn_suppressed += 1
-                return
-            self._warn_count += 1
-        log.warning(message, *args)
+    def _internal_error(self, key: str, query: zenoh.Query, exc: Exception) -> None:
+        """Answer a query on `key` whose callback failed (`guarded` has logged why)."""
+        if isinstance(exc, WireError):
+            payload = error_reply(exc)
+        else:
+            payload = ErrorReply.make(
+                ErrorCode.INTERNAL, "internal error; see the daemon log"
+            ).to_wire()
+        self._send(query, key, payload, 0.0)
 
     def _send(
         self,
@@ -493,7 +455,7 @@ class CloudDaemon(Daemon):
                 if on_sent is not None:
                     on_sent()
             except Exception as exc:  # the querier or the session is gone: nothing to do
-                self._warn("%s: reply on %s not sent: %s", self.deployment, key, exc)
+                self.throttled.warning("%s: reply on %s not sent: %s", self.deployment, key, exc)
             finally:
                 try:
                     query.drop()
@@ -527,7 +489,7 @@ class CloudDaemon(Daemon):
             try:
                 request = ProbeRequest.from_wire(payload, max_bytes=self.cfg.max_payload_bytes)
             except WireError as exc:
-                self._warn("%s: bad probe request: %s", self.deployment, exc.reason)
+                self.throttled.warning("%s: bad probe request: %s", self.deployment, exc.reason)
                 self._send(query, self._probe_key, error_reply(exc), fault.delay_ms / 1000.0)
                 return
             echo_bytes = request.echo_bytes
@@ -539,7 +501,7 @@ class CloudDaemon(Daemon):
         try:
             request = CtlRequest.from_wire(_payload(query), max_bytes=self.cfg.max_payload_bytes)
         except WireError as exc:
-            self._warn("%s: bad ctl request: %s", self.deployment, exc.reason)
+            self.throttled.warning("%s: bad ctl request: %s", self.deployment, exc.reason)
             self._send(query, self._ctl_key, error_reply(exc), 0.0)
             return
         reply = self.control(request)
@@ -585,9 +547,9 @@ class CloudDaemon(Daemon):
         )
 
     def _ctl_state(self, request: CtlRequest, robot: str, sender: str) -> CtlReply:
-        queryable: Any = None
+        queryable: zenoh.Queryable[None] | None = None
         with self._lock:
-            if self._closing:
+            if self.closing.is_set():
                 current = self._states.get(robot)
                 return self._ctl_reply(
                     request, Verdict(False, robot, current, current, "this deployment is stopping")
@@ -651,7 +613,11 @@ class CloudDaemon(Daemon):
         if session is None:
             raise RuntimeError("no session")
         key = keys.svc_infer(self.cfg.fleet, self.cfg.service, robot)
-        handler = self._guard(key, functools.partial(self._on_infer, robot, key))
+        handler = self.guarded(
+            functools.partial(self._on_infer, robot, key),
+            what=f"a query on {key}",
+            on_error=functools.partial(self._internal_error, key),
+        )
         queryable = session.declare_queryable(key, handler, complete=True)
         with self._lock:
             old = self._service_queryables.pop(robot, None)
@@ -670,7 +636,9 @@ class CloudDaemon(Daemon):
         try:
             request = InferRequest.from_wire(_payload(query), max_bytes=self.cfg.max_payload_bytes)
         except WireError as exc:
-            self._warn("%s: bad inference request for %s: %s", self.deployment, robot, exc.reason)
+            self.throttled.warning(
+                "%s: bad inference request for %s: %s", self.deployment, robot, exc.reason
+            )
             self._send(query, key, error_reply(exc), delay_s)
             return
         if self.faults.drop_now(fault):
@@ -680,7 +648,7 @@ class CloudDaemon(Daemon):
             request, robot=robot, digest=self.model.digest, cut_specs=self._cut_specs
         )
         if error is not None:
-            self._warn(
+            self.throttled.warning(
                 "%s: refused frame %d of %s: %s",
                 self.deployment,
                 request.frame,
@@ -690,7 +658,7 @@ class CloudDaemon(Daemon):
             self._send(query, key, error.to_wire(), delay_s)
             return
         with self._lock:
-            serving = self._states.get(robot).serving and not self._closing
+            serving = self._states.get(robot).serving and not self.closing.is_set()
         if not serving:
             # A request that crossed a switch: the robot finishes the frame itself.
             log.info("%s: frame %d of %s arrived in standby", self.deployment, request.frame, robot)
@@ -715,8 +683,7 @@ class CloudDaemon(Daemon):
     ) -> None:
         started = time.monotonic()
         queue_s = started - arrived
-        with self._lock:
-            closing = self._closing
+        closing = self.closing.is_set()
         error: ErrorReply | None = None
         if closing:
             error = ErrorReply.make(ErrorCode.NOT_SERVING, f"{self.deployment} is stopping")
@@ -734,7 +701,9 @@ class CloudDaemon(Daemon):
             # Decoding runs here, on a worker, not on Zenoh's callback thread.
             tensors = decode_tensors(request, self._cut_specs[request.cut])
         except WireError as exc:
-            self._warn("%s: frame %d of %s: %s", self.deployment, request.frame, robot, exc.reason)
+            self.throttled.warning(
+                "%s: frame %d of %s: %s", self.deployment, request.frame, robot, exc.reason
+            )
             self._send(query, key, error_reply(exc), self._delay_s())
             return
         try:

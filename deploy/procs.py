@@ -31,13 +31,16 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from types import FrameType
-from typing import IO, Any, TypeVar
+from typing import IO, TYPE_CHECKING, Any, TypeVar
 
 from common.errors import UserError
+
+if TYPE_CHECKING:
+    import zenoh
 
 log = logging.getLogger(__name__)
 
@@ -380,33 +383,30 @@ def _check_procs(procs: ProcessSet | Sequence[DaemonProc] | None) -> None:
 
 
 class TokenWatch:
-    """Follows liveliness tokens matching a key expression: which are alive now, and when each came.
+    """The fleet's liveliness tokens for waits that name keys (`keys.alive_*`), with the daemons'
+    processes watched meanwhile.
 
-    Seeded from the tokens already present (history), then kept up to date by the subscriber, so a
-    wait never misses a token declared just before it began. Close it (or use `with`) before the
-    session closes.
+    The tokens are followed by a `common.membership.MembershipView` of every role (seeded, then
+    kept up to date by its subscriber, so a wait never misses a token declared just before it
+    began); this adds what starting daemons needs: a wait that fails at once when a daemon exits,
+    and a `DaemonError` naming the missing tokens on timeout. Close it (or use `with`) before
+    the session closes.
     """
 
-    def __init__(self, session: Any, key_expr: str) -> None:
-        import zenoh  # the demo's CLI parsing must not pay for importing zenoh
+    def __init__(self, session: zenoh.Session, fleet: str) -> None:
+        # Imported here: the demo's CLI parsing must not pay for importing zenoh.
+        from common.membership import MembershipView
 
-        self._kind_put = zenoh.SampleKind.PUT
-        self.alive: dict[str, float] = {}
-        self.gone: dict[str, float] = {}
-        self._changed = threading.Condition()
-        self._sub = session.liveliness().declare_subscriber(key_expr, self._on_sample, history=True)
+        self.fleet = fleet
+        self.view = MembershipView(session, fleet).start()
 
-    def _on_sample(self, sample: Any) -> None:
-        key = str(sample.key_expr)
-        now = time.monotonic()
-        with self._changed:
-            if sample.kind == self._kind_put:
-                self.alive[key] = now
-                self.gone.pop(key, None)
-            else:
-                self.alive.pop(key, None)
-                self.gone[key] = now
-            self._changed.notify_all()
+    @property
+    def alive(self) -> set[str]:
+        """The keys of the tokens alive now."""
+        from common import keys
+
+        members = self.view.snapshot()
+        return {keys.alive(self.fleet, role, id) for role, ids in members.items() for id in ids}
 
     def wait_for(
         self,
@@ -417,25 +417,36 @@ class TokenWatch:
         present: bool = True,
     ) -> None:
         """Block until every key is alive (present=False: gone); `DaemonError` on timeout."""
+        members = {key: self._member(key) for key in keys}
+
+        def missing(alive: Mapping[str, frozenset[str]]) -> list[str]:
+            return [k for k, (role, id) in members.items() if (id in alive[role]) != present]
+
         deadline = time.monotonic() + timeout_s
-        with self._changed:
-            while True:
-                missing = [k for k in keys if (k in self.alive) != present]
-                if not missing:
-                    return
-                _check_procs(procs)
-                remaining = deadline - time.monotonic()
-                if remaining <= 0:
-                    state = "liveliness token" if present else "disappearance of token"
-                    raise DaemonError(
-                        f"timed out after {timeout_s:.0f} s waiting for {state} "
-                        + ", ".join(missing)
-                    )
-                self._changed.wait(min(WATCH_INTERVAL_S, remaining))
+        while True:
+            remaining = deadline - time.monotonic()
+            slice_s = max(0.0, min(WATCH_INTERVAL_S, remaining))
+            if self.view.wait_for(lambda alive: not missing(alive), timeout_s=slice_s):
+                return
+            _check_procs(procs)
+            if remaining <= 0:
+                state = "liveliness token" if present else "disappearance of token"
+                raise DaemonError(
+                    f"timed out after {timeout_s:.0f} s waiting for {state} "
+                    + ", ".join(missing(self.view.snapshot()))
+                )
+
+    def _member(self, key: str) -> tuple[str, str]:
+        """(role, id) of a liveliness key of this fleet."""
+        from common import keys
+
+        parts = keys.parse_key(key)
+        if parts is None or parts.role is None or parts.id is None or parts.fleet != self.fleet:
+            raise ValueError(f"{key!r} is not a liveliness key of fleet {self.fleet}")
+        return parts.role, parts.id
 
     def close(self) -> None:
-        with contextlib.suppress(Exception):
-            self._sub.undeclare()
+        self.view.close()
 
     def __enter__(self) -> TokenWatch:
         return self
@@ -651,11 +662,10 @@ class LocalFleet:
     def session(self) -> Any:
         """The observer's Zenoh peer session (opened on first use)."""
         if self._session is None:
-            from common import keys
             from common.session import open_session
 
             self._session = open_session(self.cfg, listen=["tcp/127.0.0.1:0"])
-            self._tokens = TokenWatch(self._session, keys.alive_all(self.fleet))
+            self._tokens = TokenWatch(self._session, self.fleet)
         return self._session
 
     @property

@@ -45,11 +45,10 @@ class _NamespaceObserver(LocalFleet):
     @property
     def session(self) -> Any:
         if self._session is None:
-            from common import keys
             from common.session import open_session
 
             self._session = open_session(self.cfg, listen=self._listen)
-            self._tokens = TokenWatch(self._session, keys.alive_all(self.fleet))
+            self._tokens = TokenWatch(self._session, self.fleet)
         return self._session
 
 
