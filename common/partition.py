@@ -52,8 +52,48 @@ VERIFY_SEED = 0
 # (shape constants, scalars) stay inline, where duplication costs nothing.
 EXTERNAL_MIN_BYTES = 1024
 WEIGHT_ALIGN_BYTES = 64
-# Constant nodes with a tensor this big are turned into initializers so that they are shared too.
+# Constant nodes with a tensor this big become initializers, so that weights among them are shared.
 CONSTANT_TO_INITIALIZER_BYTES = 1024
+# Which initializers go there, one copy handed to every session (SessionOptions.add_initializer).
+# onnxruntime's transpose optimizer (ORT_ENABLE_BASIC and up), pushing a Transpose through an op
+# (Mul, Add, Where, Concat, ...), transposes or unsqueezes that op's constant inputs *in place,
+# under their own names*; add_initializer then puts the caller's tensor back under that name, in
+# its original layout, once the graph is optimized: the node gets the wrong shape (ConvNeXt's
+# layer scale, (384,1,1) against NHWC: "BroadcastIterator::Append ... 14 by 384") or wrong
+# numbers. Transposes only travel downstream: from Transpose nodes, and from layout-sensitive ops
+# (_LAYOUT_OPS: ORT_ENABLE_ALL's NHWC layout transformation wraps some in Transposes), through
+# every op but _TRANSPOSE_BARRIERS. So an initializer is shared only when each of its uses is a
+# weight operand (_WEIGHT_INPUTS: op → input positions; the fusions that use these write new
+# initializers under new names or read them as they are) or an input of a node no Transpose can
+# reach; the others stay inline in each file that uses them. Verification checks the
+# shared-weight runtime against onnxruntime's own run of the full model: a miss is an error.
+_WEIGHT_INPUTS: dict[str, frozenset[int]] = {
+    "Conv": frozenset({1, 2}),
+    "ConvTranspose": frozenset({1, 2}),
+    "Gemm": frozenset({1, 2}),
+    "MatMul": frozenset({1}),
+    "BatchNormalization": frozenset({1, 2, 3, 4}),
+    "InstanceNormalization": frozenset({1, 2}),
+    "LayerNormalization": frozenset({1, 2}),
+    "GroupNormalization": frozenset({1, 2}),
+    "Gather": frozenset({0}),
+    "LSTM": frozenset({1, 2, 3}),
+    "GRU": frozenset({1, 2, 3}),
+    "RNN": frozenset({1, 2, 3}),
+}
+_LAYOUT_OPS = frozenset(
+    {
+        "Conv", "ConvTranspose", "QLinearConv", "ConvInteger", "MaxPool", "AveragePool",
+        "LpPool", "GlobalAveragePool", "GlobalMaxPool", "GlobalLpPool", "MaxUnpool",
+        "BatchNormalization", "InstanceNormalization", "LRN", "Resize", "Upsample",
+        "DepthToSpace", "SpaceToDepth", "GridSample", "RoiAlign", "MaxRoiPool",
+    }
+)  # fmt: skip
+# Ops the transpose optimizer cannot push a Transpose through (none has a handler in its maps).
+_TRANSPOSE_BARRIERS = frozenset(_WEIGHT_INPUTS) | {"Einsum"}
+# Uses of their output count as uses of their input 0: onnxruntime removes Identity nodes, and
+# its transpose optimizer looks through a DequantizeLinear to edit the initializer behind it.
+_PASS_THROUGH_OPS = frozenset({"Identity", "DequantizeLinear"})
 CUT_SEPARATOR = "+"
 # Reason given for automatic cuts left out because another cut beats them (the CLI counts them).
 DOMINATED_PREFIX = "dominated by "
@@ -293,6 +333,9 @@ def load_partition(
             "atol": atol,
             "prune": prune,
             "onnxruntime": ort.__version__,
+            # 2: only initializers no optimization rewrites in place are shared, and verified
+            # against onnxruntime's own run; splits cached before are made and checked again.
+            "sharing": 2,
         },
         sort_keys=True,
     )
@@ -503,6 +546,50 @@ class _Graph:
             sets.append(self.sorted_tensors(live))
         return sets
 
+    def shareable_initializers(self) -> set[str]:
+        """Initializers no onnxruntime optimization rewrites in place (see ``_WEIGHT_INPUTS``):
+        each use (through ``_PASS_THROUGH_OPS`` too) is a weight operand or an input of a node
+        that no Transpose can reach. These alone may be shared between sessions."""
+        reached = self._transpose_reachable()
+        uses: dict[str, list[tuple[int, int]]] = {}
+        for i, node in enumerate(self.nodes):
+            for pos, name in enumerate(node.input):
+                if name:
+                    uses.setdefault(name, []).append((i, pos))
+            for name in self.node_inputs[i]:
+                if name not in node.input:
+                    uses.setdefault(name, []).append((i, -1))  # read inside a subgraph
+        outputs = set(self.outputs)
+
+        def safe(name: str) -> bool:
+            if name in outputs:
+                return False
+            for i, pos in uses.get(name, []):
+                node = self.nodes[i]
+                if node.domain not in ("", "ai.onnx") or pos < 0:
+                    return False
+                if node.op_type in _PASS_THROUGH_OPS and pos == 0:
+                    if not all(safe(out) for out in node.output if out):
+                        return False
+                elif pos in _WEIGHT_INPUTS.get(node.op_type, frozenset()):
+                    continue
+                elif any(n in reached for n in self.node_inputs[i]):
+                    return False
+            return True
+
+        return {name for name in self.initializers if safe(name)}
+
+    def _transpose_reachable(self) -> set[str]:
+        """Tensors a Transpose may be pushed onto: outputs of Transpose nodes and of layout ops
+        (``_LAYOUT_OPS``), then of every node fed by one but ``_TRANSPOSE_BARRIERS``."""
+        reached: set[str] = set()
+        for i, node in enumerate(self.nodes):  # topological order
+            op = node.op_type if node.domain in ("", "ai.onnx") else ""
+            fed = any(n in reached for n in self.node_inputs[i])
+            if op == "Transpose" or op in _LAYOUT_OPS or (fed and op not in _TRANSPOSE_BARRIERS):
+                reached.update(o for o in node.output if o)
+        return reached
+
     def sorted_tensors(self, names: Iterable[str]) -> list[str]:
         """Model inputs first (in input order), then by producing position, then by name."""
 
@@ -656,7 +743,7 @@ class _Partitioner:
         if self.cuts == "auto" and self.prune:
             candidates = self._prune(candidates)
         self._prepare_dir(out_dir)
-        external = _WeightStore(out_dir / WEIGHTS_NAME).write(model)
+        external = _WeightStore(out_dir / WEIGHTS_NAME).write(model, graph.shareable_initializers())
         _save(_with_external(model, external), out_dir / FULL_NAME)
         builder = _SubModelBuilder(model, graph, specs, external)
         for n, cand in enumerate(candidates):
@@ -908,15 +995,34 @@ class _Partitioner:
         usable: list[_Candidate],
         feeds: dict[str, np.ndarray],
     ) -> None:
-        """Run prefix then suffix for every cut and compare with the full model."""
+        """Run prefix then suffix for every cut and compare with the full model.
+
+        The reference is the full model run by onnxruntime on its own (weights read from the
+        file); the daemons' runtime, with its weights shared between sessions, must first agree
+        with it on the full model, then every cut is compared with it.
+        """
         from common.split_runtime import SplitModel
 
         part = self._partition(out_dir, graph, specs, usable, verified=False)
-        runtime = SplitModel(part, threads=self.threads, lazy=True)
         try:
-            reference = runtime.run_full(feeds)
+            session = _own_weights_session(part.full, self.threads)
+            names = [o.name for o in session.get_outputs()]
+            reference = dict(zip(names, session.run(names, feeds), strict=True))
         except Exception as exc:
             raise UserError(f"onnxruntime cannot run {self.ref.spec}: {ort_reason(exc)}") from None
+        del session  # its copy of the weights
+        runtime = SplitModel(part, threads=self.threads, lazy=True)
+        try:
+            _, failure = _compare(reference, runtime.run_full(feeds), self.atol)
+        except Exception as exc:
+            failure = ort_reason(exc)
+        if failure:
+            # A graph optimization rewrote a shared initializer in place (see _WEIGHT_INPUTS):
+            # every session holding that node would compute with it in its old layout.
+            raise UserError(
+                f"onnxruntime runs {self.ref.spec} on its own, but not with its weights shared "
+                f"between sessions: {failure}"
+            )
         for k, cand in enumerate(usable):
             try:
                 sent = runtime.run_prefix(k, feeds)
@@ -1063,16 +1169,22 @@ class _SubModelBuilder:
 
 
 class _WeightStore:
-    """Writes every big initializer once to ``weights.bin`` and hands out external references."""
+    """Writes every big shareable initializer once to ``weights.bin``; hands out references.
+
+    Shareable (:meth:`_Graph.shareable_initializers`): no onnxruntime optimization rewrites it
+    in place, so every session can be handed the same copy.
+    """
 
     def __init__(self, path: Path) -> None:
         self.path = path
 
-    def write(self, model: onnx.ModelProto) -> dict[str, onnx.TensorProto]:
+    def write(self, model: onnx.ModelProto, shareable: set[str]) -> dict[str, onnx.TensorProto]:
         refs: dict[str, onnx.TensorProto] = {}
         offset = 0
         with open(self.path, "wb") as f:
             for tensor in model.graph.initializer:
+                if tensor.name not in shareable:
+                    continue
                 try:
                     array = numpy_helper.to_array(tensor)
                 except Exception:
@@ -1304,6 +1416,18 @@ def _big_constant(node: onnx.NodeProto) -> onnx.TensorProto | None:
             if array.dtype != object and array.nbytes >= CONSTANT_TO_INITIALIZER_BYTES:
                 return numpy_helper.from_array(array, node.output[0])
     return None
+
+
+def _own_weights_session(path: Path, threads: int | None) -> ort.InferenceSession:
+    """A plain session of ``path``, weights read from the file (not shared), with the split
+    runtime's default level and no pre-packing: the same kernels, hence the same numbers."""
+    opts = ort.SessionOptions()
+    opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_EXTENDED
+    opts.add_session_config_entry("session.disable_prepacking", "1")
+    opts.log_severity_level = 3
+    if threads:
+        opts.intra_op_num_threads = threads
+    return ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
 
 
 def _with_external(

@@ -414,6 +414,131 @@ def test_no_verify_marks_cuts_unverified(tmp_path: Path) -> None:
 
 
 # ---------------------------------------------------------------------------------------------
+# Weights shared between sessions
+
+
+def layer_scale_blocks(blocks: int = 2, channels: int = 256, seed: int = 0) -> onnx.ModelProto:
+    """ConvNeXt's block in small: channels-last MatMul, back to NCHW, × layer scale, + skip.
+
+    x → (Transpose to NHWC → MatMul → Transpose to NCHW → Mul(gamma) → Add skip) × blocks. The
+    layer scale gamma (C,1,1), 1 KiB at 256 channels, is one initializer for every block (the
+    TorchScript exporter merges equal ones; block 1 and up read it through an Identity, as in
+    torchvision's convnext_tiny). onnxruntime's transpose optimizer pushes the second Transpose
+    through the Mul and reshapes gamma in place to (1,1,1,C).
+    """
+    rng = np.random.default_rng(seed)
+    gamma = rng.uniform(0.5, 1.5, (channels, 1, 1)).astype(np.float32)
+    inits = [numpy_helper.from_array(gamma, "gamma")]
+    nodes = []
+    prev = "x"
+    for b in range(blocks):
+        w = (rng.standard_normal((channels, channels)) / np.sqrt(channels)).astype(np.float32)
+        inits.append(numpy_helper.from_array(w, f"W{b}"))
+        scale = "gamma"
+        if b:
+            scale = f"gamma{b}"
+            nodes.append(node("Identity", ["gamma"], [scale]))
+        nodes += [
+            node("Transpose", [prev], [f"nhwc{b}"], perm=[0, 2, 3, 1]),
+            node("MatMul", [f"nhwc{b}", f"W{b}"], [f"mm{b}"]),
+            node("Transpose", [f"mm{b}"], [f"nchw{b}"], perm=[0, 3, 1, 2]),
+            node("Mul", [scale, f"nchw{b}"], [f"scaled{b}"]),
+            node("Add", [f"scaled{b}", prev], [f"out{b}"]),
+        ]
+        prev = f"out{b}"
+    nodes.append(node("Identity", [prev], ["y"]))
+    shape = [1, channels, 2, 2]
+    return make_model(nodes, [vi("x", shape)], [vi("y", shape)], inits)
+
+
+def external_initializers(split_dir: Path) -> set[str]:
+    full = onnx.load(str(split_dir / "full.onnx"), load_external_data=False)
+    return {t.name for t in full.graph.initializer if t.data_location == TensorProto.EXTERNAL}
+
+
+def test_layer_scale_after_a_transpose_splits_with_every_cut_verified(tmp_path: Path) -> None:
+    """Regression (torchvision convnext_tiny): the full model failed in verification with
+    "BroadcastIterator::Append ... axis == 1 || axis == largest" because gamma was shared."""
+    model = save(layer_scale_blocks(), tmp_path / "m.onnx")
+    part = split_model(model, tmp_path / "split", prune=False)
+    block = ["nhwc{}", "mm{}", "nchw{}", "scaled{}"]
+    expected = [["x"], *(["x", t.format(0)] for t in block), ["out0"]]
+    expected += [*(["out0", t.format(1)] for t in block), ["out1"]]
+    assert cut_sets(part) == expected
+    assert all(c.verified and c.max_abs_err == 0.0 for c in part.cuts)
+    assert part.excluded == []
+    # the MatMul weights are shared; the layer scale is inline in every file that uses it
+    assert external_initializers(tmp_path / "split") == {"W0", "W1"}
+
+
+def test_shared_are_weight_operands_and_constants_no_transpose_reaches() -> None:
+    """Transposes come from Transpose nodes and layout ops (Conv), pass elementwise ops and stop
+    at MatMul; a constant beside one (after_conv, scale, q_k behind its DequantizeLinear, both
+    in the Concat) is not shared, nor is a graph output."""
+    k = np.ones((16, 16), np.float32)  # 1 KiB each: all big enough for weights.bin
+    names = ["conv_w", "after_conv", "mm_w", "bias", "scale", "aliased_w", "both", "out_k"]
+    inits = [numpy_helper.from_array(k, name) for name in names]
+    inits += [numpy_helper.from_array(k.astype(np.int8), name) for name in ("q_w", "q_k")]
+    inits.append(numpy_helper.from_array(np.array(0.1, np.float32), "qs"))
+    model = make_model(
+        [
+            node("Conv", ["x", "conv_w"], ["c"]),
+            node("Mul", ["c", "after_conv"], ["c2"]),
+            node("Flatten", ["c2"], ["f"]),
+            node("MatMul", ["f", "mm_w"], ["m"]),
+            node("Add", ["m", "bias"], ["b"]),
+            node("Transpose", ["b"], ["t"]),
+            node("Mul", ["t", "scale"], ["s"]),
+            node("DequantizeLinear", ["q_k", "qs"], ["dq_k"]),
+            node("Add", ["s", "dq_k"], ["s2"]),
+            node("Identity", ["aliased_w"], ["alias"]),
+            node("MatMul", ["s2", "alias"], ["m2"]),
+            node("DequantizeLinear", ["q_w", "qs"], ["dq_w"]),
+            node("MatMul", ["m2", "dq_w"], ["m3"]),
+            node("MatMul", ["m3", "both"], ["m4"]),
+            node("Transpose", ["m4"], ["t4"]),
+            node("Concat", ["t4", "both"], ["y"], axis=0),
+        ],
+        [vi("x", [1, 16, 16, 1])],
+        [vi("y", [32, 16]), vi("out_k", [16, 16])],
+        inits,
+    )
+    shared = partition_mod._Graph(model).shareable_initializers()
+    assert shared == {"conv_w", "mm_w", "bias", "aliased_w", "q_w", "qs"}
+
+
+def _shared_session_fails(model: onnx.ModelProto) -> bool:
+    """Whether onnxruntime still rewrites a weight shared through add_initializer in place."""
+    opts = ort.SessionOptions()
+    opts.log_severity_level = 3
+    arrays = {t.name: numpy_helper.to_array(t) for t in model.graph.initializer}
+    values = {name: ort.OrtValue.ortvalue_from_numpy(a) for name, a in arrays.items()}
+    for name, value in values.items():
+        opts.add_initializer(name, value)
+    feeds = {"x": np.ones((1, 256, 2, 2), np.float32)}
+    expected = ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])
+    shared = ort.InferenceSession(model.SerializeToString(), opts, ["CPUExecutionProvider"])
+    try:
+        return not np.array_equal(shared.run(None, feeds)[0], expected.run(None, feeds)[0])
+    except Exception:
+        return True
+
+
+def test_shared_weight_rewritten_in_place_is_a_clear_error(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Guards the safety net: a shared weight that an optimization rewrites fails the split with
+    the cause named, instead of crashing in onnxruntime or verifying against wrong numbers."""
+    model = layer_scale_blocks()
+    if not _shared_session_fails(model):
+        pytest.skip("this onnxruntime no longer rewrites a weight shared via add_initializer")
+    every = {t.name for t in model.graph.initializer}
+    monkeypatch.setattr(partition_mod._Graph, "shareable_initializers", lambda self: every)
+    with pytest.raises(UserError, match="on its own, but not with its weights shared"):
+        split_model(save(model, tmp_path / "m.onnx"), tmp_path / "split")
+
+
+# ---------------------------------------------------------------------------------------------
 # Manifest and cache
 
 
