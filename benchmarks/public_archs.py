@@ -23,6 +23,8 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any
 
+from deploy.experiments.report import fmt, md_table
+
 # 1-2 minutes on two cores, one of each kind of graph: residual, depthwise, squeeze-excitation,
 # fire modules, channel shuffle, dense concatenation, channels-last blocks, attention.
 DEFAULT_MODELS = (
@@ -182,26 +184,19 @@ def markdown(rows: list[dict[str, Any]]) -> str:
         ("export_s", "export s"),
         ("split_verify_s", "split+verify s"),
     ]
-    lines = [
-        "| " + " | ".join(title for _, title in cols) + " |",
-        "|" + "|".join("---" for _ in cols) + "|",
-    ]
+    body = []
     for row in rows:
-        cells = []
-        for key, _ in cols:
-            value = row.get(key, "-")
-            if row["error"] is not None and key == "cuts_found":
-                value = f"failed: {row['error']}"
-            if key == "max_abs_err" and isinstance(value, float):
-                cells.append(f"{value:.1g}")
-            elif key == "inline_kib":
-                cells.append(f"{value:.1f}")
-            elif isinstance(value, float):
-                cells.append(f"{value:.2f}")
-            else:
-                cells.append(str(value))
-        lines.append("| " + " | ".join(cells) + " |")
-    return "\n".join(lines)
+        cells = {key: row.get(key, "-") for key, _ in cols}
+        if row["error"] is not None:
+            cells["cuts_found"] = f"failed: {row['error']}"
+        body.append([_cell(key, value) for key, value in cells.items()])
+    return md_table([title for _, title in cols], body)
+
+
+def _cell(key: str, value: Any) -> str:
+    if not isinstance(value, float):
+        return str(value)
+    return {"max_abs_err": f"{value:.1g}", "inline_kib": f"{value:.1f}"}.get(key, fmt(value, 2))
 
 
 def main() -> int:

@@ -18,6 +18,7 @@ import typer
 from rich.console import Console
 
 from common.errors import UserError
+from deploy.experiments.defaults import DEFAULT_INPUT_SHAPE, DEFAULT_MODEL, DEFAULT_ROBOT_CPU
 
 bench_app = typer.Typer(
     name="bench",
@@ -37,14 +38,14 @@ QUICK_OPTION = typer.Option(False, "--quick", help="A short run (fewer frames)."
 FRAMES_OPTION = typer.Option(
     None, "--frames", help="Frames per robot run (default: the experiment's, less with --quick)."
 )
-# Defaults as in deploy.experiments (options.DEFAULT_ROBOT_CPU, fleet.DEFAULT_MODEL and
-# DEFAULT_INPUT_SHAPE), spelled out here so `--help` imports nothing of the testbed.
 ROBOT_CPU_OPTION = typer.Option(
-    0.5, "--robot-cpu", help="The robot host's CPU quota, in cores (how slow the robot is)."
+    DEFAULT_ROBOT_CPU,
+    "--robot-cpu",
+    help="The robot host's CPU quota, in cores (how slow the robot is).",
 )
-MODEL_OPTION = typer.Option("zoo:mobilenet_v2", "--model", help="zoo:NAME or an ONNX file.")
+MODEL_OPTION = typer.Option(DEFAULT_MODEL, "--model", help="zoo:NAME or an ONNX file.")
 SHAPE_OPTION = typer.Option(
-    "3x240x320",
+    "x".join(map(str, DEFAULT_INPUT_SHAPE)),
     "--input-shape",
     help="Camera image CxHxW (zoo models take it as uint8 1xHxWxC; a file: its dynamic dims).",
 )

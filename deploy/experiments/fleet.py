@@ -21,6 +21,8 @@ from common.config import FleetConfig, fleet_from_dict
 from deploy.procs import merge_into
 from robotd.source_names import DEFAULT_CAMERA_SOURCE
 
+from .defaults import DEFAULT_INPUT_SHAPE, DEFAULT_MODEL
+
 REGISTRY_HOST = "registry"
 ROBOT_HOST = "robot"
 ROBOT_ID = "robot-1"
@@ -30,10 +32,6 @@ SERVICE = "vision"
 REGISTRY_PORT = 7447
 PEER_PORT = 7448
 OBSERVER_PORT = 7449
-DEFAULT_MODEL = "zoo:mobilenet_v2"
-DEFAULT_INPUT_SHAPE = (3, 240, 320)
-"""A 320x240 camera image (uint8, 230 KB raw; about 5-8 KB as a JPEG of a photograph) into a
-network built for robots: the whole model takes about 28 ms on one core of the testbed host."""
 POLICY_VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
     # ElasticAction without hedged exploration: on a robot with a few % of a core, the hedged
     # local run and the offload's sending share that CPU and the learner sees the transfer slow.

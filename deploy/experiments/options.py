@@ -20,10 +20,10 @@ from pathlib import Path
 
 from common.errors import UserError
 
-from .fleet import DEFAULT_INPUT_SHAPE, DEFAULT_MODEL, POLICY_VARIANTS
+from .defaults import DEFAULT_INPUT_SHAPE, DEFAULT_MODEL, DEFAULT_ROBOT_CPU
+from .fleet import POLICY_VARIANTS
 from .runner import DEFAULT_HOSTS, TestbedFleet
 
-DEFAULT_ROBOT_CPU = 0.5
 DOCS_IMG_DIR = Path(__file__).resolve().parents[2] / "docs" / "img"
 
 
