@@ -65,7 +65,6 @@ def envelope(table: CutTable, slowdown: float) -> dict[str, Any]:
     times = fixed[:, None] + table.bytes[:, None] * inv_b[None, :]  # actions x uplinks
     p_time = slowdown * table.full_s
     labels = table.labels[:-1]
-    best = np.minimum(times.min(axis=0), p_time)
     winners: dict[str, list[float]] = {}
     for u, uplink in enumerate(UPLINKS_MBIT):
         j = int(times[:, u].argmin())
@@ -96,7 +95,6 @@ def envelope(table: CutTable, slowdown: float) -> dict[str, Any]:
         "p_time_s": p_time,
         "winners": {k: [min(v), max(v)] for k, v in winners.items()},
         "cuts": cuts,
-        "best_time_at": {f"{u:g}": float(best[np.abs(UPLINKS_MBIT - u).argmin()]) for u in (1, 5)},
     }
 
 

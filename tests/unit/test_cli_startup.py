@@ -57,32 +57,23 @@ def _elasticfog() -> list[str]:
     return [sys.executable, "-c", "from common.cli import main; main()"]
 
 
+def _run(argv: list[str]) -> subprocess.CompletedProcess[str]:
+    """A fresh interpreter in the repository, with the test environment."""
+    return subprocess.run(argv, capture_output=True, text=True, cwd=ROOT, env=_env(), timeout=60)
+
+
 @pytest.mark.parametrize("args", [[], ["--help"], ["routes", "--help"], ["model", "--help"]])
 def test_help_imports_no_heavy_library(args: list[str]) -> None:
     # []: only the import of common.cli, which registers every command.
     code = BUILD + (RUN if args else "") + REPORT
-    done = subprocess.run(
-        [sys.executable, "-c", code, *args],
-        capture_output=True,
-        text=True,
-        cwd=ROOT,
-        env=_env(),
-        timeout=60,
-    )
+    done = _run([sys.executable, "-c", code, *args])
     assert done.returncode == 0, done.stderr
     imported = json.loads(done.stdout.strip().splitlines()[-1])
     assert imported == [], f"`elasticfog {' '.join(args)}` imported {imported}"
 
 
 def test_help_exits_zero_and_lists_every_command() -> None:
-    done = subprocess.run(
-        [*_elasticfog(), "--help"],
-        capture_output=True,
-        text=True,
-        cwd=ROOT,
-        env=_env(),
-        timeout=60,
-    )
+    done = _run([*_elasticfog(), "--help"])
     assert done.returncode == 0, done.stderr
     words = set(done.stdout.replace("│", " ").split())
     missing = [name for name in COMMANDS if name not in words]
