@@ -1,13 +1,21 @@
 """The robot-side cost E^c of every action, learned online from measured robot times.
 
 The profile gives the shape (how the model's time splits across cuts; the robot daemon profiles
-on the robot itself); the robot's measurements give the scale. Every timed run (a prefix, a local
+on the robot itself, so it also gives the starting scale); the robot's measurements follow the
+scale. Every timed run (a prefix, a local
 suffix, the whole model) updates one EWMA of the robot's speed relative to the profile, so a CPU
 drop seen on any action raises the estimate of all of them at once. Two measurements in a row that
 miss the estimate by more than a tolerance in the same direction make it jump to them: a change of
 CPU availability is adopted in two timed frames instead of an EWMA's slow convergence, and the
 EWMA itself can stay smooth. Runs of a small share of the model only nudge the EWMA: under a CPU
 quota their time is mostly scheduling delay, not work.
+
+The first timed run gets no more weight than any other. A hedged local run races the offload for
+the CPU and the first frame of a process pays for cold caches: on a 0.5-core robot the first
+frame's local run took 0.23 s for a model that runs in 0.085 s. Adopted as the robot's speed, it
+made P look 2.7x dearer than it is, and the robot offloaded at 0.13 s a frame for a dozen frames
+until two more timed runs corrected it. Against the profile's scale it is one miss, held as a
+suspect until a second confirms it.
 """
 
 from __future__ import annotations
@@ -33,8 +41,10 @@ class RobotCostModel:
         self._rate = objective.robot_rate
         self._ewma = params.robot_ewma
         self._tolerance = params.robot_change_tolerance
-        # Relative speed: measured / profiled seconds. None until the first measurement.
-        self.ratio: float | None = None
+        # Relative speed: measured / profiled seconds; the profile's own scale to begin with.
+        self.ratio = 1.0
+        # Short runs only nudge a scale that a real run has confirmed (see `observe`).
+        self.timed = False
         self._suspect_sign = 0
         self._suspect_ratio = 0.0
         self.frames_since_timed = 0
@@ -49,8 +59,8 @@ class RobotCostModel:
 
     @property
     def scale(self) -> float:
-        """Robot seconds per profiled second (1 until something was timed)."""
-        return 1.0 if self.ratio is None else self.ratio
+        """Robot seconds per profiled second."""
+        return self.ratio
 
     @property
     def suspect(self) -> bool:
@@ -75,31 +85,28 @@ class RobotCostModel:
             # A short run only nudges an estimate and does not count as timing the robot: a JPEG
             # encode of 0.3 ms took 3 ms under a 0.5-core quota. Taken as the first estimate it
             # made P look 10x dearer than it is (so P was never tried); counted as timing, it kept
-            # the robot probes away that would have seen P was cheap again. The profile's own
-            # scale (1: the robot daemon profiles on the robot) stands until a real run is timed.
-            if self.ratio is not None:
-                sample = float(measured_s) / profiled_s
-                self.ratio += self._ewma * (share / SHORT_RUN_SHARE) * (sample - self.ratio)
-                self._rescale()
+            # the robot probes away that would have seen P was cheap again.
+            if not self.timed:
+                return None
+            sample = float(measured_s) / profiled_s
+            self.ratio += self._ewma * (share / SHORT_RUN_SHARE) * (sample - self.ratio)
+            self._rescale()
             return None
         self.frames_since_timed = 0
+        self.timed = True
         # float(): a numpy scalar would make every later operation on the ratio slower.
         sample = float(measured_s) / profiled_s
-        sign = 0
-        if self.ratio is None:
-            self.ratio = sample
+        miss = sample / self.ratio - 1.0
+        sign = 0 if abs(miss) <= self._tolerance else (1 if miss > 0 else -1)
+        if sign != 0 and sign == self._suspect_sign:
+            # Second miss in the same direction: the robot changed; adopt the new speed.
+            self.ratio = 0.5 * (sample + self._suspect_ratio)
+            self._suspect_sign = 0
+        elif sign != 0:
+            self._suspect_sign, self._suspect_ratio = sign, sample
         else:
-            miss = sample / self.ratio - 1.0
-            sign = 0 if abs(miss) <= self._tolerance else (1 if miss > 0 else -1)
-            if sign != 0 and sign == self._suspect_sign:
-                # Second miss in the same direction: the robot changed; adopt the new speed.
-                self.ratio = 0.5 * (sample + self._suspect_ratio)
-                self._suspect_sign = 0
-            elif sign != 0:
-                self._suspect_sign, self._suspect_ratio = sign, sample
-            else:
-                self._suspect_sign = 0
-                self.ratio += self._ewma * (sample - self.ratio)
+            self._suspect_sign = 0
+            self.ratio += self._ewma * (sample - self.ratio)
         self._rescale()
         return sign
 
