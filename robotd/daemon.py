@@ -1,32 +1,42 @@
 """The robot daemon (`elasticfog robot`): the per-frame split loop, over Zenoh.
 
-Lifecycle (`common.daemon.Daemon`): `startup` loads the split model (one set of shared-weight
-onnxruntime sessions, every cut warmed up), builds the policy from a robot-side profile, opens the
-frame source and a Zenoh *peer* session connected to the registry endpoint only (the robot's
-config names no cloud host: it finds deployments through the registry's router and queries its
-anycast service key), declares its publishers and subscribers, then its liveliness token, and
-starts the prober and the registry watcher. `main_loop` runs frames until `--frames` or a signal;
-`shutdown` undeclares the token first and releases everything in reverse order, closing the
-session explicitly (a session still holding callbacks at exit hangs the process).
+Lifecycle (`common.daemon.Daemon`: startup -> main loop -> shutdown, in reverse order):
+
+1. Load the split model (one set of shared-weight onnxruntime sessions, every cut warmed up),
+   start the low-priority local-run thread, build the policy from a robot-side profile, open the
+   frame source and the `--telemetry` file.
+2. Open a Zenoh *peer* session connected to the registry endpoint only (the robot's config names
+   no cloud host: it finds deployments through the registry's router and queries its anycast
+   service key). Declare the telemetry and probe publishers, the route subscriber (handled by
+   the registry link), one membership view of the registry and the clouds (`common.membership`),
+   and a querier on the service key whose matching listener says when a deployment serves it.
+3. Start the prober, then announce the liveliness token `alive/robot/<id>`.
+4. Wait (bounded, cut short by a signal) for the registry, start the registry link's watcher
+   (`robotd.registry_link`), then wait for a deployment serving the robot.
+
+Each step hands what it made to the lifecycle (`Daemon.hold`, `on_release`, `announce`), which
+releases it all at shutdown in reverse order, the token first, also after a failed startup; the
+session is closed explicitly (a session still holding callbacks at exit hangs the process).
+Every Zenoh callback is `guarded`: bad input is one throttled line, never a traceback into Zenoh.
+`main_loop` runs frames until `--frames` or a signal.
 
 A frame (DESIGN.md, "A frame's life"): grab → entropy → `policy.decide` → prefix (or the whole
 model for P) → encoded `InferRequest` → (emulated uplink) → `get` on the service key with the
 deadline → reply, or the robot runs the suffix itself with the reason (`robotd.offload`) →
-`policy.observe` → telemetry (JSONL file, `tele/<robot>`, run summary). No frame is ever lost.
-A hedged decision also runs the local suffix speculatively (at once, or deferred by the policy
-while the reply is expected first) on a thread of the lowest CPU priority
+`policy.observe` → telemetry (`robotd.telemetry`: JSONL file, `tele/<robot>`, run summary). No
+frame is ever lost. A hedged decision also runs the local suffix speculatively (at once, or
+deferred by the policy while the reply is expected first) on a thread of the lowest CPU priority
 (`robotd.offload.LocalRunner`), so that on a robot short of CPU it does not slow the offload it
-hedges, and serves whichever result is ready first. A cloud reply
-first cancels the local run; when the robot's result wins, the frame is served and the loop moves
-on while the cloud's reply (at most one such frame in flight) is awaited up to its deadline, to
-feed the learner; meanwhile the next frames' model runs go to the low-priority thread too.
+hedges, and serves whichever result is ready first. A cloud reply first cancels the local run;
+when the robot's result wins, the frame is served and the loop moves on while the cloud's reply
+(at most one such frame in flight) is awaited up to its deadline, to feed the learner; meanwhile
+the next frames' model runs go to the low-priority thread too.
 
-Registry: the robot watches the registry's liveliness token. When none is up it says so, naming
-the endpoint, and keeps saying so with a growing interval (Zenoh keeps reconnecting meanwhile);
-frames are computed locally until a deployment serves the robot. When the registry goes away the
-robot keeps its route: queries go peer to peer. When it (re)appears the robot registers
-(`reg/register`) and follows `route/<robot>`. After `REROUTE_AFTER_FAILURES` consecutive
-timeouts or missing routes it also asks the registry for a new route (`reg/reroute`).
+Beside the daemon: `robotd.registry_link.RegistryLink` (registration, the route and its epoch,
+reroute requests, the "registry unreachable" reports), `robotd.request_sender` (the request on the
+service key, through the emulated uplink), `robotd.frame` (a frame's accounting),
+`robotd.failure_runs` (runs of cloud failures, and when they call for a reroute) and
+`robotd.robot_profile` (the startup profile and policy).
 """
 
 from __future__ import annotations
@@ -36,8 +46,7 @@ import logging
 import threading
 import time
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
-from importlib import metadata
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -45,60 +54,43 @@ import numpy as np
 import zenoh
 
 from common import keys
-from common.codec_profile import fidelity_of
 from common.config import FleetConfig
 from common.daemon import Daemon
 from common.errors import UserError
 from common.image_input import InputAdapter
+from common.membership import MemberChange, MembershipView
 from common.partition import load_partition, sample_feeds
-from common.profiler import median_ms
 from common.session import open_session
 from common.split_runtime import SplitModel
-from common.wire import WireError, decode
-from common.wire.registry import (
-    CAP_LOCAL_FALLBACK,
-    CAP_PROBE_REPORTS,
-    CAP_TELEMETRY,
-    PROTOCOL_VERSION,
-    RegisterReply,
-    RegisterRequest,
-    RerouteRequest,
-    RouteChange,
-)
-from common.wire.robot_to_cloud import InferRequest
-from common.wire.telemetry import ProbeReport, TelemetryRecord, action_label
-from common.wire.tensor_codecs import EncodedTensor, encode_tensor_as
-from robotd.calibration import calibration_frames, codec_table, required_codecs
+from common.wire.telemetry import ProbeReport, TelemetryRecord
+from common.wire.tensor_codecs import encode_tensor_as
 from robotd.entropy import frame_entropy
+from robotd.failure_runs import FailureRuns
+from robotd.frame import Frame, FrameResult
 from robotd.offload import (
     FINISH_GRACE_S,
     REASON_DECODE_ERROR,
-    REASON_NO_ROUTE,
-    REASON_TIMEOUT,
     STOP_POLL_S,
     CallResult,
-    CloudCall,
     LocalRunner,
 )
 from robotd.pacing import FramePacer, TokenBucket
-from robotd.policies import (
-    PURE_ROBOT,
-    Decision,
-    FrameContext,
-    Objective,
-    Outcome,
-    Policy,
-    make_policy,
-)
+from robotd.policies import PURE_ROBOT, Decision, FrameContext, Objective, Policy
 from robotd.probes import PROBE_INTERVAL_S, CloudTime, Prober, probe_padding_bytes
+from robotd.registry_link import REGISTRY_RETRY_INITIAL_S, WAIT_SLICE_S, RegistryLink
+from robotd.request_sender import RequestSender
+from robotd.robot_profile import build_policy, measured_profile, robot_profile, warm_up
 from robotd.sources import FrameSource, open_source
 from robotd.telemetry import (
     SERVED_BY_CLOUD,
-    SERVED_BY_ROBOT,
+    RemoteTimes,
     RunSummary,
     TelemetryFile,
     jsonl_object,
 )
+
+# `robot_profile` is imported from here by the benchmarks (it lived in this module).
+__all__ = ["FrameResult", "RobotDaemon", "RobotOptions", "robot_profile"]
 
 log = logging.getLogger("robotd")
 
@@ -106,27 +98,6 @@ log = logging.getLogger("robotd")
 # the first frames are not finished locally only because the session was still meeting peers.
 REGISTRY_WAIT_S = 2.0
 ROUTE_WAIT_S = 3.0
-# "Registry unreachable" is repeated with this backoff while frames are computed locally.
-REGISTRY_RETRY_INITIAL_S = 1.0
-REGISTRY_RETRY_MAX_S = 30.0
-REGISTER_TIMEOUT_S = 1.0
-# Ask the registry for a new route after this many consecutive timeouts / missing routes, at most
-# once per REROUTE_MIN_INTERVAL_S.
-REROUTE_AFTER_FAILURES = 3
-REROUTE_MIN_INTERVAL_S = 1.0
-REROUTE_TIMEOUT_S = 1.0
-# Whole-model runs timed at startup for the robot-side profile (after the profiler's warm-up).
-PROFILE_RUNS = 3
-# Minimum whole-model time in a profile (the policies need a positive one).
-MIN_PROFILE_MS = 1e-3
-# A failure of the same reason is logged again after this many frames of it.
-LOG_FAILURE_EVERY = 100
-THREAD_JOIN_S = 1.0
-# Background waits look at the stop flag this often (shutdown must finish within 2 s).
-WAIT_SLICE_S = 0.1
-ROBOT_CAPABILITIES = (CAP_LOCAL_FALLBACK, CAP_TELEMETRY, CAP_PROBE_REPORTS)
-FAILOVER_REASONS = frozenset({REASON_TIMEOUT, REASON_NO_ROUTE})
-_TOKEN = "liveliness token"
 
 
 @dataclass
@@ -157,77 +128,6 @@ class RobotOptions:
             raise UserError(f"--uplink-mbit must be a positive number, got {self.uplink_mbit}")
         if self.probe_interval_s <= 0:
             raise UserError(f"probe interval must be > 0 s, got {self.probe_interval_s}")
-
-
-@dataclass(frozen=True)
-class FrameResult:
-    """A completed frame, handed to `on_result`: its input, its outputs (whichever path served
-    it) and its telemetry record."""
-
-    frame: int
-    feeds: dict[str, np.ndarray]
-    outputs: dict[str, np.ndarray]
-    record: TelemetryRecord
-    served_by: str
-    hedged: bool
-
-
-@dataclass
-class _Route:
-    deployment: str | None = None
-    epoch: int = 0
-    known: bool = False
-
-
-@dataclass
-class _Frame:
-    """One frame on its way through the loop."""
-
-    n: int
-    decision: Decision
-    entropy: float
-    feeds: dict[str, np.ndarray]
-    started: float
-    cpu_started: float
-    epoch: int
-    prefix_s: float = 0.0
-    local_s: float | None = None
-    bytes_up: int = 0
-    call: CloudCall | None = None
-    result: CallResult | None = None
-    outputs: dict[str, np.ndarray] = field(default_factory=dict)
-    served_by: str = SERVED_BY_ROBOT
-    latency_s: float = 0.0
-    cpu_s: float = 0.0
-
-
-def robot_profile(
-    model: SplitModel,
-    feeds: dict[str, np.ndarray],
-    runs: int = PROFILE_RUNS,
-    codecs: Mapping[int, list[dict[str, Any]]] | None = None,
-) -> dict[str, Any]:
-    """The policies' profile of this robot, cheap enough for every start: the whole model's
-    median time measured here, split between each cut's prefix and suffix by their FLOPs (the
-    policies then learn the robot's real speed online). A cut without FLOP counts is split by
-    its position. `codecs` (`robotd.calibration.codec_table`) gives each cut its measured
-    codec entries; those marked `action` become the policy's (cut, codec) actions."""
-    full_ms = max(median_ms(lambda: model.run_full(feeds), runs), MIN_PROFILE_MS)
-    cuts = model.partition.cuts
-    rows = []
-    for k, cut in enumerate(cuts):
-        total = cut.prefix_flops + cut.suffix_flops
-        share = cut.prefix_flops / total if total > 0 else k / max(1, len(cuts))
-        row: dict[str, Any] = {
-            "index": cut.index,
-            "bytes": max(1, cut.bytes),
-            "prefix_ms": full_ms * share,
-            "suffix_ms": full_ms * (1.0 - share),
-        }
-        if codecs is not None and cut.index in codecs:
-            row["codecs"] = [e for e in codecs[cut.index] if e.get("action")]
-        rows.append(row)
-    return {"digest": model.digest, "full_ms": full_ms, "cuts": rows}
 
 
 class RobotDaemon(Daemon):
@@ -265,53 +165,54 @@ class RobotDaemon(Daemon):
         self._on_result = on_result
         self._objective = Objective.parse(config.objective.model_dump())
         self._svc_key = keys.svc_infer(self.fleet, config.service, robot_id)
-        self._cleanups: list[tuple[str, Callable[[], None]]] = []
-        self._threads_stop = threading.Event()
-        self._route = _Route()
-        self._route_lock = threading.Lock()
-        self._registries: set[str] = set()
-        self._clouds: set[str] = set()
-        self._members_lock = threading.Lock()
-        self._registry_up = threading.Event()
-        self._registry_down = threading.Event()
-        self._registry_down.set()
+        # Set by the service key's matching listener: a deployment serves this robot now.
         self._served = threading.Event()
         self._cloud_time = CloudTime()
-        self._pending: _Frame | None = None
-        self._failure_reason: str | None = None
-        self._failure_streak = 0
-        self._last_reroute = -float("inf")
-        # Set in startup.
+        self._pending: Frame | None = None
+        self._failures = FailureRuns(robot_id)
+        # Made in startup, released by the lifecycle.
         self.model: SplitModel
         self.policy: Policy
+        self._link: RegistryLink | None = None
         self._adapter: InputAdapter
         self._source: FrameSource
         self._session: zenoh.Session
         self._tele_pub: zenoh.Publisher
         self._probe_pub: zenoh.Publisher
         self._telemetry: TelemetryFile | None = None
-        self._uplink: TokenBucket | None = None
-        self._prober: Prober | None = None
-        self._token: zenoh.LivelinessToken | None = None
+        self._requests: RequestSender
         self._position: dict[int, int] = {}
         self._local: LocalRunner | None = None
 
+    # -- public ----------------------------------------------------------------------------
+    @property
+    def link(self) -> RegistryLink:
+        """The link to the registry (made in startup, once the session is open)."""
+        if self._link is None:
+            raise RuntimeError("the registry link is made in startup()")
+        return self._link
+
+    @property
+    def route(self) -> tuple[str | None, int]:
+        """The deployment the registry last said serves this robot, and its epoch."""
+        return self._link.route if self._link is not None else (None, 0)
+
+    @property
+    def registry_reachable(self) -> bool:
+        return self._link is not None and self._link.reachable
+
     # -- lifecycle -------------------------------------------------------------------------
     def startup(self) -> None:
-        try:
-            self._startup()
-        except BaseException:
-            self.shutdown()
-            raise
-
-    def _startup(self) -> None:
         cfg = self.config
         shape = tuple(cfg.input_shape) if cfg.input_shape else None
         partition = load_partition(
             cfg.model, cfg.cuts.names or "auto", cfg.cuts.max_cut_tensors, shape
         )
         threads = self.machine.threads or None
-        self.model = SplitModel(partition, providers=self.machine.providers, threads=threads)
+        self.model = self.hold(
+            SplitModel(partition, providers=self.machine.providers, threads=threads),
+            "model sessions",
+        )
         specs = self.model.input_specs()
         if len(specs) != 1:
             names = ", ".join(s.name for s in specs)
@@ -322,23 +223,36 @@ class RobotDaemon(Daemon):
         self._adapter = InputAdapter(specs[0])
         self._position = {cut.index: k for k, cut in enumerate(partition.cuts)}
         feeds = sample_feeds(specs)
-        self._warm_up(feeds)
-        self._local = LocalRunner(f"local-run-{self.robot}")
-        self._local.start()
-        self._cleanups.append(("local-run thread", self._local.stop))
-        self.policy = self._policy_override or self._make_policy(self._profile(feeds))
-        self._source = open_source(
-            self.source_spec,
-            height=self._adapter.height,
-            width=self._adapter.width,
-            seed=self.options.seed,
+        warm_up(self.model, feeds)
+        self._local = local = LocalRunner(f"local-run-{self.robot}")
+        local.start()
+        self.on_release(local.stop, what="local-run thread")
+        self.policy = self._policy_override or build_policy(
+            self.policy_spec,
+            cfg,
+            measured_profile(
+                self.model,
+                feeds,
+                config=cfg,
+                adapter=self._adapter,
+                source_spec=self.source_spec,
+                seed=self.options.seed,
+                threads=self.machine.threads,
+                policy_spec=self.policy_spec,
+            ),
+            self._objective,
         )
-        self._cleanups.append(("frame source", self._source.close))
+        self._source = self.hold(
+            open_source(
+                self.source_spec,
+                height=self._adapter.height,
+                width=self._adapter.width,
+                seed=self.options.seed,
+            ),
+            "frame source",
+        )
         if self.options.telemetry is not None:
-            self._telemetry = TelemetryFile(self.options.telemetry)
-            self._cleanups.append(("telemetry file", self._telemetry.close))
-        if self.uplink_mbit is not None:
-            self._uplink = TokenBucket.from_mbit(self.uplink_mbit)
+            self._telemetry = self.hold(TelemetryFile(self.options.telemetry), "telemetry file")
         self._open_zenoh()
         log.info(
             "%s: model %s (%d cuts, digest %s), policy %s, source %s, deadline %.3f s, "
@@ -351,75 +265,63 @@ class RobotDaemon(Daemon):
             self._source.description,
             self.deadline_s,
             cfg.registry.endpoint,
-            f", uplink paced to {self.uplink_mbit:g} Mbit/s (emulation)" if self._uplink else "",
+            f", uplink paced to {self.uplink_mbit:g} Mbit/s (emulation)"
+            if self._requests.uplink
+            else "",
         )
         self._wait_for_fleet()
 
-    def _warm_up(self, feeds: dict[str, np.ndarray]) -> None:
-        """Run every prefix and suffix once: the first run of an onnxruntime session allocates,
-        and that cost belongs to startup, not to the first frames."""
-        for k in range(self.model.num_cuts):
-            sent = self.model.run_prefix(k, feeds)
-            self.model.run_suffix(k, sent, feeds)
-
-    def _profile(self, feeds: dict[str, np.ndarray]) -> dict[str, Any]:
-        """This robot's profile, with the (cut, codec) actions measured on its own source."""
-        cfg = self.config
-        fidelity = cfg.fidelity
-        lowest = min(cut.index for cut in self.model.partition.cuts)
-        codecs = codec_table(
-            self.model,
-            lambda: calibration_frames(
-                self.source_spec, self._adapter, fidelity.calibration_frames, self.options.seed
-            ),
-            fidelity_of(fidelity),
-            required_codecs(self.policy_spec, lowest),
-            {
-                "source": self.source_spec,
-                "frames": fidelity.calibration_frames,
-                "seed": self.options.seed,
-                "threads": self.machine.threads,
-            },
-        )
-        return robot_profile(self.model, feeds, codecs=codecs)
-
-    def _make_policy(self, profile: dict[str, Any]) -> Policy:
-        spec = self.policy_spec.strip()
-        if spec.lower() == "oracle":
-            raise UserError(
-                "policy oracle needs the true costs, which only the simulator has "
-                "(use it with `elasticfog sim`)"
-            )
-        same = spec.lower() == self.config.policy.kind.strip().lower()
-        params = self.config.policy.params if same else {}
-        return make_policy(spec, profile, params, self._objective)
-
     def _open_zenoh(self) -> None:
         cfg = self.config
-        session = open_session(cfg, machine=self.robot)
-        self._session = session
-        self._cleanups.append(("zenoh session", session.close))
-        self._tele_pub = session.declare_publisher(keys.tele(self.fleet, self.robot))
-        self._cleanups.append(("telemetry publisher", self._tele_pub.undeclare))
-        self._probe_pub = session.declare_publisher(keys.tele_probe(self.fleet, self.robot))
-        self._cleanups.append(("probe publisher", self._probe_pub.undeclare))
-        route_sub = session.declare_subscriber(keys.route(self.fleet, self.robot), self._on_route)
-        self._cleanups.append(("route subscriber", route_sub.undeclare))
-        liveliness = session.liveliness()
-        registry_sub = liveliness.declare_subscriber(
-            keys.alive_registries(self.fleet), self._on_registry_token, history=True
+        self._session = session = self.hold(open_session(cfg, machine=self.robot), "zenoh session")
+        self._requests = RequestSender(
+            session,
+            self._svc_key,
+            robot=self.robot,
+            model_digest=self.model.digest,
+            deadline_s=self.deadline_s,
+            max_reply_bytes=cfg.max_payload_bytes,
+            uplink=None if self.uplink_mbit is None else TokenBucket.from_mbit(self.uplink_mbit),
         )
-        self._cleanups.append(("registry token subscriber", registry_sub.undeclare))
-        clouds_sub = liveliness.declare_subscriber(
-            keys.alive_clouds(self.fleet), self._on_cloud_token, history=True
+        self._link = link = RegistryLink(
+            session,
+            cfg,
+            self.robot,
+            model_digest=self.model.digest,
+            throttled=self.throttled,
+            guard=self.guarded,
         )
-        self._cleanups.append(("cloud token subscriber", clouds_sub.undeclare))
+        self._tele_pub = self.hold(
+            session.declare_publisher(keys.tele(self.fleet, self.robot)), "telemetry publisher"
+        )
+        self._probe_pub = self.hold(
+            session.declare_publisher(keys.tele_probe(self.fleet, self.robot)), "probe publisher"
+        )
+        route_key = keys.route(self.fleet, self.robot)
+        self.hold(
+            session.declare_subscriber(
+                route_key, self.guarded(link.on_route, what=f"a message on {route_key}")
+            ),
+            "route subscriber",
+        )
+        members = self.hold(
+            MembershipView(
+                session,
+                self.fleet,
+                roles=("registry", "cloud"),
+                on_change=self.guarded(self._on_member, what="a membership change"),
+            ),
+            "membership view",
+        )
         # A querier on the service key only to be told when a deployment serves it (frames use
         # session.get: each has its own timeout).
-        querier = session.declare_querier(self._svc_key)
-        self._cleanups.append(("service querier", querier.undeclare))
-        matching = querier.declare_matching_listener(self._on_matching)
-        self._cleanups.append(("service matching listener", matching.undeclare))
+        querier = self.hold(session.declare_querier(self._svc_key), "service querier")
+        self.hold(
+            querier.declare_matching_listener(
+                self.guarded(self._on_matching, what="a matching status")
+            ),
+            "service matching listener",
+        )
         status: Any = querier.matching_status  # a MatchingStatus (the stub says bool)
         if bool(getattr(status, "matching", status)):
             self._served.set()
@@ -427,44 +329,33 @@ class RobotDaemon(Daemon):
         padding = self.options.probe_padding_bytes
         if padding is None:
             padding = probe_padding_bytes([c.bytes for c in self.model.partition.cuts])
-        self._prober = Prober(
+        prober = Prober(
             session,
             self.fleet,
             self.robot,
             max_padding_bytes=padding,
             publish=self._publish_probe,
-            alive_clouds=self._alive_clouds,
+            alive_clouds=lambda: set(members.ids("cloud")),
             cloud_time=self._cloud_time,
             interval_s=self.options.probe_interval_s,
             max_reply_bytes=cfg.max_payload_bytes,
         )
-        self._prober.start()
-        self._cleanups.append(("prober", self._prober.stop))
-        # Ready: announce the robot last, and take the token down first at shutdown.
-        # Held on the daemon: a token that is garbage-collected is undeclared.
-        self._token = liveliness.declare_token(keys.alive_robot(self.fleet, self.robot))
-        self._cleanups.append((_TOKEN, self._token.undeclare))
+        prober.start()
+        self.on_release(prober.stop, what="prober")
+        # Ready: announce the robot last; the lifecycle takes the token down first at shutdown.
+        self.announce(session.liveliness().declare_token(keys.alive_robot(self.fleet, self.robot)))
 
     def _wait_for_fleet(self) -> None:
         """Give the session a moment to meet the registry and the deployment serving this robot
         (bounded, and cut short by a signal; frames are finished locally meanwhile anyway), then
-        leave the registry to the watcher thread."""
-        reachable = self._wait_for(
-            self._registry_up, self.options.registry_wait_s, self.should_exit
-        )
+        leave the registry to the link's watcher thread."""
+        link = self.link
+        reachable = link.wait_reachable(self.options.registry_wait_s, self.should_exit)
         if not reachable:
-            self._report_unreachable("", REGISTRY_RETRY_INITIAL_S)
-        watcher = threading.Thread(
-            target=self._watch_registry,
-            args=(not reachable,),
-            name=f"registry-watch-{self.robot}",
-            daemon=True,
-        )
-        watcher.start()
-        self._cleanups.append(("registry watcher", lambda: watcher.join(THREAD_JOIN_S)))
-        if reachable and not self._wait_for(
-            self._served, self.options.route_wait_s, self.should_exit
-        ):
+            link.report_unreachable("", REGISTRY_RETRY_INITIAL_S)
+        link.start(reported=not reachable)
+        self.on_release(link.stop, what="registry watcher")
+        if reachable and not _wait_event(self._served, self.options.route_wait_s, self.should_exit):
             log.info(
                 "%s: no deployment serves %s yet; frames are finished on the robot until one does",
                 self.robot,
@@ -472,20 +363,23 @@ class RobotDaemon(Daemon):
             )
 
     def shutdown(self) -> None:
-        self._threads_stop.set()
-        if self._pending is not None and self._pending.call is not None:
-            self._pending.call.cancel()
-        # The liveliness token goes first (the fleet stops counting on this robot), then the
-        # rest in reverse order of startup.
-        ordered = [c for c in self._cleanups if c[0] == _TOKEN] + [
-            c for c in reversed(self._cleanups) if c[0] != _TOKEN
-        ]
-        self._cleanups.clear()
-        for what, cleanup in ordered:
-            try:
-                cleanup()
-            except Exception as exc:  # keep releasing the rest
-                log.warning("%s: releasing the %s failed: %s", self.robot, what, exc)
+        """Let go of a hedged frame's reply still awaited (it may be waiting for the emulated
+        uplink), then release everything startup made: the token first, then in reverse."""
+        pending = self._pending
+        if pending is not None and pending.call is not None:
+            pending.call.cancel()
+        super().shutdown()
+
+    # -- callbacks -------------------------------------------------------------------------
+    def _on_member(self, change: MemberChange) -> None:
+        if change.role == "registry":
+            self.link.registry_changed(bool(change.alive_ids))
+
+    def _on_matching(self, status: zenoh.MatchingStatus) -> None:
+        if status.matching:
+            self._served.set()
+        else:
+            self._served.clear()
 
     # -- the frame loop --------------------------------------------------------------------
     def main_loop(self) -> None:
@@ -514,9 +408,8 @@ class RobotDaemon(Daemon):
         feeds = {self._input_name: self._adapter(frame)}
         entropy = frame_entropy(frame)
         decision = self.policy.decide(FrameContext(index=n, entropy=entropy))
-        with self._route_lock:
-            epoch = self._route.epoch
-        f = _Frame(n, decision, entropy, feeds, started, cpu_started, epoch)
+        epoch = self.link.epoch
+        f = Frame(n, decision, entropy, feeds, started, cpu_started, epoch)
         model = self.model
         if decision.action == PURE_ROBOT:
             f.outputs = self._compute(lambda options: model.run_full(feeds, run_options=options))
@@ -531,7 +424,7 @@ class RobotDaemon(Daemon):
         # Encoding is the robot's part of the action: it counts in its prefix time.
         encoded = {name: encode_tensor_as(a, decision.codec) for name, a in sent.items()}
         f.prefix_s = time.perf_counter() - t
-        f.call = call = self._send(n, cut.index, encoded, epoch, background=decision.hedge)
+        f.call = call = self._requests.send(n, cut.index, encoded, epoch, background=decision.hedge)
         f.bytes_up = call.bytes_up
         if decision.hedge:
             self._hedged(f, k, sent)
@@ -581,52 +474,7 @@ class RobotDaemon(Daemon):
                 f"{known}"
             ) from None
 
-    def _send(
-        self,
-        n: int,
-        cut: int,
-        tensors: dict[str, EncodedTensor],
-        epoch: int,
-        *,
-        background: bool = False,
-    ) -> CloudCall:
-        request = InferRequest(
-            robot=self.robot,
-            frame=n,
-            model_digest=self.model.digest,
-            cut=cut,
-            tensors=tensors,
-            deadline_s=self.deadline_s,
-            sent_at=time.time(),
-            epoch=epoch,
-        )
-        payload = request.to_wire()
-        delay = 0.0
-        if self._uplink is not None:
-            # A frame that cannot get through the emulated uplink before its deadline is not
-            # sent: it would only queue ahead of the next frames (the call then times out at the
-            # deadline, so the policy still learns what this cut costs).
-            delay = self._uplink.delay_for(len(payload))
-            if delay < self.deadline_s:
-                delay = self._uplink.reserve(len(payload))
-            # The encoded size does not depend on the deadline's value (a float is 9 bytes), so
-            # re-encoding with the budget left after the emulated uplink keeps the size reserved.
-            if 0 < delay < self.deadline_s:
-                budget = self.deadline_s - delay
-                payload = dataclasses.replace(request, deadline_s=budget).to_wire()
-        call = CloudCall(
-            self._session,
-            self._svc_key,
-            payload,
-            frame=n,
-            budget_s=self.deadline_s,
-            delay_s=delay,
-            max_reply_bytes=self.config.max_payload_bytes,
-        )
-        call.start(background=background)
-        return call
-
-    def _hedged(self, f: _Frame, k: int, sent: dict[str, np.ndarray]) -> None:
+    def _hedged(self, f: Frame, k: int, sent: dict[str, np.ndarray]) -> None:
         """Race the cloud against the local suffix and serve whichever result is first.
 
         The local run is speculative: it starts `decision.hedge_after_s` after the request (the
@@ -668,13 +516,13 @@ class RobotDaemon(Daemon):
             f.result = self._checked(call.result())
             replied_at = f.result.replied_at
             if f.result.reply is not None and replied_at is not None and replied_at <= local_done:
-                self._serve_cloud(f, f.result)
+                self._serve_cloud(f)
             else:
-                self._serve_local(f, job.outputs, local_done)
+                f.serve_local(job.outputs, local_done)
                 self._emit(f)
             return
         # The robot's result is first: the frame is served now, its cloud reply comes later.
-        self._serve_local(f, job.outputs, local_done)
+        f.serve_local(job.outputs, local_done)
         self._settle_pending(block=True)  # at most one frame waits for its reply
         self._pending = f
 
@@ -688,29 +536,20 @@ class RobotDaemon(Daemon):
                 return
             wake.wait(min(left, STOP_POLL_S))
 
-    def _served_by_reply(self, f: _Frame) -> bool:
+    def _served_by_reply(self, f: Frame) -> bool:
         """The cloud call of hedged frame `f` has settled: serve and emit the frame with its
         reply if it brought one (True); else keep the result for later (False)."""
         assert f.call is not None
         f.result = self._checked(f.call.result())
         if f.result.reply is None:
             return False
-        self._serve_cloud(f, f.result)
+        self._serve_cloud(f)
         return True
 
-    @staticmethod
-    def _serve_local(f: _Frame, outputs: dict[str, np.ndarray], done_at: float) -> None:
-        """Serve hedged frame `f` with the robot's own result, finished at `done_at`."""
-        f.outputs, f.latency_s = outputs, done_at - f.started
-        f.cpu_s = time.process_time() - f.cpu_started
-
-    def _serve_cloud(self, f: _Frame, result: CallResult) -> None:
+    def _serve_cloud(self, f: Frame) -> None:
         """Serve a hedged frame with its cloud reply (which came first) and emit it."""
-        assert result.reply is not None and result.replied_at is not None
-        f.outputs = dict(result.reply.outputs)
-        f.served_by = SERVED_BY_CLOUD
-        f.latency_s = result.replied_at - f.started
-        f.cpu_s = time.process_time() - f.cpu_started
+        assert f.result is not None
+        f.serve_cloud(f.result)
         self._emit(f)
 
     def _settle_pending(self, *, block: bool) -> None:
@@ -742,72 +581,32 @@ class RobotDaemon(Daemon):
         return result
 
     # -- after a frame ---------------------------------------------------------------------
-    def _emit(self, f: _Frame) -> None:
+    def _emit(self, f: Frame) -> None:
         """Feed the policy, publish and record the frame."""
         res = f.result
-        offloaded = f.decision.action != PURE_ROBOT
-        reply = res.reply if res is not None else None
-        cloud_s = reply.queue_s + reply.compute_s if reply is not None else 0.0
-        if res is None:
-            transfer_s = 0.0
-        elif reply is not None:
-            transfer_s = max(0.0, res.round_trip_s - cloud_s)
-        else:
-            transfer_s = res.round_trip_s
-        fallback = offloaded and reply is None
-        reason = res.reason if fallback and res is not None else None
+        remote = RemoteTimes.of(res)
         compute_s = f.prefix_s + (f.local_s or 0.0)
-        energy = self._objective.energy_j(f.latency_s, compute_s, transfer_s)
-        if offloaded:
-            outcome = Outcome(
-                prefix_s=f.prefix_s,
-                cloud_s=res.round_trip_s if res is not None and reply is not None else None,
-                cloud_compute_s=cloud_s if reply is not None else None,
-                bytes_up=f.bytes_up,
-                local_s=f.local_s,
-                latency_s=f.latency_s,
-                waited_s=None if reply is not None else self.deadline_s,
-            )
-        else:
-            outcome = Outcome(prefix_s=f.prefix_s, latency_s=f.latency_s)
-        self.policy.observe(f.decision, outcome)
-        action = None if not offloaded else int(f.decision.action)
-        record = TelemetryRecord(
-            robot=self.robot,
-            frame=f.n,
-            action=action_label(action, f.decision.codec),
-            bytes_up=f.bytes_up,
-            bytes_down=res.bytes_down if res is not None else 0,
-            prefix_s=f.prefix_s,
-            transfer_s=transfer_s,
-            cloud_s=cloud_s,
-            suffix_local_s=f.local_s or 0.0,
-            latency_s=f.latency_s,
-            robot_cpu_s=f.cpu_s,
-            energy_j=float(energy),
-            deployment=res.deployment if res is not None else None,
-            fallback=fallback,
-            reason=reason,
-            epoch=reply.epoch if reply is not None else f.epoch,
-            at=time.time(),
-        )
-        hedged = f.decision.hedge and offloaded
+        energy = self._objective.energy_j(f.latency_s, compute_s, remote.transfer_s)
+        self.policy.observe(f.decision, f.outcome(self.deadline_s))
+        record = f.record(self.robot, energy)
         self._publish_telemetry(record)
         if self._telemetry is not None:
-            detail = res.detail if res is not None and fallback else ""
+            detail = res.detail if res is not None and record.fallback else ""
             self._telemetry.write(
                 jsonl_object(
-                    record, entropy=f.entropy, hedged=hedged, served_by=f.served_by, detail=detail
+                    record, entropy=f.entropy, hedged=f.hedged, served_by=f.served_by, detail=detail
                 )
             )
-        self.summary.add(record, hedged=hedged, served_by=f.served_by)
+        self.summary.add(record, hedged=f.hedged, served_by=f.served_by)
         self.frames_done += 1
-        if reply is not None:
-            self._cloud_time.observe(cloud_s)
-        if offloaded and res is not None:
-            self._track_failures(f.n, res, reply is not None)
+        if res is not None and res.reply is not None:
+            self._cloud_time.observe(remote.cloud_s)
+        if f.offloaded and res is not None:
+            reroute = self._failures.note(f.n, res)
+            if reroute is not None:
+                self.link.request_reroute(reroute, self._failures.streak)
         if self._on_result is not None:
-            self._on_result(FrameResult(f.n, f.feeds, f.outputs, record, f.served_by, hedged))
+            self._on_result(FrameResult(f.n, f.feeds, f.outputs, record, f.served_by, f.hedged))
 
     def _publish_telemetry(self, record: TelemetryRecord) -> None:
         try:
@@ -818,243 +617,16 @@ class RobotDaemon(Daemon):
     def _publish_probe(self, report: ProbeReport) -> None:
         self._probe_pub.put(report.to_wire())
 
-    def _track_failures(self, n: int, res: CallResult, answered: bool) -> None:
-        """Log the start and end of a run of failures (not every frame), and ask for a reroute
-        after consecutive timeouts or missing routes."""
-        if answered:
-            if self._failure_reason is not None:
-                log.info(
-                    "%s: frame %d answered by %s again after %d frame(s) finished on the robot",
-                    self.robot,
-                    n,
-                    res.deployment,
-                    self._failure_streak,
-                )
-            self._failure_reason, self._failure_streak = None, 0
-            return
-        reason = res.reason or "unknown"
-        if reason != self._failure_reason or self._failure_streak % LOG_FAILURE_EVERY == 0:
-            log.warning(
-                "%s: frame %d: cloud failed (%s: %s); finished on the robot",
-                self.robot,
-                n,
-                reason,
-                res.detail,
-            )
-        if reason != self._failure_reason:
-            self._failure_reason, self._failure_streak = reason, 0
-        self._failure_streak += 1
-        if reason in FAILOVER_REASONS and self._failure_streak >= REROUTE_AFTER_FAILURES:
-            self._request_reroute(reason)
 
-    # -- registry and route ----------------------------------------------------------------
-    def _on_route(self, sample: zenoh.Sample) -> None:
-        try:
-            change = decode(sample.payload.to_bytes(), expect=RouteChange)
-        except WireError as exc:
-            log.warning("%s: ignoring a bad route message: %s", self.robot, exc)
-            return
-        self._apply_route(change)
-
-    def _apply_route(self, change: RouteChange) -> None:
-        if change.robot != self.robot:
-            return
-        with self._route_lock:
-            if self._route.known and change.epoch < self._route.epoch:
-                return  # older than what we hold: epochs only grow
-            moved = not self._route.known or change.deployment != self._route.deployment
-            self._route = _Route(change.deployment, change.epoch, True)
-        if moved:
-            log.info(
-                "%s: route -> %s (epoch %d, %s)",
-                self.robot,
-                change.deployment or "local (no deployment)",
-                change.epoch,
-                change.reason,
-            )
-
-    @property
-    def route(self) -> tuple[str | None, int]:
-        """The deployment the registry last said serves this robot, and its epoch."""
-        with self._route_lock:
-            return self._route.deployment, self._route.epoch
-
-    def _on_matching(self, status: zenoh.MatchingStatus) -> None:
-        if status.matching:
-            self._served.set()
-        else:
-            self._served.clear()
-
-    def _on_registry_token(self, sample: zenoh.Sample) -> None:
-        parts = keys.parse_key(str(sample.key_expr))
-        if parts is None or parts.id is None:
-            return
-        with self._members_lock:
-            if sample.kind == zenoh.SampleKind.PUT:
-                self._registries.add(parts.id)
-            else:
-                self._registries.discard(parts.id)
-            up = bool(self._registries)
-        if up:
-            self._registry_down.clear()
-            self._registry_up.set()
-        else:
-            self._registry_up.clear()
-            self._registry_down.set()
-
-    def _on_cloud_token(self, sample: zenoh.Sample) -> None:
-        parts = keys.parse_key(str(sample.key_expr))
-        if parts is None or parts.id is None:
-            return
-        with self._members_lock:
-            if sample.kind == zenoh.SampleKind.PUT:
-                self._clouds.add(parts.id)
-            else:
-                self._clouds.discard(parts.id)
-
-    def _alive_clouds(self) -> set[str]:
-        with self._members_lock:
-            return set(self._clouds)
-
-    @property
-    def registry_reachable(self) -> bool:
-        return self._registry_up.is_set()
-
-    def _watch_registry(self, reported: bool) -> None:
-        """Report the registry's reachability (with a growing interval while it is not) and
-        register when it appears. `reported`: startup already said it is unreachable. Runs
-        until shutdown; every wait is a short slice that checks the stop flag."""
-        endpoint = self.config.registry.endpoint
-        backoff = REGISTRY_RETRY_INITIAL_S
-        if reported:
-            self._wait_for(self._registry_up, backoff, self._threads_stop)
-            backoff *= 2
-        still = " yet" if reported else ""
-        while not self._threads_stop.is_set():
-            if not self._registry_up.is_set():
-                self._report_unreachable(still, backoff)
-                self._wait_for(self._registry_up, backoff, self._threads_stop)
-                backoff, still = min(backoff * 2, REGISTRY_RETRY_MAX_S), " yet"
-                continue
-            log.info("%s: registry reachable at %s", self.robot, endpoint)
-            backoff, still = REGISTRY_RETRY_INITIAL_S, ""
-            self._register()
-            self._wait_for(self._registry_down, None, self._threads_stop)
-            if self._threads_stop.is_set():
-                return
-            deployment, epoch = self.route
-            log.warning(
-                "%s: registry gone; keeping the route to %s (epoch %d), frames go peer to peer; "
-                "retrying",
-                self.robot,
-                deployment or "(none known)",
-                epoch,
-            )
-            # That was the first report: the next one comes after the backoff.
-            self._wait_for(self._registry_up, backoff, self._threads_stop)
-            backoff, still = backoff * 2, " yet"
-
-    def _report_unreachable(self, still: str, next_s: float) -> None:
-        log.warning(
-            "%s: registry at %s not reachable%s; frames are finished on the robot unless a "
-            "deployment still serves it; retrying (next report in %.0f s)",
-            self.robot,
-            self.config.registry.endpoint,
-            still,
-            next_s,
-        )
-
-    @staticmethod
-    def _wait_for(event: threading.Event, timeout_s: float | None, stop: threading.Event) -> bool:
-        """Wait for `event` (at most `timeout_s`, None: no limit) in short slices that give up
-        as soon as `stop` is set; True if `event` is set."""
-        end = None if timeout_s is None else time.monotonic() + timeout_s
-        while not stop.is_set():
-            left = WAIT_SLICE_S if end is None else min(WAIT_SLICE_S, end - time.monotonic())
-            if left <= 0:
-                break
-            if event.wait(left):
-                return True
-        return event.is_set()
-
-    def _register(self) -> None:
-        request = RegisterRequest(
-            role="robot",
-            id=self.robot,
-            protocol_version=PROTOCOL_VERSION,
-            capabilities=ROBOT_CAPABILITIES,
-            service=self.config.service,
-            model_digest=self.model.digest,
-            software=_software_version(),
-        )
-        try:
-            replies = self._session.get(
-                keys.reg_register(self.fleet),
-                payload=request.to_wire(),
-                timeout=REGISTER_TIMEOUT_S,
-            )
-            for reply in replies:
-                if reply.ok is None:
-                    continue
-                try:
-                    answer = decode(reply.ok.payload.to_bytes(), expect=RegisterReply)
-                except WireError as exc:
-                    log.warning("%s: bad registration reply: %s", self.robot, exc)
-                    continue
-                if not answer.accepted:
-                    log.error(
-                        "%s: the registry refused this robot: %s; frames are finished on the robot",
-                        self.robot,
-                        answer.reason,
-                    )
-                elif answer.route is not None:
-                    self._apply_route(answer.route)
-                return
-        except zenoh.ZError as exc:
-            log.debug("%s: registration not sent: %s", self.robot, exc)
-
-    def _request_reroute(self, reason: str) -> None:
-        now = time.monotonic()
-        if not self._registry_up.is_set() or now - self._last_reroute < REROUTE_MIN_INTERVAL_S:
-            return
-        self._last_reroute = now
-        deployment, epoch = self.route
-        request = RerouteRequest(
-            robot=self.robot,
-            deployment=deployment,
-            epoch=epoch,
-            reason=reason,
-            consecutive_timeouts=self._failure_streak,
-        )
-
-        def on_reply(reply: zenoh.Reply) -> None:
-            if reply.ok is None:
-                return
-            try:
-                change = decode(reply.ok.payload.to_bytes(), expect=RouteChange)
-            except WireError:
-                return  # an ErrorReply: the registry could not move us; telemetry tells it more
-            self._apply_route(change)
-
-        try:
-            self._session.get(
-                keys.reg_reroute(self.fleet),
-                on_reply,
-                payload=request.to_wire(),
-                timeout=REROUTE_TIMEOUT_S,
-            )
-            log.info(
-                "%s: asked the registry for a new route after %d frame(s) of %s",
-                self.robot,
-                self._failure_streak,
-                reason,
-            )
-        except zenoh.ZError as exc:
-            log.debug("%s: reroute request not sent: %s", self.robot, exc)
-
-
-def _software_version() -> str:
-    try:
-        return metadata.version("elasticfog")
-    except metadata.PackageNotFoundError:
-        return ""
+def _wait_event(event: threading.Event, timeout_s: float, interrupt: threading.Event) -> bool:
+    """Wait for `event` at most `timeout_s`, cut short once `interrupt` is set (a signal handler
+    can only set the daemon's stop flag, so the wait looks at it every `WAIT_SLICE_S`); True if
+    `event` is set."""
+    end = time.monotonic() + timeout_s
+    while not interrupt.is_set():
+        left = min(WAIT_SLICE_S, end - time.monotonic())
+        if left <= 0:
+            break
+        if event.wait(left):
+            return True
+    return event.is_set()

@@ -9,26 +9,101 @@ knew), `entropy` (the frame's normalized grey-level entropy), `hedged` (the loca
 alongside the cloud), `served_by` (`cloud` or `robot`: which result the frame used) and `detail`
 (why the cloud failed, for a person). Lines are flushed as they are written, so a reader can
 follow the file while the robot runs.
+
+The record itself is built here too (`frame_record`), from what the frame loop measured and what
+came of the cloud call; `RemoteTimes` splits the call's round trip into the network's share and
+the deployment's own time, which the record, the energy estimate and the policy's feedback share.
 """
 
 from __future__ import annotations
 
 import json
 import math
+import time
 from collections import Counter
+from dataclasses import dataclass
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, TYPE_CHECKING, Any
 
 import numpy as np
 
 from common.errors import UserError
-from common.wire.telemetry import JSONL_FIELDS, TelemetryRecord, parse_action
+from common.wire.telemetry import JSONL_FIELDS, TelemetryRecord, action_label, parse_action
+
+if TYPE_CHECKING:  # only read here; importing it would load onnxruntime and zenoh
+    from robotd.offload import CallResult
 
 EXTRA_FIELDS = ("at", "epoch", "entropy", "hedged", "served_by", "detail")
 SERVED_BY_CLOUD = "cloud"
 SERVED_BY_ROBOT = "robot"
 P95 = 95.0
 ROUND_DIGITS = 6
+
+
+@dataclass(frozen=True)
+class RemoteTimes:
+    """How a frame's wait on the cloud splits: `cloud_s` is the deployment's own queue + compute
+    time, from its reply (0 without one); `transfer_s` the rest of the round trip (the network
+    both ways), or the whole wait when no usable reply came. Both 0 for a frame not offloaded."""
+
+    transfer_s: float = 0.0
+    cloud_s: float = 0.0
+
+    @classmethod
+    def of(cls, result: CallResult | None) -> RemoteTimes:
+        if result is None:
+            return cls()
+        reply = result.reply
+        if reply is None:
+            return cls(transfer_s=result.round_trip_s)
+        cloud_s = reply.queue_s + reply.compute_s
+        return cls(transfer_s=max(0.0, result.round_trip_s - cloud_s), cloud_s=cloud_s)
+
+
+def frame_record(
+    robot: str,
+    frame: int,
+    *,
+    cut: int | None,
+    codec: str,
+    result: CallResult | None,
+    bytes_up: int,
+    prefix_s: float,
+    local_s: float | None,
+    latency_s: float,
+    cpu_s: float,
+    energy_j: float,
+    epoch: int,
+) -> TelemetryRecord:
+    """The telemetry record of a completed frame.
+
+    `cut` None: the whole model ran on the robot (P). Otherwise `result` is what came of the
+    cloud call; an offloaded frame without a reply is a fallback, with the result's reason.
+    `local_s`: the robot's own suffix run, if one ran. `epoch`: the route epoch the robot held
+    when the frame started; an answered frame reports its reply's instead.
+    """
+    reply = result.reply if result is not None else None
+    fallback = cut is not None and reply is None
+    remote = RemoteTimes.of(result)
+    return TelemetryRecord(
+        robot=robot,
+        frame=frame,
+        action=action_label(cut, codec),
+        bytes_up=bytes_up,
+        bytes_down=result.bytes_down if result is not None else 0,
+        prefix_s=prefix_s,
+        transfer_s=remote.transfer_s,
+        cloud_s=remote.cloud_s,
+        suffix_local_s=local_s or 0.0,
+        latency_s=latency_s,
+        robot_cpu_s=cpu_s,
+        energy_j=float(energy_j),
+        deployment=result.deployment if result is not None else None,
+        fallback=fallback,
+        reason=result.reason if fallback and result is not None else None,
+        epoch=reply.epoch if reply is not None else epoch,
+        at=time.time(),
+    )
 
 
 def jsonl_object(
@@ -53,7 +128,8 @@ def jsonl_object(
 
 
 class TelemetryFile:
-    """The `--telemetry` JSONL file (truncated at open: one run per file)."""
+    """The `--telemetry` JSONL file (truncated at open: one run per file); a context manager
+    that closes it."""
 
     def __init__(self, path: Path) -> None:
         self.path = Path(path)
@@ -73,6 +149,12 @@ class TelemetryFile:
         if self._file is not None:
             self._file.close()
             self._file = None
+
+    def __enter__(self) -> TelemetryFile:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
 
 class RunSummary:
@@ -170,7 +252,9 @@ __all__ = [
     "JSONL_FIELDS",
     "SERVED_BY_CLOUD",
     "SERVED_BY_ROBOT",
+    "RemoteTimes",
     "RunSummary",
     "TelemetryFile",
+    "frame_record",
     "jsonl_object",
 ]

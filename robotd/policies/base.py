@@ -70,10 +70,13 @@ class Decision:
     `hedge`: also finish the frame on the robot (run the local suffix speculatively, starting
     `hedge_after_s` after the request was handed to the uplink) and serve whichever result is
     ready first; the other path's work is stopped, and the cloud reply, when it comes after a
-    local result, still feeds the learner. `forced` marks a forced-sampling frame and `updating`
-    a frame inside a parameter-update period (both for telemetry). `predicted_cost` is the
-    policy's estimate for the chosen action, in objective units (seconds for the default latency
-    objective), or None when it has none.
+    local result, still feeds the learner. `local_expected` (with `hedge`): the estimates say the
+    robot serves this frame best (P) and the request is exploration, so the local run is the
+    frame's main path and runs at once at the robot loop's own priority, not as speculative
+    low-priority work that the offload's threads would starve. `forced` marks a forced-sampling
+    frame and `updating` a frame inside a parameter-update period (both for telemetry).
+    `predicted_cost` is the policy's estimate for the chosen action, in objective units (seconds
+    for the default latency objective), or None when it has none.
     """
 
     action: Action
@@ -83,6 +86,7 @@ class Decision:
     predicted_cost: float | None = None
     hedge_after_s: float = 0.0
     codec: str = RAW_CODEC
+    local_expected: bool = False
 
     @property
     def offloads(self) -> bool:

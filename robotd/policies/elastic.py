@@ -222,6 +222,7 @@ class ElasticPolicy(Policy):
             updating=self._updating,
             predicted_cost=self._base[j],
             hedge_after_s=after_s,
+            local_expected=hedge and greedy < 0,
         )
 
     def _needs_probe(self, j: int) -> bool:

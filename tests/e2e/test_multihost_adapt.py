@@ -3,9 +3,11 @@ exploration on), adapts to a real uplink glitch and to a real CPU quota drop whi
 streams (root only; each test takes under a minute: 40-50 s and about 30 s measured here).
 
 Same fixture as `test_multihost.py` (a testbed of its own per test, checked to leave nothing
-behind). Frames of 120x160 here: the model's ~9 ms of CPU per frame, not the runtime's ~2 ms per
-offloaded frame, must dominate what the robot computes, or a CPU quota would slow every action
-alike.
+behind). The glitch test runs the bench's robot (deploy/experiments/defaults.py: MobileNetV2 on a
+320x240 camera image at 0.5 core), whose JPEG offload and own run are close, as on a real robot;
+the CPU test keeps frames of 120x160 raw: the model's ~9 ms of CPU per frame, not the runtime's
+~2 ms per offloaded frame, must dominate what the robot computes, or a CPU quota would slow every
+action alike.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from collections.abc import Callable
 
 import pytest
 
+from deploy.experiments.defaults import DEFAULT_INPUT_SHAPE, DEFAULT_MODEL, DEFAULT_ROBOT_CPU
 from deploy.experiments.runner import TestbedFleet
 from deploy.experiments.stats import action_order, between, by_frame, final_action, summary
 from deploy.procs import DaemonError
@@ -33,41 +36,26 @@ pytestmark = [
 fleet = mh.fleet  # the fixture: a testbed fleet per test, torn down and checked
 
 AFTER_BUDGET_S = 30.0
-"""How long the frames after the glitch may take; a policy still sending whole frames (3-4 s
-each at 1 Mbit/s) is judged on the frames it managed by then."""
+"""How long the frames after the glitch may take; a policy still sending whole frames is judged
+on the frames it managed by then."""
+SETTLE_FRAMES = 30
+"""Issue 10's bound: after a glitch, elastic settles within this many frames."""
 
 
-@pytest.mark.skip(
-    reason="out of the suite until re-tuned for uint8 camera frames and the finer CPU period: at "
-    "0.25 Mbit/s it passed 1 of 2 runs (too few frames after the glitch to settle), at 0.5 Mbit/s "
-    "0 of 3 (settled on P, but slow robot frames kept the mean above a full offload)"
-)
-def test_uplink_glitch_moves_elastic_to_a_cut_that_sends_less_and_is_faster(
+def test_uplink_glitch_moves_elastic_from_jpeg_offload_to_the_robot(
     fleet: Callable[..., TestbedFleet],
 ) -> None:
-    """20 -> 0.25 Mbit/s under a slow robot (0.015 core): before, sending the frame wins; after, a
-    full offload needs >= 1.8 s on the wire alone, and the elastic policy (default parameters,
-    hedged exploration on) must find a cheaper action (a later cut or the robot) that ends
-    faster than that.
-
-    0.015 rather than 0.02 core: the whole model then takes 0.5-0.6 s on the robot, twice a
-    full offload at 20 Mbit/s even when other work on the shared machine slows the transfers to
-    0.3 s; at 0.02 core (0.4 s) a loaded machine made the two nearly equal, and the policy then
-    rightly served some of the "before" frames on the robot."""
-    # Raw crossings: what is tested is the move to a later cut (with JPEG allowed, cut 0 in
-    # jpeg50 sends 2 KB and stays best at both rates).
-    tf = fleet(
-        deadline_s=5.0,
-        input_shape=mh.BIG_INPUT_SHAPE,
-        changes={"fidelity": {"codecs": ["raw"]}},
-    )
-    # 0.25 Mbit/s: the uint8 frame (57.6 KB) then needs 1.8 s on the wire, as the float32 frame
-    # of the same shape did at 1 Mbit/s.
-    high, low, cpu = 20.0, 0.25, 0.015
-    warmup, before, after = 6, 16, 24
+    """The bench's robot (MobileNetV2 on a 320x240 camera image, 0.5 core): at 20 Mbit/s a JPEG
+    of the frame to the cloud is the fastest action; the uplink falls to 0.25 Mbit/s, where the
+    same JPEG needs ~0.2 s on the wire alone and the robot's own run (~65 ms) wins. Elastic, with
+    its default parameters (hedged exploration on), must move from the offload to the robot
+    within SETTLE_FRAMES frames and then serve frames about as fast as the robot does."""
+    tf = fleet(deadline_s=5.0, model=DEFAULT_MODEL, input_shape=list(DEFAULT_INPUT_SHAPE))
+    high, low = 20.0, 0.25
+    warmup, before, after = 6, 16, SETTLE_FRAMES + 16
     frames = warmup + before + after
     tf.shape_robot(high)
-    robot = tf.start_robot("elastic", frames=frames, cpu_fraction=cpu)
+    robot = tf.start_robot("elastic", frames=frames, cpu_fraction=DEFAULT_ROBOT_CPU)
     start = tf.measure_from + warmup
     tf.follower.wait_frame(start + before - 1, timeout_s=mh.WAIT_S, procs=[robot])
     tf.shape_robot(low)
@@ -80,24 +68,24 @@ def test_uplink_glitch_moves_elastic_to_a_cut_that_sends_less_and_is_faster(
 
     pre = between(records, start, change)
     post = between(records, change)
-    assert len(post) >= 8, f"only {len(post)} frames in {AFTER_BUDGET_S:.0f} s after the glitch"
-    tail = post[len(post) // 2 :]  # settled: the second half of the frames after the glitch
-    pre_s, tail_s = summary(pre), summary(tail)
-    full_offload_floor_s = mh.BIG_INPUT_BYTES * 8 / (low * 1e6)
-    # What most settled frames send (forced samples keep exploring other cuts, a few of them
-    # bigger than the input: they may not decide this), and less than before on average too.
-    median_bytes = statistics.median(float(r["bytes_up"]) for r in tail)
+    assert len(post) > SETTLE_FRAMES, f"only {len(post)} frames in {AFTER_BUDGET_S:.0f} s"
+    settled = post[SETTLE_FRAMES:]
+    pre_s, post_s = summary(pre), summary(settled)
+    robot_frames = [float(r["latency_s"]) for r in settled if r["action"] == "P"]
+    jpeg_bytes = statistics.median(float(r["bytes_up"]) for r in pre if r["bytes_up"])
+    offload_floor_s = jpeg_bytes * 8 / (low * 1e6)
     print(
-        f"before ({high:g} Mbit/s): {pre_s['actions']} mean {pre_s['mean_latency_s']:.3f} s, "
-        f"{pre_s['bytes_up']:.0f} B up; settled after ({low:g} Mbit/s): {tail_s['actions']} "
-        f"mean {tail_s['mean_latency_s']:.3f} s, {tail_s['bytes_up']:.0f} B up (median "
-        f"{median_bytes:.0f} B); a full offload needs >= {full_offload_floor_s:.3f} s"
+        f"before ({high:g} Mbit/s): {pre_s['actions']} mean {pre_s['mean_latency_s']:.3f} s; "
+        f"after {SETTLE_FRAMES} frames at {low:g} Mbit/s: {post_s['actions']} mean "
+        f"{post_s['mean_latency_s']:.3f} s (P frames median "
+        f"{statistics.median(robot_frames) if robot_frames else float('nan'):.3f} s); the JPEG "
+        f"offload needs >= {offload_floor_s:.3f} s on the wire"
     )
-    assert pre_s["bytes_up"] > 0.5 * mh.BIG_INPUT_BYTES, "elastic did not offload at 20 Mbit/s"
-    assert median_bytes < 0.5 * pre_s["bytes_up"], "it still sends as much after the glitch"
-    assert tail_s["bytes_up"] < pre_s["bytes_up"]
-    assert tail_s["main_action"] != "cut:0"
-    assert tail_s["mean_latency_s"] < full_offload_floor_s
+    assert str(pre_s["main_action"]).startswith("cut:0:"), "no coded offload at 20 Mbit/s"
+    assert post_s["main_action"] == "P", "elastic did not settle on the robot"
+    assert post_s["mean_latency_s"] < offload_floor_s
+    # Exploration after settling costs little: within 1.25x of the robot's own frames.
+    assert post_s["mean_latency_s"] <= 1.25 * statistics.median(robot_frames)
 
 
 def test_cpu_quota_drop_moves_work_to_the_cloud(fleet: Callable[..., TestbedFleet]) -> None:

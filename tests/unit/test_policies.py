@@ -262,6 +262,29 @@ def test_robot_is_probed_while_only_raw_input_is_sent() -> None:
     assert sum(hedges) == pytest.approx(len(hedges) / 10, abs=2)
 
 
+def test_a_forced_sample_while_p_is_best_makes_the_local_run_the_main_path() -> None:
+    # A slow link: every cut costs far more than the whole model on the robot (0.1 s), so P is
+    # chosen and forced frames explore. Their local run is the frame's expected path: it must
+    # run at once at the loop's priority, not as starved speculative work.
+    policy = elastic(forced_schedule="every", forced_every_frames=5)
+    explored = []
+    for t in range(120):
+        d = policy.decide(FrameContext(t, 0.9))
+        if d.action == PURE_ROBOT:
+            policy.observe(d, Outcome(prefix_s=0.1, latency_s=0.1))
+            assert not d.local_expected
+            continue
+        cut = int(d.action)
+        y = 0.3 + 8e-6 * TINY["cuts"][cut]["bytes"]  # type: ignore[index]
+        local = (0.1, 0.05, 0.01)[cut]
+        policy.observe(d, Outcome(prefix_s=(0.0, 0.05, 0.09)[cut], cloud_s=y, local_s=local))
+        if t >= 60:
+            explored.append(d)
+    assert explored, "no forced frame explored after settling"
+    assert all(d.forced and d.hedge and d.local_expected for d in explored)
+    assert all(d.hedge_after_s == pytest.approx(0.0, abs=1e-9) for d in explored)
+
+
 # -- change detection and the single-direction restriction -------------------------------------
 
 
