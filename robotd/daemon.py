@@ -452,9 +452,17 @@ class RobotDaemon(Daemon):
         the learner sees the link, not the robot's later frames. Otherwise it runs here, at the
         loop's own priority (on the testbed's 0.02-core robot, P frames on the low-priority
         thread took a median 0.50 s against 0.40 s here: Zenoh's and the prober's threads
-        went first)."""
+        went first). A pending reply of a sample taken while P was best
+        (`Decision.local_expected`) does not get that precedence: it only has to show whether
+        offloading got cheaper, and a reply delayed by the robot's own frame errs towards P,
+        the choice in force; the robot's frames do not pay for the sample."""
         pending = self._pending
-        if pending is None or pending.call is None or pending.call.settled:
+        if (
+            pending is None
+            or pending.call is None
+            or pending.call.settled
+            or pending.decision.local_expected
+        ):
             return dict(run(None))
         assert self._local is not None
         job = self._local.submit(run)
@@ -485,8 +493,12 @@ class RobotDaemon(Daemon):
         no robot time). A local result that comes first serves the frame; the cloud reply is
         awaited later (`_settle_pending`) to feed the learner. A cloud that fails first (no
         route, busy, an error, the deadline) leaves the local run as the frame's only path: it
-        is awaited.
+        is awaited. When the policy expects the local run to serve the frame, it is not
+        speculative and runs at once in this thread (`_local_first`).
         """
+        if f.decision.local_expected:
+            self._local_first(f, k, sent)
+            return
         call = f.call
         assert call is not None and self._local is not None
         wake = threading.Event()
@@ -510,19 +522,42 @@ class RobotDaemon(Daemon):
         if job.error is not None:
             raise job.error
         assert job.outputs is not None and job.finished_at is not None
-        local_done = job.finished_at
         f.local_s = job.elapsed_s
+        self._serve_first(f, job.outputs, job.finished_at, cloud_limit)
+
+    def _local_first(self, f: Frame, k: int, sent: dict[str, np.ndarray]) -> None:
+        """A hedged frame whose local run is its expected path (`Decision.local_expected`: the
+        estimates favour P, the request is exploration). The local suffix runs here at once, at
+        the loop's priority: on the speculative low-priority thread, a 0.5-core robot's forced
+        samples took 0.12-0.17 s for a 65 ms model (the offload's threads went first), which
+        made every forced sample cost latency. A reply that came first still serves the frame."""
+        call = f.call
+        assert call is not None
+        started = time.perf_counter()
+        outputs = dict(self.model.run_suffix(k, sent, f.feeds))
+        local_done = time.perf_counter()
+        f.local_s = local_done - started
+        self._serve_first(f, outputs, local_done, call.deadline_at + FINISH_GRACE_S)
+
+    def _serve_first(
+        self, f: Frame, outputs: dict[str, np.ndarray], local_done: float, cloud_limit: float
+    ) -> None:
+        """Hedged frame `f` has its local result (finished at `local_done`): serve it with
+        whichever of that and the cloud reply came first; a reply still on its way is settled
+        later (`_settle_pending`) to feed the learner."""
+        call = f.call
+        assert call is not None
         if call.settled or time.perf_counter() >= cloud_limit:
             f.result = self._checked(call.result())
             replied_at = f.result.replied_at
             if f.result.reply is not None and replied_at is not None and replied_at <= local_done:
                 self._serve_cloud(f)
             else:
-                f.serve_local(job.outputs, local_done)
+                f.serve_local(outputs, local_done)
                 self._emit(f)
             return
         # The robot's result is first: the frame is served now, its cloud reply comes later.
-        f.serve_local(job.outputs, local_done)
+        f.serve_local(outputs, local_done)
         self._settle_pending(block=True)  # at most one frame waits for its reply
         self._pending = f
 

@@ -110,13 +110,16 @@ class Hedged(Policy):
 
     name = "hedged"
 
-    def __init__(self, cuts: CutTable, after_s: float) -> None:
+    def __init__(self, cuts: CutTable, after_s: float, local_expected: bool = False) -> None:
         super().__init__(cuts)
         self.after_s = after_s
+        self.local_expected = local_expected
         self.outcomes: list[Outcome] = []
 
     def decide(self, ctx: FrameContext) -> Decision:
-        return Decision(1, hedge=True, hedge_after_s=self.after_s)
+        return Decision(
+            1, hedge=True, hedge_after_s=self.after_s, local_expected=self.local_expected
+        )
 
     def observe(self, decision: Decision, outcome: Outcome) -> None:
         self.outcomes.append(outcome)
@@ -222,3 +225,25 @@ def test_a_deferred_local_run_serves_the_frame_when_the_cloud_is_too_slow(
         # Started after the deferral, finished before the deadline.
         assert after_s <= record.latency_s < SHORT_DEADLINE_S
         assert record.reason == "timeout" and outcome.waited_s == SHORT_DEADLINE_S
+
+
+def test_a_sample_taken_while_the_robot_is_best_is_served_locally_and_still_learned_from(
+    zenoh_router: Router,
+    heavy_model: Path,
+    deployment: Callable[..., FakeDeployment],
+    registry_token: None,
+) -> None:
+    # `local_expected`: the local run is the frame's main path (run at once, at the loop's
+    # priority); the request is a sample whose reply, coming later, still reaches the learner.
+    dep = deployment("delayed")  # answers after a delay longer than the local run
+    policy = Hedged(cut_table(), after_s=0.0, local_expected=True)
+    frames = 3
+    run = run_robot(config(zenoh_router, heavy_model, deadline_s=2.0), frames, policy=policy)
+    assert_no_frame_lost(run, frames)
+    assert len(dep.requests) == frames
+    for result, outcome in zip(run.results, policy.outcomes, strict=True):
+        assert result.served_by == "robot", (
+            f"local run {outcome.local_s} s, reply {outcome.cloud_s} s"
+        )
+        assert outcome.local_s is not None and outcome.local_s > 0
+        assert outcome.cloud_s is not None and outcome.cloud_s > result.record.latency_s

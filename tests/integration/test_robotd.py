@@ -59,6 +59,8 @@ WAIT_S = 10.0
 # How long the slow deployment holds a request (well past SHORT_DEADLINE_S); released early at
 # teardown.
 SLOW_HOLD_S = 2.0
+DELAYED_HOLD_S = 0.3
+"""How long the `delayed` behaviour holds a request before it answers (inside the deadline)."""
 # A daemon asked to stop must be gone within this (the CLI contract for SIGINT).
 STOP_WITHIN_S = 2.0
 
@@ -133,8 +135,8 @@ Script = Callable[[int], str]
 
 class FakeDeployment:
     """A queryable on the robot's service key answering from a worker thread (callbacks must not
-    compute). `script(frame)` picks the behaviour: ok, slow, busy, error, garbage, reply_err,
-    wrong_frame."""
+    compute). `script(frame)` picks the behaviour: ok, slow (past the deadline), delayed (then
+    ok), busy, error, garbage, reply_err, wrong_frame."""
 
     def __init__(
         self, session: zenoh.Session, model: SplitModel, script: Script | None = None
@@ -158,8 +160,8 @@ class FakeDeployment:
         self.requests.append(request)
         behaviour = self.script(request.frame)
         key = query.key_expr
-        if behaviour == "slow":
-            self.release.wait(SLOW_HOLD_S)
+        if behaviour in ("slow", "delayed"):
+            self.release.wait(SLOW_HOLD_S if behaviour == "slow" else DELAYED_HOLD_S)
             behaviour = "ok"
         if behaviour == "busy":
             query.reply(
