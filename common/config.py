@@ -42,6 +42,8 @@ from common.wire.codec import DEFAULT_MAX_PAYLOAD_BYTES
 DEFAULT_REGISTRY_ENDPOINT = f"tcp/127.0.0.1:{DEFAULT_REGISTRY_PORT}"
 DEFAULT_LEASE_MS = 1000
 ZOO_PREFIX = "zoo:"
+CLI_IDENTITY = "cli"
+"""The views CLI's identity: the common name of its read-only certificate (`elasticfog certs`)."""
 MAX_ERRORS_SHOWN = 5
 
 LatencyStat = Literal["median", "mean", "p95", "max", "stddev"]
@@ -125,6 +127,10 @@ class RegistryConfig(_Model):
         default=True,
         description="Run a Zenoh router inside the registry (false: one runs elsewhere).",
     )
+    tls: TlsConfig | None = Field(
+        default=None,
+        description="The registry's TLS files (cert and key; ca and mtls default to zenoh.tls).",
+    )
 
 
 class FaultConfig(_Model):
@@ -141,8 +147,53 @@ class FaultConfig(_Model):
     )
 
 
+MAX_BATCH_SIZE = 256
+"""Largest batch a cloud daemon forms (a bigger one would only hold memory and latency)."""
+
+
+class BatchingConfig(_Model):
+    """How a cloud daemon shares its workers between robots (`cloudd.batch_queue`): every robot
+    has its own queue, served round robin, with at most `max_in_flight_per_robot` requests
+    admitted at once (more are answered 'busy'), whether or not batching is on. With `enabled`,
+    requests for the same cut from different robots run as one onnxruntime batch."""
+
+    enabled: bool = Field(
+        default=False,
+        description="Batch requests for the same cut along the batch axis (off: one request "
+        "per model run, as before).",
+    )
+    max_queue_delay_ms: float = Field(
+        default=5.0,
+        ge=0,
+        le=1000,
+        description="Longest a request waits for others to join its batch, milliseconds "
+        "(never past what its deadline allows).",
+    )
+    preferred_batch_sizes: list[Annotated[int, Field(ge=1, le=MAX_BATCH_SIZE)]] = Field(
+        default_factory=lambda: [8],
+        min_length=1,
+        description="Batch sizes run without waiting; the largest is the biggest batch.",
+    )
+    max_in_flight_per_robot: int = Field(
+        default=2,
+        ge=1,
+        description="Requests of one robot admitted at once (queued or running); one robot "
+        "sending as fast as it can then cannot take every worker or queue slot.",
+    )
+
+    @model_validator(mode="after")
+    def _sorted_sizes(self) -> BatchingConfig:
+        self.preferred_batch_sizes = sorted(set(self.preferred_batch_sizes))
+        return self
+
+    @property
+    def max_batch(self) -> int:
+        """The largest batch: 1 when batching is off."""
+        return max(self.preferred_batch_sizes) if self.enabled else 1
+
+
 # Fields that only mean something for one role: setting them on the other is an error.
-_CLOUD_ONLY = frozenset({"workers", "queue", "fault"})
+_CLOUD_ONLY = frozenset({"workers", "queue", "fault", "batching"})
 _ROBOT_ONLY = frozenset({"source", "fps", "uplink_mbit"})
 _SOURCE = re.compile(r"^(synthetic(:.*)?|photo([:,].*)?|video:.+|camera:\d+)$")
 
@@ -164,6 +215,10 @@ class MachineConfig(_Model):
     shared_memory: bool | None = Field(
         default=None, description="Override zenoh.shared_memory for this machine."
     )
+    tls: TlsConfig | None = Field(
+        default=None,
+        description="This machine's TLS files (cert and key; ca and mtls default to zenoh.tls).",
+    )
     providers: list[str] = Field(
         default_factory=lambda: ["CPUExecutionProvider"],
         min_length=1,
@@ -182,6 +237,10 @@ class MachineConfig(_Model):
     )
     fault: FaultConfig = Field(
         default_factory=FaultConfig, description="Cloud: fault injection at start."
+    )
+    batching: BatchingConfig = Field(
+        default_factory=BatchingConfig,
+        description="Cloud: per-robot queues and in-flight limit, and dynamic batching.",
     )
     source: str = Field(
         default="synthetic",
@@ -279,24 +338,57 @@ class ObjectiveConfig(_Model):
 
 
 class TlsConfig(_Model):
-    """TLS files for `tls/...` endpoints (paths relative to this file)."""
+    """TLS files of `tls/...` endpoints (paths relative to this file): `zenoh.tls` for the whole
+    fleet, `machines.<id>.tls`, `registry.tls` and `cli.tls` for one host (unset fields fall back
+    to `zenoh.tls`). The certificate's common name is the host's machine id (`elasticfog certs`)."""
 
-    root_ca: str | None = Field(
-        default=None, description="CA certificate that signed the peers' certs."
+    ca: str | None = Field(
+        default=None,
+        description="The fleet CA's certificate (PEM), which signed every host's (alias: root_ca).",
     )
-    cert: str | None = Field(default=None, description="This machine's certificate (PEM).")
-    key: str | None = Field(default=None, description="This machine's private key (PEM).")
-    mtls: bool = Field(
-        default=False, description="Require and present client certificates (mutual TLS)."
+    cert: str | None = Field(default=None, description="This host's certificate (PEM).")
+    key: str | None = Field(default=None, description="This host's private key (PEM).")
+    mtls: bool | None = Field(
+        default=None,
+        description="Mutual TLS: present and require certificates on both ends of every link. "
+        "Null: on whenever TLS is on.",
     )
+
+    @model_validator(mode="before")
+    @classmethod
+    def _root_ca_alias(cls, data: Any) -> Any:
+        # Older fleet files name the CA `root_ca` (Zenoh's own word); both mean the same file.
+        if isinstance(data, dict) and "root_ca" in data:
+            if "ca" in data:
+                raise ValueError("give ca or root_ca (the same file), not both")
+            data = {("ca" if k == "root_ca" else k): v for k, v in data.items()}
+        return data
 
     @model_validator(mode="after")
     def _pair(self) -> TlsConfig:
         if (self.cert is None) != (self.key is None):
             raise ValueError("cert and key go together: give both or neither")
-        if self.mtls and self.cert is None:
-            raise ValueError("mtls needs cert and key")
         return self
+
+    @property
+    def root_ca(self) -> str | None:
+        """The CA file under Zenoh's name for it (`transport/link/tls/root_ca_certificate`)."""
+        return self.ca
+
+    @property
+    def configured(self) -> bool:
+        """Whether any TLS file is set here."""
+        return self.ca is not None or self.cert is not None
+
+
+class CliConfig(_Model):
+    """How the views CLI (`elasticfog routes ...`) identifies itself to a TLS fleet."""
+
+    tls: TlsConfig | None = Field(
+        default=None,
+        description="The read-only `cli` certificate (common name `cli`): it may query the "
+        "registry's views and nothing else.",
+    )
 
 
 class ZenohConfig(_Model):
@@ -323,7 +415,17 @@ class ZenohConfig(_Model):
         description="Shared memory between processes of one host (bypasses the network: turn it "
         "off when shaping traffic between namespaces).",
     )
-    tls: TlsConfig = Field(default_factory=TlsConfig, description="TLS files.")
+    tls: TlsConfig = Field(
+        default_factory=TlsConfig,
+        description="TLS files shared by every host (usually just `ca`; each host's cert and key "
+        "go in its own `tls`).",
+    )
+    access_control: bool | None = Field(
+        default=None,
+        description="Zenoh access control generated from this file (common/acl.py): each host "
+        "may touch only its own keys. Null: on whenever mutual TLS is on (hosts are known by "
+        "their certificate's common name).",
+    )
 
 
 def _initial_entry(value: Any) -> Any:
@@ -424,6 +526,9 @@ class FleetConfig(_Model):
         description="Which lossy codecs may carry a crossing (measured on calibration frames).",
     )
     zenoh: ZenohConfig = Field(default_factory=ZenohConfig, description="Zenoh settings.")
+    cli: CliConfig = Field(
+        default_factory=CliConfig, description="How the views CLI connects (its certificate)."
+    )
     max_payload_bytes: int = Field(
         default=DEFAULT_MAX_PAYLOAD_BYTES,
         ge=1024,
@@ -437,8 +542,36 @@ class FleetConfig(_Model):
         if self.zoo_model is not None:
             validate_id(self.zoo_model, "model: zoo model name")
         self._check_initial_policy()
+        self._check_tls()
         self._resolve_paths(_base_dir(info))
         return self
+
+    def _check_tls(self) -> None:
+        """Mutual TLS needs a certificate for every host; access control needs mutual TLS."""
+        if self.zenoh.access_control and not self.mtls:
+            raise ValueError(
+                "zenoh.access_control: needs mutual TLS (hosts are known by the common name of "
+                "their certificate): set zenoh.tls.ca and each host's tls cert/key"
+            )
+        if self.zenoh.access_control and self.zenoh.tls.cert is not None:
+            raise ValueError(
+                "zenoh.access_control: needs a certificate per host (its common name is the "
+                "host's id), not one shared zenoh.tls.cert"
+            )
+        if not self.mtls:
+            return
+        missing = [f"{where}.tls" for where, tls in self._tls_owners() if tls.cert is None]
+        if missing:
+            raise ValueError(
+                f"mutual TLS is on but {', '.join(missing)} has no cert/key (or set "
+                "zenoh.tls.mtls: false)"
+            )
+
+    def _tls_owners(self) -> list[tuple[str, TlsConfig]]:
+        """Each daemon host's merged TLS settings, named by where they are written."""
+        owners = [("registry", self.tls_for(self.registry.id))]
+        owners += [(f"machines.{m}", self.tls_for(m)) for m in self.machines]
+        return owners
 
     def _check_initial_policy(self) -> None:
         known = ", ".join(self.machines) or "none"
@@ -479,8 +612,11 @@ class FleetConfig(_Model):
         if not self.model.startswith(ZOO_PREFIX):
             self.model = str(resolve(self.model))
         self.registry.db = resolve(self.registry.db or f"{self.fleet}.rib.sqlite")
-        tls = self.zenoh.tls
-        tls.root_ca, tls.cert, tls.key = resolve(tls.root_ca), resolve(tls.cert), resolve(tls.key)
+        tls_sections = [self.zenoh.tls, self.registry.tls, self.cli.tls]
+        tls_sections += [m.tls for m in self.machines.values()]
+        for tls in tls_sections:
+            if tls is not None:
+                tls.ca, tls.cert, tls.key = resolve(tls.ca), resolve(tls.cert), resolve(tls.key)
         for machine in self.machines.values():
             if machine.source.startswith("video:"):
                 machine.source = f"video:{resolve(machine.source[len('video:') :])}"
@@ -505,6 +641,50 @@ class FleetConfig(_Model):
     def zoo_model(self) -> str | None:
         """The zoo model name for `model: zoo:NAME`, else None."""
         return self.model[len(ZOO_PREFIX) :] if self.model.startswith(ZOO_PREFIX) else None
+
+    @property
+    def tls(self) -> bool:
+        """Whether this fleet uses TLS (a CA or a certificate is set anywhere)."""
+        sections = [self.zenoh.tls, self.registry.tls, self.cli.tls]
+        sections += [m.tls for m in self.machines.values()]
+        return any(t is not None and t.configured for t in sections)
+
+    @property
+    def mtls(self) -> bool:
+        """Whether links are mutual TLS: on by default whenever TLS is on."""
+        explicit = self.zenoh.tls.mtls
+        return self.tls if explicit is None else explicit and self.tls
+
+    @property
+    def access_control(self) -> bool:
+        """Whether every session enforces the generated access control (common/acl.py): by
+        default whenever links are mutual TLS and each host has a certificate of its own (one
+        shared certificate cannot tell the hosts apart)."""
+        explicit = self.zenoh.access_control
+        if explicit is None:
+            return self.mtls and self.zenoh.tls.cert is None
+        return explicit
+
+    def tls_for(self, identity: str | None) -> TlsConfig:
+        """The TLS settings of one host: its own section (`registry.tls` for the registry's id,
+        `cli.tls` for `cli`, else `machines.<id>.tls`) over `zenoh.tls`; `mtls` resolved."""
+        base = self.zenoh.tls
+        own: TlsConfig | None = None
+        if identity is not None:
+            if identity == self.registry.id:
+                own = self.registry.tls
+            elif identity == CLI_IDENTITY:
+                own = self.cli.tls
+            elif identity in self.machines:
+                own = self.machines[identity].tls
+        merged = base.model_copy()
+        if own is not None:
+            for name in ("ca", "cert", "key", "mtls"):
+                value = getattr(own, name)
+                if value is not None:
+                    setattr(merged, name, value)
+        merged.mtls = self.mtls if own is None or own.mtls is None else own.mtls
+        return merged
 
     @property
     def model_path(self) -> Path | None:

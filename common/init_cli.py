@@ -1,8 +1,14 @@
 """`elasticfog init DIR`: write a commented, single-host fleet.yaml to start from.
 
 The file describes a registry listening on 127.0.0.1:PORT, two cloud deployments (`edge-1` in
-service, `edge-2` standby) and one robot (`robot-1`), with a latency bound and a deadline. It is
-checked with `load_fleet` before it is written, so what `init` writes always loads.
+service, `edge-2` standby) and robots `robot-1` ... `robot-N` (`--robots N`, default 1), with a
+latency bound and a deadline. It is checked with `load_fleet` before it is written, so what
+`init` writes always loads.
+
+With `--tls` every link is mutual TLS: `elasticfog certs`' files go to DIR/certs/ (a fleet CA, one
+certificate per host carrying 127.0.0.1 and localhost, and the read-only `cli` one), endpoints
+are `tls/...`, and the access control generated from the file (common/acl.py) is on, so the
+fleet is ready to run as it is.
 """
 
 from __future__ import annotations
@@ -17,8 +23,11 @@ from common.errors import UserError
 from common.keys import DEFAULT_FLEET, validate_id
 
 FLEET_FILE = "fleet.yaml"
+CERTS_DIR = "certs"
 DEFAULT_MODEL = "zoo:resnet"
 DEFAULT_SERVICE = "vision"
+CLOUD_IDS = ("edge-1", "edge-2")
+MAX_ROBOTS = 1000
 
 # Values are JSON-quoted (valid YAML), so a fleet named `yes` or `123` stays a string.
 TEMPLATE = """\
@@ -27,7 +36,7 @@ TEMPLATE = """\
 #   elasticfog registry --config fleet.yaml
 #   elasticfog cloud --config fleet.yaml --id edge-1
 #   elasticfog cloud --config fleet.yaml --id edge-2
-#   elasticfog robot --config fleet.yaml --id robot-1 --frames 100
+{robot_lines}
 # Unknown keys are errors. Relative paths are relative to this file.
 
 # Fleet name: every Zenoh key of this fleet starts with ef/<fleet>/.
@@ -47,35 +56,17 @@ registry:
   endpoint: {endpoint}
   # The registry embeds a Zenoh router listening here.
   listen: [{endpoint}]
-  embedded_router: true
+  embedded_router: true{registry_tls}
   # The routing information base (sqlite); default: <fleet>.rib.sqlite next to this file.
   # db: rib.sqlite
 
 # Machines by id. Peers talk to each other directly: each listens on an endpoint the others can
 # reach (port 0: any free port, announced to the others through the registry's router).
 machines:
-  edge-1:
-    role: cloud
-    listen: [tcp/127.0.0.1:0]
-    workers: 1        # inference workers
-    queue: 4          # requests waiting for a worker before answering "busy"
-    fault: {{delay_ms: 0, drop: 0, stall: false}}   # fault injection at start (tests)
-  edge-2:
-    role: cloud
-    listen: [tcp/127.0.0.1:0]
-    workers: 1
-    queue: 4
-  robot-1:
-    role: robot
-    listen: [tcp/127.0.0.1:0]
-    source: synthetic   # or video:PATH, camera:INDEX
-    fps: 10
-    # uplink_mbit: 2    # pace the uplink in the application (single-host emulation)
-
+{machines}
 # Who serves whom at start (FogROS2-LS): exactly one cloud in service per robot.
 initial_policy:
-  robot-1: robot
-  edge-1: service
+{robot_policy}  edge-1: service
   edge-2: standby
 
 # The scheduler keeps <stat> of the last <window> frames' latencies under <seconds>; a violation
@@ -106,7 +97,45 @@ zenoh:
   mode: peer
   lease_ms: 1000          # a silent peer is dropped after this
   shared_memory: true     # between processes of this host
+{zenoh_tls}"""
+
+CLOUD_TEMPLATE = """\
+  {id}:
+    role: cloud
+    listen: [{proto}/127.0.0.1:0]
+    workers: 1        # inference workers
+    queue: 4          # requests waiting for a worker before answering "busy"
+{fault}{tls}"""
+FAULT_LINE = (
+    "    fault: {delay_ms: 0, drop: 0, stall: false}   # fault injection at start (tests)\n"
+)
+ROBOT_TEMPLATE = """\
+  {id}:
+    role: robot
+    listen: [{proto}/127.0.0.1:0]
+    source: synthetic   # or video:PATH, camera:INDEX
+    fps: 10
+    # uplink_mbit: 2    # pace the uplink in the application (single-host emulation)
+{tls}"""
+HOST_TLS = "    tls: {{cert: {dir}/{id}.crt, key: {dir}/{id}.key}}\n"
+ZENOH_TLS = """\
+  # Mutual TLS on every link: each host shows its own certificate (common name = its id,
+  # made by `elasticfog certs`) and accepts only certificates signed by this CA.
+  tls:
+    ca: {dir}/ca.crt
+    mtls: true
+  # Each host may touch only its own keys (generated from this file, see docs/security.md).
+  access_control: true
+
+# The views CLI (`elasticfog routes --config fleet.yaml`) uses this read-only certificate.
+cli:
+  tls: {{cert: {dir}/cli.crt, key: {dir}/cli.key}}
 """
+
+
+def robot_ids(robots: int) -> list[str]:
+    """`robot-1` ... `robot-N`."""
+    return [f"robot-{i}" for i in range(1, robots + 1)]
 
 
 def render_fleet(
@@ -115,13 +144,35 @@ def render_fleet(
     fleet: str = DEFAULT_FLEET,
     model: str = DEFAULT_MODEL,
     service: str = DEFAULT_SERVICE,
+    robots: int = 1,
+    tls: bool = False,
 ) -> str:
-    """The text of a single-host fleet.yaml."""
+    """The text of a single-host fleet.yaml (with `tls`: certificates expected in certs/)."""
+    proto = "tls" if tls else "tcp"
+
+    def host_tls(host: str) -> str:
+        return HOST_TLS.format(dir=CERTS_DIR, id=host) if tls else ""
+
+    machines = [
+        CLOUD_TEMPLATE.format(
+            id=cloud, proto=proto, fault=FAULT_LINE if i == 0 else "", tls=host_tls(cloud)
+        )
+        for i, cloud in enumerate(CLOUD_IDS)
+    ]
+    robot_list = robot_ids(robots)
+    machines += [ROBOT_TEMPLATE.format(id=r, proto=proto, tls=host_tls(r)) for r in robot_list]
     return TEMPLATE.format(
         fleet=json.dumps(fleet),
         service=json.dumps(service),
         model=json.dumps(model),
-        endpoint=f"tcp/127.0.0.1:{port}",
+        endpoint=f"{proto}/127.0.0.1:{port}",
+        robot_lines="\n".join(
+            f"#   elasticfog robot --config fleet.yaml --id {r} --frames 100" for r in robot_list
+        ),
+        registry_tls="\n  " + host_tls("registry").strip() if tls else "",
+        machines="".join(machines),
+        robot_policy="".join(f"  {r}: robot\n" for r in robot_list),
+        zenoh_tls=ZENOH_TLS.format(dir=CERTS_DIR) if tls else "",
     )
 
 
@@ -132,11 +183,14 @@ def write_fleet(
     fleet: str = DEFAULT_FLEET,
     model: str = DEFAULT_MODEL,
     force: bool = False,
+    robots: int = 1,
+    tls: bool = False,
 ) -> Path:
-    """Write DIR/fleet.yaml (creating DIR) and return its path; UserError on bad input or if the
-    file exists and `force` is false."""
-    # Heavy imports (pydantic, the wire codec) where the command runs: `elasticfog --help` must
-    # stay fast.
+    """Write DIR/fleet.yaml (creating DIR) and return its path; with `tls`, DIR/certs/ too (a
+    fleet CA and a certificate per host). UserError on bad input or if a file exists and `force`
+    is false."""
+    # Heavy imports (pydantic, the wire codec, cryptography) where the command runs:
+    # `elasticfog --help` must stay fast.
     import yaml
 
     from common.config import ZOO_PREFIX, fleet_from_dict
@@ -144,6 +198,8 @@ def write_fleet(
     validate_id(fleet, "fleet name")
     if not 1 <= port <= 65535:
         raise UserError(f"--port {port}: expected a TCP port in 1..65535")
+    if not 1 <= robots <= MAX_ROBOTS:
+        raise UserError(f"--robots {robots}: expected 1..{MAX_ROBOTS}")
     if model.startswith(ZOO_PREFIX):
         validate_id(model[len(ZOO_PREFIX) :], "zoo model name")
     else:
@@ -156,8 +212,13 @@ def write_fleet(
     target = directory / FLEET_FILE
     if target.exists() and not force:
         raise UserError(f"{target}: already exists; use --force to overwrite it")
-    text = render_fleet(port=port, fleet=fleet, model=model)
+    text = render_fleet(port=port, fleet=fleet, model=model, robots=robots, tls=tls)
     fleet_from_dict(yaml.safe_load(text), source=target)  # what we write must load
+    if tls:
+        from common.certs import init_fleet_certs
+
+        hosts = ["registry", *CLOUD_IDS, *robot_ids(robots)]
+        init_fleet_certs(directory / CERTS_DIR, hosts, fleet=fleet, force=force)
     try:
         directory.mkdir(parents=True, exist_ok=True)
         target.write_text(text, encoding="utf-8")
@@ -173,16 +234,28 @@ def init(
     ),
     fleet: str = typer.Option(DEFAULT_FLEET, "--fleet", help="Fleet name (in every key)."),
     model: str = typer.Option(DEFAULT_MODEL, "--model", help="zoo:NAME or an ONNX file."),
-    force: bool = typer.Option(False, "--force", help="Overwrite an existing fleet.yaml."),
+    robots: int = typer.Option(1, "--robots", help="Robots robot-1 ... robot-N."),
+    tls: bool = typer.Option(
+        False,
+        "--tls",
+        help="Mutual TLS and access control on every link, certificates in DIR/certs/.",
+    ),
+    force: bool = typer.Option(
+        False, "--force", help="Overwrite an existing fleet.yaml (and certificates)."
+    ),
 ) -> None:
     """Write a commented single-host fleet.yaml: a registry, edge-1 (service), edge-2 (standby)
-    and robot-1."""
+    and robot-1 ... robot-N."""
     try:
-        target = write_fleet(directory, port=port, fleet=fleet, model=model, force=force)
+        target = write_fleet(
+            directory, port=port, fleet=fleet, model=model, force=force, robots=robots, tls=tls
+        )
     except UserError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(exc.exit_code) from None
     typer.echo(f"wrote {target}")
+    if tls:
+        typer.echo(f"wrote certificates in {directory / CERTS_DIR} (see `elasticfog certs show`)")
     typer.echo(f"next: elasticfog registry --config {target}")
 
 

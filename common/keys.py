@@ -64,6 +64,11 @@ def prefix(fleet: str) -> str:
     return _join(ROOT, validate_id(fleet, "fleet name"))
 
 
+def fleet_all(fleet: str) -> str:
+    """`ef/<fleet>/**`: every key of one fleet (the access control's widest grant)."""
+    return _join(prefix(fleet), "**")
+
+
 # -- rib: the registry's read-only views -----------------------------------------------------------
 def rib(fleet: str, view: str) -> str:
     """`ef/<fleet>/rib/<view>`: one view of the routing information base (see RIB_VIEWS)."""
@@ -187,6 +192,11 @@ def dep_ctl(fleet: str, deployment: str) -> str:
 def dep_probe_all(fleet: str) -> str:
     """`ef/<fleet>/dep/*/probe`."""
     return _join(prefix(fleet), "dep", "*", "probe")
+
+
+def dep_ctl_all(fleet: str) -> str:
+    """`ef/<fleet>/dep/*/ctl`: every deployment's control key (only the registry queries them)."""
+    return _join(prefix(fleet), "dep", "*", "ctl")
 
 
 # -- tele: what robots publish ---------------------------------------------------------------------

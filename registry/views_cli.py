@@ -100,16 +100,19 @@ class RegistryClient:
         timeout_s: float = VIEW_TIMEOUT_S,
         connect_timeout_s: float = CONNECT_TIMEOUT_S,
     ) -> None:
+        from common.config import CLI_IDENTITY
         from common.session import open_session
 
         self.target = target
         self.timeout_s = timeout_s
+        # In a TLS fleet the CLI shows its own read-only certificate (`cli.tls`), never a host's.
         self.session: zenoh.Session = open_session(
             target.cfg,
             mode="client",
             listen=[],
             connect=[target.endpoint],
             connect_timeout_s=connect_timeout_s,
+            identity=CLI_IDENTITY,
         )
 
     def __enter__(self) -> RegistryClient:
