@@ -1,0 +1,329 @@
+"""What the registry measures about routes: latency windows, consecutive timeouts, loads.
+
+Telemetry and probe reports arrive on Zenoh callback threads; the control loop reads (to decide)
+and so do the RIB views (to show). Everything here sits behind one lock of its own, held only for
+dictionary work, never for I/O or a decision: a callback never waits on the RIB or a switch, and
+the registry daemon's other state needs no lock for it.
+
+Both sources measure the same thing, the remote part of a frame (docs/registry.md, "Measures fed
+to the windows"): a frame answered by a deployment counts `transfer_s + cloud_s` in that
+deployment's telemetry window; a frame that timed out on the route's deployment counts at least
+the deadline there, and the robot's consecutive failures on that route grow (a frame that found
+nobody serving its key counts as a failure, not as a sample); a probe report counts the robot's
+`expected_latency_s` when it gives one, else the probe's round trip. When a robot reaches
+`timeout_count` consecutive failures on its route, `record_telemetry` says so once, until the
+route changes or a frame gets through.
+
+Each robot's route is cached here (the control loop sets it, `set_route`) so that a failure is
+counted against the deployment that was meant to serve it. Windows are persisted with `save`
+(only those that changed since, each with the wall clock of its newest sample) and come back with
+`restore`, keeping their age: the scheduler ignores probe windows older than its limit, across a
+restart too. Loads from probe reports are written to the RIB by `flush_loads`, not on every report.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from common.wire.telemetry import ProbeReport, TelemetryRecord
+from registry.latency import LatencyWindows, Source, WindowKey, WindowStats
+from registry.rib import Rib
+
+# Fallback reasons (telemetry `reason`) that mean the deployment did not answer in time, and
+# those that mean nobody serves the robot's key at all: both count as consecutive failures of the
+# route (only the first are latency samples).
+TIMEOUT_WORDS = ("timeout", "deadline", "no reply")
+NO_SERVER_WORDS = ("no_route", "no route")
+
+Route = tuple[str | None, int]
+"""(deployment, epoch) of a robot's route; (None, 0) when it has none."""
+
+NO_ROUTE: Route = (None, 0)
+
+
+def is_timeout(reason: str | None) -> bool:
+    """Whether a fallback reason says the deployment did not answer in time."""
+    text = (reason or "").lower()
+    return any(word in text for word in TIMEOUT_WORDS)
+
+
+def is_unserved(reason: str | None) -> bool:
+    """Whether a fallback reason says nobody serves the robot's key."""
+    text = (reason or "").lower()
+    return any(word in text for word in NO_SERVER_WORDS)
+
+
+@dataclass(frozen=True)
+class RobotMeasures:
+    """What the scheduler needs about one robot: the telemetry window of its route, its
+    consecutive failures (and the deployment they were against), its probe profiles."""
+
+    telemetry: WindowStats | None
+    timeouts_on: str | None
+    timeouts: int
+    profiles: dict[str, WindowStats]
+
+
+@dataclass(frozen=True)
+class RobotStatus:
+    """What the robots view shows about one robot."""
+
+    telemetry: WindowStats | None
+    action: str | None
+    timeouts: int
+    last_telemetry: float | None
+
+
+@dataclass(frozen=True)
+class ProbeProfile:
+    """One probe window's statistics, with the wall clock of its newest sample."""
+
+    robot: str
+    deployment: str
+    stats: WindowStats
+    updated_at: float | None
+
+
+class Measurements:
+    """`Measurements(window, deadline_s=..., timeout_count=..., on_bad_sample=...)`: thread-safe.
+
+    `on_bad_sample(where, problem)` hears of a sample refused by its window (NaN, negative), after
+    the lock is released. `clock` stamps samples for the scheduler (monotonic); `wall_clock`
+    stamps what is persisted or shown.
+    """
+
+    def __init__(
+        self,
+        window: int,
+        *,
+        deadline_s: float,
+        timeout_count: int,
+        on_bad_sample: Callable[[str, str], None],
+        clock: Callable[[], float] = time.monotonic,
+        wall_clock: Callable[[], float] = time.time,
+    ) -> None:
+        self.deadline_s = deadline_s
+        self.timeout_count = timeout_count
+        self._on_bad_sample = on_bad_sample
+        self._clock = clock
+        self._wall_clock = wall_clock
+        self._lock = threading.Lock()
+        self._windows = LatencyWindows(window)
+        self._sample_wall: dict[WindowKey, float] = {}  # wall clock of each window's newest sample
+        self._dirty: set[WindowKey] = set()  # changed since the last save
+        self._timeouts: dict[str, tuple[str, int]] = {}  # robot -> (deployment, consecutive)
+        self._reroute_asked: set[str] = set()
+        self._actions: dict[str, str] = {}
+        self._last_telemetry: dict[str, float] = {}
+        self._routes: dict[str, Route] = {}
+        self._loads: dict[str, tuple[int, int | None]] = {}  # from probe reports, not yet saved
+
+    # -- feeding (Zenoh callback threads) --------------------------------------------------------
+    def record_telemetry(self, rec: TelemetryRecord, key: str) -> bool:
+        """Account for one frame published on `key`; True when the robot has just reached
+        `timeout_count` consecutive failures on its route (its reroute is to be asked, once)."""
+        now = self._clock()
+        reroute = False
+        problems: list[tuple[str, str]] = []
+        with self._lock:
+            robot = rec.robot
+            self._actions[robot] = rec.action
+            self._last_telemetry[robot] = self._wall_clock()
+            if rec.cut is None:
+                return False  # computed on the robot: says nothing about any deployment
+            route = self._routes.get(robot, NO_ROUTE)[0]
+            remote_s = rec.transfer_s + rec.cloud_s
+            if not rec.fallback and rec.deployment is not None:
+                self._add(robot, rec.deployment, Source.TELEMETRY, remote_s, now, key, problems)
+                if rec.deployment == route:
+                    self._timeouts.pop(robot, None)
+                    self._reroute_asked.discard(robot)
+            elif (
+                rec.fallback
+                and route is not None
+                and (is_timeout(rec.reason) or is_unserved(rec.reason))
+            ):
+                if is_timeout(rec.reason):
+                    # A timeout took at least the deadline: the window sees it as that.
+                    finite = remote_s if math.isfinite(remote_s) else 0.0
+                    sample_s = max(self.deadline_s, finite)
+                    self._add(robot, route, Source.TELEMETRY, sample_s, now, key, problems)
+                on, count = self._timeouts.get(robot, (route, 0))
+                count = count + 1 if on == route else 1
+                self._timeouts[robot] = (route, count)
+                if count >= self.timeout_count and robot not in self._reroute_asked:
+                    self._reroute_asked.add(robot)
+                    reroute = True
+        self._report(problems)
+        return reroute
+
+    def record_probe_report(self, rep: ProbeReport, key: str) -> None:
+        """Account for one probe report published on `key`."""
+        if not rep.ok:
+            return  # no measurement; a dead deployment shows in liveliness, a slow one in time
+        value = rep.expected_latency_s if rep.expected_latency_s is not None else rep.rtt_s
+        problems: list[tuple[str, str]] = []
+        with self._lock:
+            if value is not None:
+                self._add(
+                    rep.robot, rep.deployment, Source.PROBE, value, self._clock(), key, problems
+                )
+            if rep.load is not None:
+                self._loads[rep.deployment] = (rep.load, rep.capacity)
+        self._report(problems)
+
+    def _add(
+        self,
+        robot: str,
+        deployment: str,
+        source: Source,
+        value: float,
+        at: float,
+        key: str,
+        problems: list[tuple[str, str]],
+    ) -> None:
+        """Record one sample (the lock is held); a bad number goes to `problems`, not the window."""
+        try:
+            self._windows.add(robot, deployment, source, value, at)
+        except ValueError as exc:
+            problems.append((f"{source.value} on {key}", str(exc)))
+            return
+        wkey = (robot, deployment, source)
+        self._sample_wall[wkey] = self._wall_clock()
+        self._dirty.add(wkey)
+
+    def _report(self, problems: list[tuple[str, str]]) -> None:
+        for where, problem in problems:
+            self._on_bad_sample(where, problem)
+
+    # -- routes and membership (control loop) ----------------------------------------------------
+    def route(self, robot: str) -> Route:
+        """The robot's route as last set (NO_ROUTE when none)."""
+        with self._lock:
+            return self._routes.get(robot, NO_ROUTE)
+
+    def set_route(self, robot: str, deployment: str | None, epoch: int) -> None:
+        """The robot's route changed or was confirmed. On a change of deployment its failures
+        are forgotten and the new deployment's telemetry window cleared: samples from an earlier
+        stay there must not count now."""
+        with self._lock:
+            before = self._routes.get(robot)
+            self._routes[robot] = (deployment, epoch)
+            if before is None or before[0] != deployment:
+                if deployment is not None:
+                    self._windows.window(robot, deployment, Source.TELEMETRY).clear()
+                self._timeouts.pop(robot, None)
+                self._reroute_asked.discard(robot)
+
+    def force_timeouts(self, robot: str, deployment: str, reported: int) -> None:
+        """The robot asked to leave `deployment` after `reported` consecutive timeouts: count at
+        least `timeout_count`, so the scheduler moves it as it would after telemetry."""
+        with self._lock:
+            self._timeouts[robot] = (deployment, max(reported, self.timeout_count))
+
+    def forget_robot(self, robot: str) -> None:
+        """A robot left: its windows and failures go (its last action stays on show)."""
+        with self._lock:
+            self._windows.drop_robot(robot)
+            self._forget_saved(lambda wkey: wkey[0] == robot)
+            self._timeouts.pop(robot, None)
+            self._reroute_asked.discard(robot)
+
+    def forget_deployment(self, deployment: str) -> None:
+        """A deployment left: a returning process starts clean."""
+        with self._lock:
+            self._windows.drop_deployment(deployment)
+            self._forget_saved(lambda wkey: wkey[1] == deployment)
+            self._loads.pop(deployment, None)
+
+    def _forget_saved(self, dropped: Callable[[WindowKey], bool]) -> None:
+        self._dirty = {wkey for wkey in self._dirty if not dropped(wkey)}
+
+    # -- reading ---------------------------------------------------------------------------------
+    def for_scheduler(self, robot: str, route: str | None) -> RobotMeasures:
+        """The robot's measures as the scheduler takes them, `route` being its deployment."""
+        with self._lock:
+            telemetry = self._windows.stats(robot, route, Source.TELEMETRY) if route else None
+            timeouts_on, timeouts = self._timeouts.get(robot, (None, 0))
+            profiles = self._windows.profiles(robot, Source.PROBE)
+        return RobotMeasures(telemetry, timeouts_on, timeouts, profiles)
+
+    def robot_status(self, robot: str, route: str | None) -> RobotStatus:
+        """What the robots view shows of the robot, `route` being its deployment."""
+        with self._lock:
+            return RobotStatus(
+                telemetry=(self._windows.stats(robot, route, Source.TELEMETRY) if route else None),
+                action=self._actions.get(robot),
+                timeouts=self._timeouts.get(robot, (None, 0))[1],
+                last_telemetry=self._last_telemetry.get(robot),
+            )
+
+    def probe_profiles(self) -> list[ProbeProfile]:
+        """Every non-empty probe window, by robot then deployment."""
+        with self._lock:
+            items = [
+                (wkey, window.stats(), self._sample_wall.get(wkey))
+                for wkey, window in self._windows.items()
+                if wkey[2] is Source.PROBE
+            ]
+        return [
+            ProbeProfile(robot, deployment, stats, updated_at)
+            for (robot, deployment, _), stats, updated_at in sorted(items, key=lambda i: i[0][:2])
+            if stats is not None
+        ]
+
+    # -- persistence -----------------------------------------------------------------------------
+    def restore(self, rib: Rib) -> None:
+        """Routes and windows from the RIB, at startup. Each window keeps its age (its newest
+        sample's wall clock, mapped onto `clock`); one the windows refuse is left empty."""
+        routes, profiles = rib.routes(), rib.profiles()
+        now, now_wall = self._clock(), self._wall_clock()
+        with self._lock:
+            for route in routes:
+                self._routes[route.robot] = (route.deployment, route.epoch)
+            for row in profiles:
+                try:
+                    source = Source(row.source)
+                except ValueError:
+                    continue
+                at = now - max(0.0, now_wall - row.updated_at)
+                window = self._windows.window(row.robot, row.deployment, source)
+                try:
+                    window.extend(row.samples, at)
+                except ValueError:
+                    window.clear()
+                    continue
+                self._sample_wall[(row.robot, row.deployment, source)] = row.updated_at
+
+    def routes_known(self) -> int:
+        """How many robots have a route (restored or set)."""
+        with self._lock:
+            return len(self._routes)
+
+    def save(self, rib: Rib) -> int:
+        """Persist the windows changed since the last save; returns how many were written."""
+        with self._lock:
+            dirty, self._dirty = self._dirty, set()
+            rows = []
+            for wkey in dirty:
+                robot, deployment, source = wkey
+                samples = self._windows.window(robot, deployment, source).samples()
+                if samples:
+                    rows.append((robot, deployment, source, samples, self._sample_wall[wkey]))
+        for robot, deployment, source, samples, updated_at in rows:
+            rib.save_profile(robot, deployment, source.value, samples, updated_at)
+        return len(rows)
+
+    def flush_loads(self, rib: Rib) -> None:
+        """Write the loads reported since the last flush to the RIB (live deployments whose
+        load or capacity changed)."""
+        with self._lock:
+            loads, self._loads = self._loads, {}
+        for deployment, (load, capacity) in loads.items():
+            row = rib.deployment(deployment)
+            if row is not None and row.alive and (row.load, row.capacity) != (load, capacity):
+                rib.update_deployment_load(deployment, load, capacity)

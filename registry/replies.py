@@ -1,0 +1,58 @@
+"""How the registry reads a query and answers it, for every queryable it declares.
+
+A request is decoded strictly (`decode_query`: 64 KiB at most, the expected message type only),
+so bad input raises a `WireError` naming the problem; the daemon's guarded callbacks answer it
+with `error_payload`, the matching `ErrorReply`. `answer` sends the replies and finalizes the
+query at once (a querier waits for the final reply), tolerating a querier that went away.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+import zenoh
+
+from common.session import zenoh_error_text
+from common.wire import ErrorCode, ErrorReply, Message, WireError, decode, error_reply
+
+log = logging.getLogger(__name__)
+
+# Requests to the registry, telemetry and probe reports are small; bigger ones are refused before
+# unpacking.
+MAX_REQUEST_BYTES = 64 * 1024
+INTERNAL_REASON = "internal error; see the registry log"
+
+
+def decode_query(query: zenoh.Query, kind: type[Message], *, empty_ok: bool = False) -> Any:
+    """The query's payload as a `kind` (an empty one as `kind()` when `empty_ok`); a
+    WireError naming the problem otherwise."""
+    payload = query.payload
+    data = payload.to_bytes() if payload is not None else b""
+    if not data and empty_ok:
+        return kind()
+    return decode(data, expect=kind, max_bytes=MAX_REQUEST_BYTES)
+
+
+def refusal(reason: str) -> bytes:
+    """A well-formed request the registry will not act on."""
+    return ErrorReply.make(ErrorCode.REFUSED, reason).to_wire()
+
+
+def error_payload(exc: Exception) -> bytes:
+    """The reply to a request that failed: bad input names its problem, anything else is an
+    internal error (the log has the traceback)."""
+    if isinstance(exc, WireError):
+        return error_reply(exc)
+    return ErrorReply.make(ErrorCode.INTERNAL, INTERNAL_REASON).to_wire()
+
+
+def answer(query: zenoh.Query, *replies: tuple[str, bytes]) -> None:
+    """Send each (key, payload) reply, then finalize the query; a querier that went away (its
+    timeout passed, its session closed) is no error."""
+    with query:
+        for key, payload in replies:
+            try:
+                query.reply(key, payload)
+            except zenoh.ZError as exc:
+                log.debug("cannot reply on %s: %s", key, zenoh_error_text(exc))

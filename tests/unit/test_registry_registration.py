@@ -1,0 +1,156 @@
+"""registry.registration without a network: a deployment's registration from its probe reply
+(accepted, refused with a reason, retried when it did not answer), robot registration, and the
+reference model digest. The RIB lives in memory."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import pytest
+
+from common import keys
+from common.wire.registry import (
+    CAP_CTL,
+    CAP_INFER,
+    CAP_LOCAL_FALLBACK,
+    CAP_PROBE,
+    PROTOCOL_VERSION,
+    ProbeReply,
+    RegisterRequest,
+)
+from registry.registration import Registrar, RegistrationState, Role
+from registry.rib import MEMORY, EventKind, Rib
+
+SERVICE = "vision"
+DIGEST = "a" * 64
+OTHER_DIGEST = "b" * 64
+
+
+@pytest.fixture
+def rib() -> Iterator[Rib]:
+    with Rib(MEMORY) as rib:
+        yield rib
+
+
+def reply(deployment: str, digest: str = DIGEST, **changes: object) -> ProbeReply:
+    fields: dict[str, object] = {
+        "deployment": deployment,
+        "protocol_version": PROTOCOL_VERSION,
+        "capabilities": (CAP_INFER, CAP_PROBE, CAP_CTL),
+        "service": SERVICE,
+        "model_digest": digest,
+        "states": {},
+        "load": 1,
+        "capacity": 4,
+    }
+    fields.update(changes)
+    return ProbeReply(**fields)  # type: ignore[arg-type]
+
+
+def refusals(rib: Rib) -> list[str]:
+    return [e.reason for e in rib.events(kind=EventKind.REGISTRATION_REFUSED.value)]
+
+
+def test_the_vocabularies_are_the_wire_values() -> None:
+    assert [r.value for r in Role] == list(keys.ROLES)
+    assert [s.value for s in RegistrationState] == ["pending", "accepted", "refused"]
+
+
+def test_a_deployment_is_pending_until_its_probe_reply_accepts_it(rib: Rib) -> None:
+    registrar = Registrar("f", rib, SERVICE, DIGEST)
+    assert registrar.token_came("edge-1")
+    assert not registrar.token_came("edge-1"), "a token reported twice is one registration"
+    assert registrar.is_state("edge-1", RegistrationState.PENDING)
+    assert not registrar.seen("edge-1")
+    assert registrar.admit("edge-1", reply("edge-1"), "")
+    assert registrar.is_state("edge-1", RegistrationState.ACCEPTED) and registrar.seen("edge-1")
+    row = rib.deployment("edge-1")
+    assert row is not None and (row.alive, row.load, row.capacity) == (True, 1, 4)
+    assert registrar.to_probe() == [("edge-1", True)], "accepted: refreshed now and then"
+
+
+def test_a_wrong_model_is_refused_once_with_the_reason(rib: Rib) -> None:
+    registrar = Registrar("f", rib, SERVICE, DIGEST)
+    registrar.token_came("edge-1")
+    assert not registrar.admit("edge-1", reply("edge-1", OTHER_DIGEST), "")
+    assert not registrar.admit("edge-1", reply("edge-1", OTHER_DIGEST), "")
+    registration = registrar.get("edge-1")
+    assert registration is not None and registration.state is RegistrationState.REFUSED
+    assert "same model" in registration.reason and not registration.retry
+    assert registrar.refused() == {"edge-1": registration.reason}
+    assert len(refusals(rib)) == 1, "the same refusal is recorded once"
+    assert rib.deployment("edge-1") is None, "never in the RIB, never routed to"
+    assert registrar.to_probe() == []
+
+
+def test_a_deployment_that_did_not_answer_is_probed_again(rib: Rib) -> None:
+    registrar = Registrar("f", rib, SERVICE, DIGEST)
+    registrar.token_came("edge-1")
+    assert not registrar.admit("edge-1", None, "no probe reply within 0.5 s (3 tries)")
+    assert registrar.to_probe() == [("edge-1", False)], "a registration again, not a refresh"
+    assert registrar.admit("edge-1", reply("edge-1"), "")
+    assert registrar.refused() == {}
+
+
+def test_a_probe_answered_under_another_name_is_refused(rib: Rib) -> None:
+    registrar = Registrar("f", rib, SERVICE, DIGEST)
+    registrar.token_came("edge-1")
+    assert not registrar.admit("edge-1", reply("edge-9"), "")
+    assert "'edge-9'" in registrar.refused()["edge-1"]
+
+
+def test_a_deployment_gone_meanwhile_is_left_alone(rib: Rib) -> None:
+    registrar = Registrar("f", rib, SERVICE, DIGEST)
+    registrar.token_came("edge-1")
+    gone = registrar.token_gone("edge-1")
+    assert gone is not None and gone.state is RegistrationState.PENDING
+    assert not registrar.admit("edge-1", reply("edge-1"), "")
+    assert rib.deployment("edge-1") is None
+    assert not registrar.refresh("edge-1", reply("edge-1"))
+
+
+def test_a_refresh_writes_the_load_of_an_accepted_deployment(rib: Rib) -> None:
+    registrar = Registrar("f", rib, SERVICE, DIGEST)
+    registrar.token_came("edge-1")
+    registrar.admit("edge-1", reply("edge-1"), "")
+    assert registrar.refresh("edge-1", reply("edge-1", load=3, capacity=8))
+    row = rib.deployment("edge-1")
+    assert row is not None and (row.load, row.capacity) == (3, 8)
+
+
+def test_without_the_model_file_the_first_deployment_accepted_sets_the_reference(
+    rib: Rib,
+) -> None:
+    registrar = Registrar("f", rib, SERVICE, None)
+    registrar.token_came("edge-1")
+    registrar.token_came("edge-2")
+    assert registrar.admit("edge-1", reply("edge-1", OTHER_DIGEST), "")
+    assert registrar.reference_digest("edge-2") == OTHER_DIGEST
+    assert registrar.reference_digest("edge-1") is None, "nobody else to match"
+    assert not registrar.admit("edge-2", reply("edge-2", DIGEST), "")
+
+
+def test_robot_registration_keeps_its_digest_and_refusals_name_the_robot(rib: Rib) -> None:
+    registrar = Registrar("f", rib, SERVICE, DIGEST)
+    request = RegisterRequest(
+        role="robot",
+        id="robot-1",
+        protocol_version=PROTOCOL_VERSION,
+        capabilities=(CAP_LOCAL_FALLBACK,),
+        service=SERVICE,
+        model_digest=DIGEST,
+    )
+    assert registrar.register(request) is None
+    assert registrar.robot_digest("robot-1") == DIGEST
+    wrong = RegisterRequest(
+        role="robot",
+        id="robot-2",
+        protocol_version=PROTOCOL_VERSION + 1,
+        capabilities=(CAP_LOCAL_FALLBACK,),
+        service=SERVICE,
+    )
+    reason = registrar.register(wrong)
+    assert reason is not None and "protocol" in reason
+    [event] = rib.events(kind=EventKind.REGISTRATION_REFUSED.value)
+    assert (event.robot, event.deployment) == ("robot-2", None)
+    assert registrar.robot_digest("robot-2") is None
