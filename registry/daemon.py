@@ -216,7 +216,8 @@ class RegistryDaemon(Daemon):
             session = self.hold(open_session(cfg, router=True), "zenoh session")
             where = ", ".join(cfg.registry.listen)
         else:
-            session = self.hold(open_session(cfg), "zenoh session")
+            # A peer of someone else's router: in a TLS fleet it still presents its own certificate.
+            session = self.hold(open_session(cfg, identity=self.id), "zenoh session")
             where = f"the router at {cfg.registry.endpoint}"
         transport = ZenohTransport(session, fleet)
         registrar = Registrar(fleet, rib, self.service, fleet_model_digest(cfg))
