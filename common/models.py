@@ -99,7 +99,7 @@ def _resolve_zoo(spec: str, name: str, input_shape: tuple[int, ...] | None) -> M
     shape = zoo_shape(input_shape)
     # The zoo's format is in the file name: a cache filled by an older build (float input
     # before the camera image entered the model) is not mistaken for today's models.
-    name = f"{entry.name}-{zoo.format_shape(shape)}-v{zoo.ZOO_FORMAT}.onnx"
+    name = f"{entry.name}-{zoo.format_shape(shape)}-v{zoo.cache_version(entry)}.onnx"
     path = cache_dir() / "zoo" / name
     if not path.is_file():
         zoo.export(entry.name, path, shape)

@@ -25,15 +25,22 @@ on a two-core machine; the last two are full-width, for the testbed to run a Res
 network at 224×224 or 240×320. Weights are seeded, not trained: the graphs, sizes and times are
 the real networks', the predictions are not. torch is imported only inside :func:`export`: the
 daemons read the exported ONNX file and never need torch.
+
+Other packages add models built as ONNX graphs in code (no torch, no weights to learn) through
+the ``elasticfog.zoo`` entry point group, each a :class:`ZooGraph` with its own inputs and
+format version: ``stereo`` (nav.zoo_entry, the stereo navigation pipeline; its inputs are the
+left and right camera images). ``common`` never imports them by name.
 """
 
 from __future__ import annotations
 
+import functools
 import os
 import tempfile
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
+from importlib.metadata import entry_points
 from pathlib import Path
 from typing import Any
 
@@ -74,6 +81,22 @@ class ZooModel:
     name: str
     description: str
     build: Callable[[int], Any]
+
+
+# Where other packages register their ZooGraph models.
+ZOO_ENTRY_POINT_GROUP = "elasticfog.zoo"
+
+
+@dataclass(frozen=True)
+class ZooGraph:
+    """A zoo entry built directly as an ONNX graph: ``build`` takes the image shape (C, H, W)
+    and returns the onnx.ModelProto. ``format`` is bumped when the graph changes for the same
+    name and shape (it names the cached file)."""
+
+    name: str
+    description: str
+    build: Callable[[tuple[int, int, int]], Any]
+    format: int = 1
 
 
 def _vgg(in_channels: int) -> Any:
@@ -321,14 +344,35 @@ def parse_shape(text: str) -> tuple[int, ...]:
     return dims
 
 
-def get(name: str) -> ZooModel:
+@functools.cache
+def graph_models() -> dict[str, ZooGraph]:
+    """The ZooGraph models other packages register (entry point group ``elasticfog.zoo``)."""
+    found: dict[str, ZooGraph] = {}
+    for ep in sorted(entry_points(group=ZOO_ENTRY_POINT_GROUP), key=lambda e: e.name):
+        entry = ep.load()
+        if not isinstance(entry, ZooGraph) or entry.name in ZOO_MODELS:
+            raise UserError(f"zoo entry point {ep.name!r} ({ep.value}) is not a new ZooGraph")
+        found[entry.name] = entry
+    return found
+
+
+def all_models() -> dict[str, ZooModel | ZooGraph]:
+    """Every zoo entry: the torch networks, then the graph models."""
+    return {**ZOO_MODELS, **graph_models()}
+
+
+def cache_version(entry: ZooModel | ZooGraph) -> int:
+    """The format version in the cached file name of an entry."""
+    return entry.format if isinstance(entry, ZooGraph) else ZOO_FORMAT
+
+
+def get(name: str) -> ZooModel | ZooGraph:
     """The zoo entry called ``name``; raises UserError listing the known names otherwise."""
-    try:
-        return ZOO_MODELS[name]
-    except KeyError:
-        raise UserError(
-            f"unknown zoo model {name!r}; known: {', '.join(sorted(ZOO_MODELS))}"
-        ) from None
+    entry = ZOO_MODELS.get(name) or graph_models().get(name)
+    if entry is None:
+        known = [*sorted(ZOO_MODELS), *sorted(graph_models())]
+        raise UserError(f"unknown zoo model {name!r}; known: {', '.join(known)}")
+    return entry
 
 
 def export(name: str, out: Path, input_shape: tuple[int, ...] = DEFAULT_INPUT_SHAPE) -> Path:
@@ -342,6 +386,8 @@ def export(name: str, out: Path, input_shape: tuple[int, ...] = DEFAULT_INPUT_SH
     """
     entry = get(name)
     shape = check_input_shape(tuple(input_shape))
+    if isinstance(entry, ZooGraph):
+        return _write_graph(entry, Path(out), shape)
     try:
         import torch
     except ImportError:
@@ -380,6 +426,23 @@ def export(name: str, out: Path, input_shape: tuple[int, ...] = DEFAULT_INPUT_SH
         finally:
             if os.path.exists(tmp):
                 os.unlink(tmp)
+    return out
+
+
+def _write_graph(entry: ZooGraph, out: Path, shape: tuple[int, int, int]) -> Path:
+    """Save a graph model beside ``out`` and rename it into place (as export does)."""
+    import onnx
+
+    model = entry.build(shape)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent)
+    os.close(fd)
+    try:
+        onnx.save(model, tmp)
+        os.replace(tmp, out)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
     return out
 
 

@@ -1,0 +1,43 @@
+"""``zoo:stereo``: the stereo pipeline in the model zoo (entry point group ``elasticfog.zoo``).
+
+The zoo's shape option is the size of one camera image, C×H×W with C = 3 (default 3x240x320);
+the model's inputs are the left and right images, uint8 1×H×W×3 each, and its output ``d_coll``
+(1×B). The disparity range is a fifth of the width (64 at 320×240, 128 at 640×480) and the
+camera is :meth:`nav.camera.CameraModel.for_image` at that size. Kept free of heavy imports:
+the zoo loads this module to list its models.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from common.errors import UserError
+from common.zoo import ZooGraph
+
+# Bump when the graph changes for the same shape (cached exports are named by it).
+STEREO_FORMAT = 1
+
+
+def build_stereo(shape: tuple[int, int, int]) -> Any:
+    """The whole pipeline, images to d_coll, for camera images of shape (3, H, W)."""
+    from nav.camera import CameraModel
+    from nav.stereo_graph import StereoPipeline, build_model
+    from nav.stereo_params import StereoParams, zoo_disparities
+
+    channels, height, width = shape
+    if channels != 3:
+        raise UserError(
+            f"zoo:stereo takes colour camera images, 3xHxW; got {channels}x{height}x{width}"
+        )
+    pipeline = StereoPipeline(
+        StereoParams(zoo_disparities(width)), CameraModel.for_image(width, height)
+    )
+    return build_model(pipeline, height=height, width=width)
+
+
+STEREO = ZooGraph(
+    "stereo",
+    "Stereo navigation pipeline (two uint8 images → d_coll per curvature); no weights",
+    build_stereo,
+    STEREO_FORMAT,
+)
