@@ -36,6 +36,13 @@ zoo_app = typer.Typer(
 model_app.add_typer(zoo_app, name="zoo")
 
 MODEL_HELP = "ONNX file or zoo:NAME (see `elasticfog model zoo list`)."
+# The partitioner names a bad option by its parameter; these commands call it by their flag.
+OPTION_FLAGS = {
+    "cuts": "--cuts",
+    "input_shape": "--input-shape",
+    "max_cut_tensors": "--max-cut-tensors",
+    "out_dir": "--out",
+}
 CUTS_HELP = "'auto', or cuts separated by commas; join the tensors of one cut with '+' (a,b+c)."
 # Table width when stdout is not a terminal: long tensor names stay on one line in logs.
 PIPE_WIDTH = 200
@@ -59,11 +66,20 @@ def _user_errors(fn: F) -> F:
             return fn(*args, **kwargs)
         except UserError as exc:
             Console(stderr=True).print(
-                f"[red]error:[/red] {exc}", highlight=False, soft_wrap=True, markup=True
+                f"[red]error:[/red] {_message(exc)}", highlight=False, soft_wrap=True, markup=True
             )
             raise typer.Exit(exc.exit_code) from None
 
     return wrapper  # type: ignore[return-value]
+
+
+def _message(exc: UserError) -> str:
+    """The error's message, a partitioner option named by its flag (--input-shape)."""
+    from common.partition import OptionError
+
+    if isinstance(exc, OptionError):
+        return exc.naming(OPTION_FLAGS.get(exc.option, exc.option))
+    return str(exc)
 
 
 def _print_json(data: Any) -> None:

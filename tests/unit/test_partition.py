@@ -6,6 +6,7 @@ The graph builders here are reused by the split runtime, profiler and CLI tests.
 from __future__ import annotations
 
 import json
+import pickle
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -16,9 +17,11 @@ import onnxruntime as ort
 import pytest
 from onnx import TensorProto, helper, numpy_helper
 
-from common import partition as partition_mod
 from common.errors import UserError
-from common.partition import Partition, load_partition, parse_cuts, split_model
+from common.partition import OptionError, Partition, load_partition, parse_cuts, split_model
+from common.partition import partitioner as partitioner_mod
+from common.partition.graph import DataflowGraph
+from common.partition.sharing import shareable_initializers
 
 OPSET = 17
 # A conservative IR version every supported onnxruntime reads (onnx stamps its newest by default).
@@ -302,10 +305,13 @@ def test_named_cut_gains_the_inputs_its_suffix_still_needs(tmp_path: Path) -> No
 
 
 def test_unknown_tensor_names_are_all_listed(tmp_path: Path) -> None:
-    with pytest.raises(UserError, match=r"unknown tensor name\(s\) in --cuts: nope, zzz"):
+    with pytest.raises(OptionError, match=r"unknown tensor name\(s\) in cuts: nope, zzz") as err:
         split_model(
             save(chain(), tmp_path / "m.onnx"), tmp_path / "split", cuts=["nope", "a", "a+zzz"]
         )
+    # a front end names the option its own way (the CLI: --cuts)
+    assert err.value.option == "cuts"
+    assert err.value.naming("--cuts") == "unknown tensor name(s) in --cuts: nope, zzz"
 
 
 def test_cut_that_does_not_separate_inputs_from_outputs_is_an_error(tmp_path: Path) -> None:
@@ -331,8 +337,19 @@ def test_weights_cannot_be_cut(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize("text", ["", "a,,b", " , "])
 def test_bad_cuts_option(text: str) -> None:
-    with pytest.raises(UserError, match="--cuts"):
+    with pytest.raises(OptionError, match=r"bad cuts .*expected 'auto'") as err:
         parse_cuts(text)
+    assert err.value.option == "cuts"
+    assert "--" not in str(err.value)  # the library does not know the CLI's flags
+
+
+def test_option_error_survives_pickling() -> None:
+    """Exceptions cross process pools pickled; this one is made from a template and values."""
+    with pytest.raises(OptionError) as err:
+        parse_cuts("a,,b")
+    again = pickle.loads(pickle.dumps(err.value))
+    assert isinstance(again, OptionError) and str(again) == str(err.value)
+    assert again.naming("--cuts") == "bad --cuts 'a,,b': expected 'auto' or tensor names like a,b+c"
 
 
 # ---------------------------------------------------------------------------------------------
@@ -405,6 +422,23 @@ def test_cut_that_fails_verification_is_excluded_with_the_reason(
     names = sorted(p.name for p in (tmp_path / "split").glob("*.onnx"))
     assert not [n for n in names if n.startswith("cand")]
     assert "cut003.suffix.onnx" not in names
+
+
+def test_verification_runs_the_cuts_with_the_runtime_given(tmp_path: Path) -> None:
+    """The partitioner does not build the serving runtime itself: the caller's runner does."""
+    from common.split_runtime import SplitModel
+
+    built: list[list[list[str]]] = []
+
+    def runner(part: Partition, threads: int | None) -> SplitModel:
+        built.append(cut_sets(part))
+        return SplitModel(part, threads=threads, lazy=True)
+
+    src = save(diamond(), tmp_path / "m.onnx")
+    part = split_model(src, tmp_path / "split", runner=runner)
+    assert built == [cut_sets(part)] and all(c.verified for c in part.cuts)
+    split_model(src, tmp_path / "unverified", verify=False, runner=runner)
+    assert len(built) == 1
 
 
 def test_no_verify_marks_cuts_unverified(tmp_path: Path) -> None:
@@ -503,7 +537,7 @@ def test_shared_are_weight_operands_and_constants_no_transpose_reaches() -> None
         [vi("y", [32, 16]), vi("out_k", [16, 16])],
         inits,
     )
-    shared = partition_mod._Graph(model).shareable_initializers()
+    shared = shareable_initializers(DataflowGraph(model))
     assert shared == {"conv_w", "mm_w", "bias", "aliased_w", "q_w", "qs"}
 
 
@@ -533,7 +567,7 @@ def test_shared_weight_rewritten_in_place_is_a_clear_error(
     if not _shared_session_fails(model):
         pytest.skip("this onnxruntime no longer rewrites a weight shared via add_initializer")
     every = {t.name for t in model.graph.initializer}
-    monkeypatch.setattr(partition_mod._Graph, "shareable_initializers", lambda self: every)
+    monkeypatch.setattr(partitioner_mod, "shareable_initializers", lambda graph: every)
     with pytest.raises(UserError, match="on its own, but not with its weights shared"):
         split_model(save(model, tmp_path / "m.onnx"), tmp_path / "split")
 
@@ -576,7 +610,7 @@ def test_load_partition_reads_the_cache_the_second_time(
     def must_not_split(*args: object, **kwargs: object) -> None:
         raise AssertionError("split again instead of reading the cache")
 
-    monkeypatch.setattr(partition_mod._Partitioner, "run", must_not_split)
+    monkeypatch.setattr(partitioner_mod.Partitioner, "run", must_not_split)
     again = load_partition(str(src))
     assert again.dir == first.dir
     assert again.manifest() == first.manifest()
@@ -622,8 +656,9 @@ def test_dynamic_batch_becomes_one(tmp_path: Path) -> None:
 
 def test_other_dynamic_dimensions_need_an_input_shape(tmp_path: Path) -> None:
     src = save(dynamic([1, "L"]), tmp_path / "m.onnx")
-    with pytest.raises(UserError, match=r"dynamic dimension L at axis 1.*--input-shape"):
+    with pytest.raises(OptionError, match=r"dynamic dimension L at axis 1.*input_shape") as err:
         split_model(src, tmp_path / "split")
+    assert err.value.option == "input_shape"
     part = split_model(src, tmp_path / "split", input_shape=(6,))  # batch left out
     assert part.specs["a"].shape == (1, 6)
     assert part.cuts[1].bytes == 24
