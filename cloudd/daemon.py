@@ -4,14 +4,18 @@ Lifecycle (`common.daemon.Daemon`: startup -> main loop -> shutdown, in reverse 
 
 1. Load the fleet's model split from the partition cache (`load_partition`; split on first use)
    and warm one onnxruntime suffix session per cut by running it once. Every session shares one
-   copy of the weights (`SplitModel`), so memory stays flat in the number of cuts.
+   copy of the weights (`SplitModel`), so memory stays flat in the number of cuts. With
+   `batching.enabled`, each suffix is first given a batch axis and checked against one-item
+   runs (`SplitModel.enable_batching`); a cut that cannot take a batch is named in the log and
+   runs one request at a time.
 2. Open a Zenoh peer session: it connects to the registry's endpoint and listens on the machine's
    own. An unreachable registry does not stop a peer from opening (Zenoh keeps retrying in the
    background, backing off from 1 s to 4 s): the daemon says so, naming the endpoint, and serves
    meanwhile. A client session cannot open without the registry: that is retried here with
    backoff until it opens or the daemon is stopped.
-3. Start the timer thread (delayed replies, held queries), then the bounded worker pool (its jobs
-   use the timer, so it stops before the timer does).
+3. Start the timer thread (delayed replies, held queries), then the workers and their queue
+   (`cloudd.batch_queue`: per-robot queues served round robin, an in-flight limit per robot,
+   batches of one cut; the workers' replies use the timer, so they stop before it does).
 4. Declare `dep/<id>/probe` (answered in every state) and `dep/<id>/ctl`, and follow the
    registry's membership (`common.membership`): logged when it comes and goes.
 5. Announce the liveliness token `alive/cloud/<id>`: from now on the registry may use us.
@@ -24,10 +28,12 @@ robot's anycast key `svc/<service>/<robot>/infer` (complete=True), and the ack i
 the declaration; `standby` undeclares it, then acks. The epoch rules are in `cloudd.state`.
 
 Threads: Zenoh runs each queryable's callback on a thread of its own. Callbacks only decode,
-check and admit a request, then return; suffixes run on the worker pool, which answers "busy" at
-once when it is full. Bad input of any kind gets an error reply naming the problem and one
-WARNING line (rate-limited by the daemon's `throttled` log), never a traceback; the daemon keeps
-serving. Every callback is `guarded`: an unexpected error is logged and answered as INTERNAL.
+check and admit a request, then return; suffixes run on the workers. A request the queue does not
+admit (every slot taken, or its robot at its in-flight limit) is answered "busy" at once. A batch
+is decoded request by request, run once, and each robot is answered with its own rows. Bad
+input of any kind gets an error reply naming the problem and one WARNING line (rate-limited by
+the daemon's `throttled` log), never a traceback; the daemon keeps serving. Every callback is
+`guarded`: an unexpected error is logged and answered as INTERNAL.
 
 Stopping: SIGINT (or `stop()`) stops at once: the token goes first, then the service keys, then
 in-flight requests finish (bounded) and the session is closed explicitly. SIGTERM (or
@@ -43,15 +49,18 @@ import logging
 import signal
 import threading
 import time
+from collections import Counter
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 import zenoh
 
+from cloudd.batch_queue import Batch, BatchCosts, BatchPolicy, FairQueue, Pending, Refusal
 from cloudd.faults import FaultInjector, describe
 from cloudd.state import RobotState, StateTable, Verdict
 from cloudd.validate import check_request, decode_tensors
-from cloudd.workers import DelayedActions, WorkerPool
+from cloudd.workers import BatchWorkers, DelayedActions
 from common import keys
 from common.config import FleetConfig, MachineConfig
 from common.daemon import Daemon
@@ -105,6 +114,36 @@ def _payload(query: zenoh.Query) -> bytes:
     return b"" if payload is None else payload.to_bytes()
 
 
+@dataclass(frozen=True)
+class _Job:
+    """What answering one admitted inference request needs."""
+
+    key: str
+    query: zenoh.Query
+    request: InferRequest
+
+
+class BatchStats:
+    """Batches run and requests refused, for the log and the tests (thread-safe)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self.sizes: Counter[int] = Counter()
+        self.refused: Counter[Refusal] = Counter()
+
+    def ran(self, size: int) -> None:
+        with self._lock:
+            self.sizes[size] += 1
+
+    def refuse(self, why: Refusal) -> None:
+        with self._lock:
+            self.refused[why] += 1
+
+    def snapshot(self) -> tuple[dict[int, int], dict[Refusal, int]]:
+        with self._lock:
+            return dict(self.sizes), dict(self.refused)
+
+
 class CloudDaemon(Daemon):
     """One deployment of the fleet's service: `CloudDaemon(cfg, "edge-1").run()`.
 
@@ -146,7 +185,9 @@ class CloudDaemon(Daemon):
         # Made in startup (None before), released by the lifecycle.
         self._model: SplitModel | None = None
         self._cut_specs: list[list[TensorSpec]] = []
-        self._pool: WorkerPool | None = None
+        self._queue: FairQueue[_Job] | None = None
+        self._costs = BatchCosts()
+        self.batch_stats = BatchStats()
         self._timer: DelayedActions | None = None
         self._session: zenoh.Session | None = None
 
@@ -184,7 +225,7 @@ class CloudDaemon(Daemon):
             served = dict(self._served)
         states = {robot: st.state for robot, st in snapshot.items()}
         model = self._model
-        pool = self._pool
+        queue = self._queue
         return ProbeReply(
             deployment=self.deployment,
             protocol_version=PROTOCOL_VERSION,
@@ -192,8 +233,8 @@ class CloudDaemon(Daemon):
             service=self.cfg.service,
             model_digest=model.digest if model is not None else "",
             states=states,
-            load=pool.load if pool is not None else 0,
-            capacity=pool.capacity if pool is not None else 0,
+            load=queue.load if queue is not None else 0,
+            capacity=queue.capacity if queue is not None else 0,
             num_cuts=len(self._cut_specs),
             fault=self.faults.get(),
             echo=bytes(echo_bytes),
@@ -214,10 +255,18 @@ class CloudDaemon(Daemon):
         timer.start()
         # Delayed replies go out now; held queries are let go.
         self.on_release(timer.flush_and_stop, what="timer thread")
-        self._pool = pool = WorkerPool(
-            self.machine.workers, self.machine.queue, name=f"{self.deployment}-worker"
+        policy = BatchPolicy.from_config(self.machine.batching)
+        # Each worker may run a whole batch; `queue` slots wait beyond that.
+        slots = self.machine.workers * policy.max_batch + self.machine.queue
+        queue: FairQueue[_Job] = FairQueue(
+            policy, slots=slots, costs=self._costs, batchable=self.model.batched
         )
-        self.on_release(self._stop_pool, pool, what="worker pool")
+        self._queue = queue
+        workers = BatchWorkers(
+            queue, self._run_batch, self.machine.workers, name=f"{self.deployment}-worker"
+        )
+        workers.start()
+        self.on_release(self._stop_workers, workers, what="workers")
         for key, handler, what in [
             (self._probe_key, self._on_probe, "probe queryable"),
             (self._ctl_key, self._on_ctl, "ctl queryable"),
@@ -238,12 +287,19 @@ class CloudDaemon(Daemon):
         )
         self.ready.set()
         log.info(
-            "%s: ready: service %r, %d cuts warm, %d workers + %d queue slots, faults: %s",
+            "%s: ready: service %r, %d cuts warm, %d workers, %d slots, at most %d per robot, "
+            "%s, faults: %s",
             self.deployment,
             self.cfg.service,
             len(self._cut_specs),
-            pool.workers,
-            pool.capacity - pool.workers,
+            workers.workers,
+            queue.capacity,
+            policy.max_in_flight_per_robot,
+            (
+                f"batches of up to {policy.max_batch} within {policy.max_queue_delay_s * 1000:g} ms"
+                if self.machine.batching.enabled
+                else "batching off"
+            ),
             describe(self.faults.get()),
         )
 
@@ -271,13 +327,27 @@ class CloudDaemon(Daemon):
             except zenoh.ZError as exc:  # keep undeclaring the others
                 log.warning("%s: undeclaring a service key failed: %s", self.deployment, exc)
 
-    def _stop_pool(self, pool: WorkerPool) -> None:
-        if not pool.shutdown(INFLIGHT_WAIT_S):
+    def _stop_workers(self, workers: BatchWorkers[_Job]) -> None:
+        if not workers.shutdown(INFLIGHT_WAIT_S):
             log.warning(
                 "%s: %d request(s) still running after %.1f s; closing anyway",
                 self.deployment,
-                pool.load,
+                workers.queue.load,
                 INFLIGHT_WAIT_S,
+            )
+        sizes, refused = self.batch_stats.snapshot()
+        if sizes:
+            runs = sum(sizes.values())
+            frames = sum(size * count for size, count in sizes.items())
+            log.info(
+                "%s: %d request(s) computed in %d run(s) (mean batch %.2f, largest %d); "
+                "refused busy: %s",
+                self.deployment,
+                frames,
+                runs,
+                frames / runs,
+                max(sizes),
+                ", ".join(f"{n} ({why.value})" for why, n in refused.items()) or "none",
             )
 
     # -- startup steps ---------------------------------------------------------------------
@@ -297,11 +367,16 @@ class CloudDaemon(Daemon):
         )
         self._model = self.hold(model, "model sessions")
         cut_specs = [model.cut_tensor_specs(k) for k in range(model.num_cuts)]
+        unbatched: dict[int, str] = {}
         # Build and run every suffix once now: nothing is built on the frame path, and the first
         # frame of each cut costs what later ones do.
         for k, specs in enumerate(cut_specs):
             if self.should_exit.is_set():
                 return
+            if self.machine.batching.enabled:
+                reason = model.enable_batching(k)
+                if reason is not None:
+                    unbatched[k] = reason
             zeros = {s.name: np.zeros(s.shape, dtype=s.dtype) for s in specs}
             try:
                 model.run_suffix(k, zeros)
@@ -311,6 +386,8 @@ class CloudDaemon(Daemon):
                     f"{', '.join(self.machine.providers)}: {ort_reason(exc)}"
                 ) from None
         self._cut_specs = cut_specs
+        if self.machine.batching.enabled:
+            self._log_batching(model.num_cuts, unbatched)
         log.info(
             "%s: model %s (%s) loaded: %d cuts, %.1f MB of weights, in %.1f s",
             self.deployment,
@@ -320,6 +397,21 @@ class CloudDaemon(Daemon):
             model.weight_bytes / 1e6,
             time.monotonic() - started,
         )
+
+    def _log_batching(self, num_cuts: int, unbatched: dict[int, str]) -> None:
+        """Say which cuts take a batch, and why the others run one request at a time."""
+        batched = num_cuts - len(unbatched)
+        log.info(
+            "%s: batching: %d of %d cuts take a batch of up to %d",
+            self.deployment,
+            batched,
+            num_cuts,
+            self.machine.batching.max_batch,
+        )
+        for k, reason in unbatched.items():
+            log.warning(
+                "%s: batching: cut %d runs one request at a time: %s", self.deployment, k, reason
+            )
 
     def _open_session(self) -> zenoh.Session | None:
         endpoint = self.cfg.registry.endpoint
@@ -667,59 +759,97 @@ class CloudDaemon(Daemon):
             )
             self._send(query, key, reply.to_wire(), delay_s)
             return
-        pool = self._pool
-        job = functools.partial(self._compute, robot, key, query, request, arrived)
-        if pool is None or not pool.try_submit(job):
+        queue = self._queue
+        item = Pending(
+            robot=robot,
+            group=request.cut,
+            arrived=arrived,
+            deadline_at=arrived + request.deadline_s,
+            payload=_Job(key, query, request),
+        )
+        refusal = queue.offer(item) if queue is not None else Refusal.CLOSED
+        if refusal is not None:
+            self.batch_stats.refuse(refusal)
             busy = BusyReply(
                 frame=request.frame,
                 deployment=self.deployment,
-                queued=pool.load if pool is not None else 0,
-                capacity=pool.capacity if pool is not None else 0,
+                queued=queue.load if queue is not None else 0,
+                capacity=queue.capacity if queue is not None else 0,
             )
             self._send(query, key, busy.to_wire(), delay_s)
 
-    def _compute(
-        self, robot: str, key: str, query: zenoh.Query, request: InferRequest, arrived: float
-    ) -> None:
-        started = time.monotonic()
-        queue_s = started - arrived
-        closing = self.closing.is_set()
-        error: ErrorReply | None = None
-        if closing:
-            error = ErrorReply.make(ErrorCode.NOT_SERVING, f"{self.deployment} is stopping")
-        elif queue_s > request.deadline_s:
+    def _run_batch(self, batch: Batch[_Job]) -> None:
+        """Worker: answer the expired requests, then run the batch's requests together (one
+        cut) and answer each with its own results."""
+        for item in batch.expired:
             # The robot has finished this frame itself by now: computing it helps nobody.
-            error = ErrorReply.make(
-                ErrorCode.DEADLINE_EXPIRED,
-                f"frame {request.frame} waited {queue_s * 1000:.0f} ms for a worker, past its "
-                f"deadline of {request.deadline_s * 1000:.0f} ms",
+            request = item.payload.request
+            waited_s = batch.taken_at - item.arrived
+            self._answer_error(
+                item,
+                ErrorReply.make(
+                    ErrorCode.DEADLINE_EXPIRED,
+                    f"frame {request.frame} cannot be answered within its deadline of "
+                    f"{request.deadline_s * 1000:.0f} ms (it waited {waited_s * 1000:.0f} ms for "
+                    "a worker)",
+                ),
             )
-        if error is not None:
-            self._send(query, key, error.to_wire(), self._delay_s())
+        if not batch.items:
+            return
+        started = time.monotonic()
+        if self.closing.is_set():
+            stopping = ErrorReply.make(ErrorCode.NOT_SERVING, f"{self.deployment} is stopping")
+            for item in batch.items:
+                self._answer_error(item, stopping)
+            return
+        ready: list[tuple[Pending[_Job], dict[str, np.ndarray]]] = []
+        for item in batch.items:
+            request = item.payload.request
+            try:
+                # Decoding runs here, on a worker, not on Zenoh's callback thread.
+                ready.append((item, decode_tensors(request, self._cut_specs[request.cut])))
+            except WireError as exc:
+                self.throttled.warning(
+                    "%s: frame %d of %s: %s", self.deployment, request.frame, item.robot, exc.reason
+                )
+                self._release(item)
+                self._send(item.payload.query, item.payload.key, error_reply(exc), self._delay_s())
+        if not ready:
             return
         try:
-            # Decoding runs here, on a worker, not on Zenoh's callback thread.
-            tensors = decode_tensors(request, self._cut_specs[request.cut])
-        except WireError as exc:
-            self.throttled.warning(
-                "%s: frame %d of %s: %s", self.deployment, request.frame, robot, exc.reason
-            )
-            self._send(query, key, error_reply(exc), self._delay_s())
-            return
-        try:
-            outputs = self.model.run_suffix(request.cut, tensors)
+            outputs = self.model.run_suffix_batch(batch.group, [tensors for _, tensors in ready])
         except Exception as exc:
-            reason = f"suffix of cut {request.cut} failed: {ort_reason(exc)}"
-            log.warning("%s: frame %d of %s: %s", self.deployment, request.frame, robot, reason)
-            self._send(
-                query, key, ErrorReply.make(ErrorCode.INTERNAL, reason).to_wire(), self._delay_s()
+            reason = f"suffix of cut {batch.group} failed: {ort_reason(exc)}"
+            log.warning(
+                "%s: a batch of %d (%s): %s",
+                self.deployment,
+                len(ready),
+                ", ".join(f"{i.robot} frame {i.payload.request.frame}" for i, _ in ready),
+                reason,
             )
+            for item, _ in ready:
+                self._answer_error(item, ErrorReply.make(ErrorCode.INTERNAL, reason))
             return
         compute_s = time.monotonic() - started
+        self._costs.record(batch.group, len(ready), compute_s)
+        self.batch_stats.ran(len(ready))
+        for (item, _), result in zip(ready, outputs, strict=True):
+            self._answer(item, result, queue_s=started - item.arrived, compute_s=compute_s)
+
+    def _answer(
+        self,
+        item: Pending[_Job],
+        outputs: dict[str, np.ndarray],
+        *,
+        queue_s: float,
+        compute_s: float,
+    ) -> None:
+        job, robot = item.payload, item.robot
         with self._lock:
             epoch = self._states.get(robot).wire_epoch
+        self._release(item)
         reply = InferReply(
-            frame=request.frame,
+            frame=job.request.frame,
             deployment=self.deployment,
             epoch=epoch,
             outputs=outputs,
@@ -727,12 +857,22 @@ class CloudDaemon(Daemon):
             compute_s=compute_s,
         )
         self._send(
-            query,
-            key,
+            job.query,
+            job.key,
             reply.to_wire(),
             self._delay_s(),
-            on_sent=functools.partial(self._count_served, robot, request.frame, epoch),
+            on_sent=functools.partial(self._count_served, robot, job.request.frame, epoch),
         )
+
+    def _answer_error(self, item: Pending[_Job], error: ErrorReply) -> None:
+        self._release(item)
+        self._send(item.payload.query, item.payload.key, error.to_wire(), self._delay_s())
+
+    def _release(self, item: Pending[_Job]) -> None:
+        """Free the request's slot before its reply goes out (`FairQueue.release`)."""
+        queue = self._queue
+        if queue is not None:
+            queue.release(item)
 
     def _count_served(self, robot: str, frame: int, epoch: int) -> None:
         with self._lock:

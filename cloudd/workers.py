@@ -1,9 +1,11 @@
-"""The cloud daemon's threads: a bounded worker pool, and one timer thread for late actions.
+"""The cloud daemon's threads: the workers that run batches, and one timer thread for late actions.
 
-`WorkerPool`: a ThreadPoolExecutor with `workers` threads behind a slot counter of `workers +
-queue`. `try_submit` takes a slot or returns False at once, so a full deployment answers "busy"
-immediately (the robot then finishes the frame itself) instead of letting requests pile up past
-their deadlines. The slot is released when the job ends, whatever happens in it.
+`BatchWorkers`: `workers` threads, each taking the next batch from the daemon's `FairQueue`
+(`cloudd.batch_queue`, which admits or refuses requests at once, so a full deployment answers
+"busy" immediately instead of letting requests pile up past their deadlines) and running it.
+A batch's slots are released when its run ends, whatever happens in it. Stopping closes the
+queue: what was admitted is still handed out (the daemon answers it as stopping), then the
+threads end; a run stuck past the timeout does not hold the daemon's exit.
 
 `DelayedActions`: runs callables at a later time on one thread. Fault injection uses it to send
 delayed replies and to let go of queries it does not answer (dropped or stalled) when their
@@ -18,82 +20,68 @@ import logging
 import threading
 import time
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
+from typing import Generic, TypeVar
+
+from cloudd.batch_queue import Batch, FairQueue
 
 log = logging.getLogger(__name__)
+
+T = TypeVar("T")
 
 MAX_PENDING_ACTIONS = 10_000
 """Late actions held at most; past this an action runs at once (a reply is sent undelayed, a held
 query is let go), so a flood of requests cannot grow memory without bound."""
 
 
-class WorkerPool:
-    """`workers` threads and `queue` waiting slots; `try_submit` never blocks."""
+class BatchWorkers(Generic[T]):
+    """`workers` threads running `run(batch)` on the batches of `queue`."""
 
-    def __init__(self, workers: int, queue: int, *, name: str = "worker") -> None:
+    def __init__(
+        self,
+        queue: FairQueue[T],
+        run: Callable[[Batch[T]], None],
+        workers: int,
+        *,
+        name: str = "worker",
+    ) -> None:
         if workers < 1:
             raise ValueError(f"workers must be >= 1, got {workers}")
-        if queue < 0:
-            raise ValueError(f"queue must be >= 0, got {queue}")
+        self.queue = queue
         self.workers = workers
-        self.capacity = workers + queue
-        self._executor = ThreadPoolExecutor(max_workers=workers, thread_name_prefix=name)
-        self._cond = threading.Condition()
-        self._load = 0
-        self._closed = False
+        self._run = run
+        self._threads = [
+            threading.Thread(target=self._loop, name=f"{name}-{i}", daemon=True)
+            for i in range(workers)
+        ]
+        self._started = False
 
-    @property
-    def load(self) -> int:
-        """Jobs admitted and not finished (running or waiting for a worker)."""
-        with self._cond:
-            return self._load
+    def start(self) -> None:
+        """Start the threads (once)."""
+        if not self._started:
+            self._started = True
+            for thread in self._threads:
+                thread.start()
 
-    def try_submit(self, job: Callable[[], None]) -> bool:
-        """Run `job` on a worker if a slot is free; False (at once) when full or closed."""
-        with self._cond:
-            if self._closed or self._load >= self.capacity:
-                return False
-            self._load += 1
-        try:
-            self._executor.submit(self._run, job)
-        except RuntimeError:  # the executor shut down between the check and the submit
-            self._release()
-            return False
-        return True
-
-    def _run(self, job: Callable[[], None]) -> None:
-        try:
-            job()
-        except Exception:
-            # Jobs handle their own errors; one escaping here is a bug, but must not leak a slot.
-            log.exception("worker job failed")
-        finally:
-            self._release()
-
-    def _release(self) -> None:
-        with self._cond:
-            self._load -= 1
-            self._cond.notify_all()
-
-    def wait_idle(self, timeout_s: float) -> bool:
-        """Wait until no job is admitted; False if some still run after `timeout_s`."""
-        deadline = time.monotonic() + timeout_s
-        with self._cond:
-            while self._load > 0:
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    return False
-                self._cond.wait(left)
-            return True
+    def _loop(self) -> None:
+        while (batch := self.queue.get()) is not None:
+            try:
+                self._run(batch)
+            except Exception:
+                # Runs answer their own errors; one escaping here is a bug, but must not leak
+                # the batch's slots or end the worker.
+                log.exception("running a batch failed")
+            finally:
+                self.queue.done(batch)
 
     def shutdown(self, timeout_s: float) -> bool:
-        """Refuse new jobs, let admitted ones finish for up to `timeout_s`; True if all did."""
-        with self._cond:
-            self._closed = True
-        idle = self.wait_idle(timeout_s)
-        # Without waiting: a job stuck past the timeout must not hold the daemon's exit here.
-        self._executor.shutdown(wait=False, cancel_futures=False)
-        return idle
+        """Close the queue and let the threads finish what was admitted, for up to
+        `timeout_s`; True if every thread ended."""
+        self.queue.close()
+        deadline = time.monotonic() + timeout_s
+        for thread in self._threads:
+            if thread.is_alive() and thread is not threading.current_thread():
+                thread.join(max(0.0, deadline - time.monotonic()))
+        return not any(t.is_alive() for t in self._threads)
 
 
 class DelayedActions:

@@ -14,6 +14,14 @@ Two onnxruntime behaviours decide the session options (measured with onnxruntime
 its own convolution weights).
 Each session's CPU memory arena is off by default for the same reason: an arena keeps the
 session's peak activations resident, which would grow with K.
+
+A cloud daemon that batches requests (``enable_batching``) serves a cut's suffix with a batch
+axis: the partitioner writes every sub-model for one item, so the suffix is loaded into memory
+with axis 0 of its inputs and outputs made symbolic (and the batch-1 shapes of intermediate
+tensors dropped), built from those bytes with the same shared weights, and checked against
+one-item runs before it serves. A suffix that cannot take a batch (a scalar crossing, a reshape
+to a hard-coded batch of 1, results that differ) keeps running one request at a time, and the
+reason is returned so the daemon can say so.
 """
 
 from __future__ import annotations
@@ -28,7 +36,7 @@ import onnx
 import onnxruntime as ort
 from onnx import helper, numpy_helper
 
-from common.partition import Partition, TensorSpec, load_partition
+from common.partition import Partition, TensorSpec, load_partition, ort_reason, sample_feeds
 
 Optimization = Literal["extended", "all"]
 _LEVELS = {
@@ -36,6 +44,67 @@ _LEVELS = {
     "all": ort.GraphOptimizationLevel.ORT_ENABLE_ALL,
 }
 _ORT_LOG_ERROR = 3
+# Where a model built from bytes finds its external weights (onnxruntime session config key).
+_EXTERNAL_FOLDER_KEY = "session.model_external_initializers_file_folder_path"
+
+BATCH_DIM = "batch"
+"""The name given to axis 0 of a batched suffix's inputs and outputs."""
+BATCH_CHECK_ITEMS = 2
+"""Items stacked to check a batched suffix against one-item runs (different random inputs)."""
+BATCH_RTOL = 1e-4
+BATCH_ATOL = 1e-5
+"""Float tolerance of that check, the absolute part relative to the output's magnitude:
+onnxruntime may pick other kernels (another summation order) for a bigger batch."""
+
+
+class NotBatchable(Exception):
+    """A sub-model cannot run on a batch of items; the message says why."""
+
+
+def batch_axis_model(model: onnx.ModelProto) -> tuple[onnx.ModelProto, int]:
+    """A copy of ``model`` whose inputs and outputs take any number of items along axis 0, and
+    the rows one item has there (1 for the usual batch of one).
+
+    Every input and output must have the same static size on axis 0 (so a batch of items is
+    their concatenation and each item's result is its own rows of the outputs); otherwise
+    :class:`NotBatchable` names the tensor. Intermediate shapes recorded for one item
+    (``value_info``) are dropped: onnxruntime infers them again for the batch.
+    """
+    batched = onnx.ModelProto()
+    batched.CopyFrom(model)
+    graph = batched.graph
+    rows: set[int] = set()
+    for value in [*graph.input, *graph.output]:
+        if not value.type.HasField("tensor_type"):
+            raise NotBatchable(f"{value.name!r} is not a tensor")
+        dims = value.type.tensor_type.shape.dim
+        if len(dims) == 0:
+            raise NotBatchable(f"{value.name!r} is a scalar: it has no batch axis")
+        if not dims[0].HasField("dim_value") or dims[0].dim_value < 1:
+            raise NotBatchable(f"axis 0 of {value.name!r} has no static size")
+        rows.add(int(dims[0].dim_value))
+    if len(rows) != 1:
+        raise NotBatchable(
+            f"inputs and outputs disagree on axis 0 (sizes {', '.join(map(str, sorted(rows)))})"
+        )
+    for value in [*graph.input, *graph.output]:
+        dim = value.type.tensor_type.shape.dim[0]
+        dim.ClearField("dim_value")
+        dim.dim_param = BATCH_DIM
+    del graph.value_info[:]
+    return batched, rows.pop()
+
+
+def _same_results(expected: np.ndarray, got: np.ndarray) -> str | None:
+    """None if ``got`` equals ``expected`` within the batch tolerance, else how it differs."""
+    if expected.shape != got.shape or expected.dtype != got.dtype:
+        return f"shape/dtype {got.shape} {got.dtype}, expected {expected.shape} {expected.dtype}"
+    if not np.issubdtype(expected.dtype, np.floating):
+        return None if np.array_equal(expected, got) else "values differ"
+    scale = max(1.0, float(np.abs(expected).max(initial=0.0)))
+    if np.allclose(got, expected, rtol=BATCH_RTOL, atol=BATCH_ATOL * scale):
+        return None
+    return f"max abs difference {float(np.abs(got - expected).max()):.3g}"
 
 
 class SharedWeights:
@@ -111,6 +180,7 @@ class SplitModel:
         self._full: ort.InferenceSession | None = None
         self._prefix: dict[int, ort.InferenceSession] = {}
         self._suffix: dict[int, ort.InferenceSession] = {}
+        self._batch_rows: dict[int, int] = {}  # cut -> rows of one item, for batched suffixes
         if not lazy:
             self.build_all()
 
@@ -206,6 +276,90 @@ class SplitModel:
             raise ValueError(f"suffix of cut {k}: missing tensor(s) {', '.join(missing)}")
         return self._run(self._suffix_session(k), given, f"suffix of cut {k}", run_options)
 
+    def enable_batching(self, k: int, *, check_items: int = BATCH_CHECK_ITEMS) -> str | None:
+        """Serve cut ``k``'s suffix with a batch axis (see the module docstring), replacing its
+        one-item session. Returns None when it does, else why it cannot (the suffix then keeps
+        running one request at a time). Meant for startup, before the suffix serves."""
+        cut = self.partition.cut(k)
+        assert cut.suffix is not None
+        try:
+            batched, rows = batch_axis_model(onnx.load(str(cut.suffix), load_external_data=False))
+            session = self._session(batched)
+        except NotBatchable as exc:
+            return str(exc)
+        except Exception as exc:  # onnxruntime refuses the batched model
+            return f"onnxruntime cannot load it with a batch axis: {ort_reason(exc)}"
+        specs = self.cut_tensor_specs(k)
+        items = [sample_feeds(specs, seed=seed) for seed in range(check_items)]
+        try:
+            expected = [self.run_suffix(k, item) for item in items]
+            outputs = self._run(session, self._stack(items), f"batched suffix of cut {k}")
+            got = self._split(outputs, rows, len(items))
+        except Exception as exc:
+            return f"a batch of {check_items} fails: {ort_reason(exc)}"
+        for i, (want, have) in enumerate(zip(expected, got, strict=True)):
+            for name, value in want.items():
+                problem = _same_results(value, have[name])
+                if problem is not None:
+                    return f"item {i} of a batch differs from its own run on {name!r}: {problem}"
+        with self._lock:
+            self._suffix[k] = session
+            self._batch_rows[k] = rows
+        return None
+
+    def batched(self, k: int) -> bool:
+        """Whether cut ``k``'s suffix takes a batch (``enable_batching`` succeeded)."""
+        with self._lock:
+            return k in self._batch_rows
+
+    def run_suffix_batch(
+        self,
+        k: int,
+        items: Sequence[Mapping[str, np.ndarray]],
+        *,
+        run_options: ort.RunOptions | None = None,
+    ) -> list[dict[str, np.ndarray]]:
+        """Cut ``k``'s suffix on several items (each the cut's tensors, as ``run_suffix`` takes
+        them) in one run when the suffix takes a batch, else one run per item. Each result is
+        that item's own rows of the outputs."""
+        with self._lock:
+            rows = self._batch_rows.get(k)
+        if rows is None or len(items) == 1:
+            return [self.run_suffix(k, item, run_options=run_options) for item in items]
+        cut = self.partition.cut(k)
+        for item in items:
+            missing = [name for name in cut.tensors if name not in item]
+            if missing:
+                raise ValueError(f"suffix of cut {k}: missing tensor(s) {', '.join(missing)}")
+            bad = [n for n in cut.tensors if np.ndim(item[n]) == 0 or len(item[n]) != rows]
+            if bad:
+                raise ValueError(
+                    f"suffix of cut {k}: {', '.join(bad)} must have {rows} row(s) on axis 0"
+                )
+        outputs = self._run(
+            self._suffix_session(k), self._stack(items), f"batched suffix of cut {k}", run_options
+        )
+        return self._split(outputs, rows, len(items))
+
+    @staticmethod
+    def _stack(items: Sequence[Mapping[str, np.ndarray]]) -> dict[str, np.ndarray]:
+        return {name: np.concatenate([item[name] for item in items]) for name in items[0]}
+
+    @staticmethod
+    def _split(
+        outputs: Mapping[str, np.ndarray], rows: int, count: int
+    ) -> list[dict[str, np.ndarray]]:
+        for name, value in outputs.items():
+            if np.ndim(value) == 0 or len(value) != rows * count:
+                shape = np.shape(value)
+                raise ValueError(
+                    f"output {name!r} has shape {shape} for {count} item(s) of {rows} row(s)"
+                )
+        return [
+            {name: value[i * rows : (i + 1) * rows] for name, value in outputs.items()}
+            for i in range(count)
+        ]
+
     def build_all(self) -> None:
         """Build every session now (startup cost paid once, nothing built on the frame path)."""
         self._full_session()
@@ -274,7 +428,9 @@ class SplitModel:
                 session = self._suffix[k] = self._session(cut.suffix)
             return session
 
-    def _session(self, path: Path) -> ort.InferenceSession:
+    def _session(self, model: Path | onnx.ModelProto) -> ort.InferenceSession:
+        """A session of a model file, or of a model in memory (its external weights are then
+        found in the split's directory, and all of them are the shared ones anyway)."""
         opts = ort.SessionOptions()
         opts.log_severity_level = _ORT_LOG_ERROR
         opts.graph_optimization_level = _LEVELS[self.optimization]
@@ -291,4 +447,7 @@ class SplitModel:
         # Every session gets every shared weight; onnxruntime ignores the ones a sub-model lacks.
         for name, value in self.weights.values.items():
             opts.add_initializer(name, value)
-        return ort.InferenceSession(str(path), opts, providers=self.providers)
+        if isinstance(model, onnx.ModelProto):
+            opts.add_session_config_entry(_EXTERNAL_FOLDER_KEY, str(self.partition.dir))
+            return ort.InferenceSession(model.SerializeToString(), opts, providers=self.providers)
+        return ort.InferenceSession(str(model), opts, providers=self.providers)

@@ -5,6 +5,9 @@ docs/experiments.md): it brings a testbed up, runs the real daemons inside its h
 robot's uplink or CPU quota while the robot streams, prints a markdown table on stdout (or
 `--json`), writes PNG plots into docs/img/, and always removes the testbed again, also on Ctrl-C.
 Progress goes to stderr. `--quick` runs short.
+
+`scale` is the exception: it runs on loopback without root (a registry and cloud daemons as
+subprocesses, emulated robots from a load generator; see docs/scale.md).
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ import typer
 from rich.console import Console
 
 from common.errors import UserError
+from deploy.experiments import scale_defaults
 from deploy.experiments.defaults import DEFAULT_INPUT_SHAPE, DEFAULT_MODEL, DEFAULT_ROBOT_CPU
 
 bench_app = typer.Typer(
@@ -339,3 +343,123 @@ def anycast(
     from deploy.experiments import anycast as ac
 
     _run(options, lambda: ac.run(options), ac.markdown, ac.plot, as_json)
+
+
+@bench_app.command("scale")
+def scale(
+    robots: str = typer.Option(
+        ",".join(map(str, scale_defaults.ROBOTS)), "--robots", help="Robot counts, comma-separated."
+    ),
+    deployments: str = typer.Option(
+        ",".join(map(str, scale_defaults.DEPLOYMENTS)),
+        "--deployments",
+        help="Deployment counts, comma-separated.",
+    ),
+    batching: str = typer.Option(
+        "both", "--batching", help="on, off, or both side by side (off first)."
+    ),
+    fps: float = typer.Option(scale_defaults.FPS, "--fps", help="Frames per second per robot."),
+    duration_s: float | None = typer.Option(
+        None, "--duration-s", help="Measured seconds per cell (default 10, 4 with --quick)."
+    ),
+    warmup_s: float | None = typer.Option(
+        None, "--warmup-s", help="Seconds before measuring (default 2, 1 with --quick)."
+    ),
+    cut: int = typer.Option(scale_defaults.CUT, "--cut", help="The cut the robots offload at."),
+    codec: str = typer.Option(scale_defaults.CODEC, "--codec", help="Codec of the cut's tensors."),
+    workers: int = typer.Option(
+        scale_defaults.WORKERS, "--workers", help="Workers per deployment."
+    ),
+    threads: int = typer.Option(
+        scale_defaults.THREADS, "--threads", help="onnxruntime threads per session (0: its own)."
+    ),
+    queue: int = typer.Option(
+        scale_defaults.QUEUE, "--queue", help="Waiting slots per deployment beyond its workers."
+    ),
+    max_queue_delay_ms: float = typer.Option(
+        scale_defaults.MAX_QUEUE_DELAY_MS, "--max-queue-delay-ms", help="Batching: longest wait."
+    ),
+    batch_sizes: str = typer.Option(
+        ",".join(map(str, scale_defaults.BATCH_SIZES)),
+        "--batch-sizes",
+        help="Batching: preferred batch sizes (the largest is the biggest batch).",
+    ),
+    max_in_flight: int = typer.Option(
+        scale_defaults.MAX_IN_FLIGHT_PER_ROBOT,
+        "--max-in-flight",
+        help="Requests one robot may have admitted at a deployment.",
+    ),
+    deadline_s: float = typer.Option(
+        scale_defaults.DEADLINE_S, "--deadline-s", help="Each frame's deadline, seconds."
+    ),
+    bound_s: float = typer.Option(
+        scale_defaults.BOUND_S, "--bound-s", help="Latency bound (p95), seconds."
+    ),
+    fairness: bool = typer.Option(
+        False,
+        "--fairness",
+        help="Instead: one robot beside a polite neighbour and beside one sending as fast as it "
+        "can, with the --max-in-flight limit and without one.",
+    ),
+    quick: bool = QUICK_OPTION,
+    model: str = typer.Option(scale_defaults.MODEL, "--model", help="zoo:NAME or an ONNX file."),
+    input_shape: str = typer.Option(
+        "x".join(map(str, scale_defaults.INPUT_SHAPE)), "--input-shape", help="Camera image CxHxW."
+    ),
+    plots_dir: Path = PLOTS_OPTION,
+    no_plots: bool = NO_PLOTS_OPTION,
+    workdir: Path | None = WORKDIR_OPTION,
+    as_json: bool = JSON_OPTION,
+) -> None:
+    """Many robots on this host (loopback, no root): what the cloud serves, with and without
+    batching, as robots and deployments are added (emulated robots, real cloud daemons)."""
+    from common.zoo import parse_shape
+    from deploy.experiments import scale as sc
+
+    err = Console(stderr=True)
+
+    def build() -> Any:
+        options = sc.ScaleOptions(
+            robots=sc.parse_counts(robots, "--robots"),
+            deployments=sc.parse_counts(deployments, "--deployments"),
+            batching=sc.parse_batching(batching),
+            model=model,
+            input_shape=parse_shape(input_shape),
+            fps=fps,
+            warmup_s=warmup_s
+            if warmup_s is not None
+            else (scale_defaults.QUICK_WARMUP_S if quick else scale_defaults.WARMUP_S),
+            duration_s=duration_s
+            if duration_s is not None
+            else (scale_defaults.QUICK_DURATION_S if quick else scale_defaults.DURATION_S),
+            cut=cut,
+            codec=codec,
+            deadline_s=deadline_s,
+            bound_s=bound_s,
+            workers=workers,
+            threads=threads,
+            queue=queue,
+            max_queue_delay_ms=max_queue_delay_ms,
+            batch_sizes=sc.parse_counts(batch_sizes, "--batch-sizes"),
+            max_in_flight_per_robot=max_in_flight,
+            workdir=workdir,
+            log=lambda message: err.print(f"[dim]bench:[/dim] {message}", highlight=False),
+        )
+        options.check()
+        return options
+
+    options = _guard(build)
+    try:
+        result = sc.run_fairness(options) if fairness else sc.run(options)
+    except UserError as exc:
+        _fail(exc)
+    except KeyboardInterrupt:
+        err.print("interrupted; every daemon is gone", highlight=False)
+        raise typer.Exit(INTERRUPTED_EXIT_CODE) from None
+    if fairness:
+        typer.echo(json.dumps(result) if as_json else sc.fairness_markdown(result))
+        return
+    if not no_plots and result["results"]:
+        for path in sc.plot(result, plots_dir):
+            err.print(f"plot: {path}", highlight=False)
+    typer.echo(json.dumps(result) if as_json else sc.markdown(result))

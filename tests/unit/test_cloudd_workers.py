@@ -1,4 +1,5 @@
-"""The cloud daemon's worker pool (bounded, busy at once) and its timer thread; fault settings."""
+"""The cloud daemon's workers (over its fair queue: refused at once when full, slots released
+whatever a run does, admitted work finished at shutdown) and its timer thread; fault settings."""
 
 from __future__ import annotations
 
@@ -7,79 +8,104 @@ import time
 
 import pytest
 
+from cloudd.batch_queue import Batch, BatchPolicy, FairQueue, Pending, Refusal
 from cloudd.faults import FaultInjector, describe
-from cloudd.workers import DelayedActions, WorkerPool
+from cloudd.workers import BatchWorkers, DelayedActions
 from common.wire.registry import FaultSpec
 
 WAIT_S = 5.0
+FAR_S = 60.0
 
 
-def test_pool_refuses_at_once_when_every_slot_is_taken() -> None:
-    pool = WorkerPool(workers=1, queue=1)
+def pending(robot: str, n: int) -> Pending[int]:
+    now = time.monotonic()
+    return Pending(robot=robot, group=0, arrived=now, deadline_at=now + FAR_S, payload=n)
+
+
+def unbatched(slots: int, per_robot: int = 8) -> FairQueue[int]:
+    return FairQueue(BatchPolicy((1,), 0.0, per_robot), slots=slots)
+
+
+def test_a_full_queue_refuses_at_once_and_slots_come_back() -> None:
+    queue = unbatched(slots=2)
     release = threading.Event()
     started = threading.Event()
     ran: list[int] = []
 
-    def job(n: int) -> None:
+    def run(batch: Batch[int]) -> None:
         started.set()
         release.wait(WAIT_S)
-        ran.append(n)
+        ran.extend(item.payload for item in batch.items)
 
+    workers = BatchWorkers(queue, run, workers=1)
+    workers.start()
     try:
-        assert pool.try_submit(lambda: job(1))
+        assert queue.offer(pending("a", 1)) is None
         assert started.wait(WAIT_S)
-        assert pool.try_submit(lambda: job(2)), "the queue slot"
+        assert queue.offer(pending("b", 2)) is None, "the waiting slot"
         t0 = time.monotonic()
-        assert not pool.try_submit(lambda: job(3)), "full: refused"
+        assert queue.offer(pending("c", 3)) is Refusal.FULL
         assert time.monotonic() - t0 < 0.1, "refusal does not wait"
-        assert (pool.load, pool.capacity) == (2, 2)
+        assert (queue.load, queue.capacity) == (2, 2)
         release.set()
-        assert pool.wait_idle(WAIT_S)
-        assert sorted(ran) == [1, 2] and pool.load == 0
-        assert pool.try_submit(lambda: None), "slots come back"
+        assert workers.shutdown(WAIT_S)
+        assert sorted(ran) == [1, 2] and queue.load == 0
+        assert queue.offer(pending("a", 4)) is Refusal.CLOSED
     finally:
         release.set()
-        pool.shutdown(WAIT_S)
+        workers.shutdown(WAIT_S)
 
 
-def test_a_failing_job_releases_its_slot() -> None:
-    pool = WorkerPool(workers=1, queue=0)
+def test_a_failing_run_releases_its_slots_and_the_worker_goes_on() -> None:
+    queue = unbatched(slots=1)
+    ran = threading.Event()
+    calls: list[int] = []
 
-    def boom() -> None:
-        raise RuntimeError("job bug")
+    def run(batch: Batch[int]) -> None:
+        calls.append(batch.items[0].payload)
+        if len(calls) == 1:
+            raise RuntimeError("run bug")
+        ran.set()
 
+    workers = BatchWorkers(queue, run, workers=1)
+    workers.start()
     try:
-        assert pool.try_submit(boom)
-        assert pool.wait_idle(WAIT_S)
-        assert pool.load == 0
+        assert queue.offer(pending("a", 1)) is None
+        deadline = time.monotonic() + WAIT_S
+        while queue.offer(pending("a", 2)) is not None:  # admitted once the first slot is free
+            assert time.monotonic() < deadline, "the failed run's slot never came back"
+        assert ran.wait(WAIT_S) and calls == [1, 2]
     finally:
-        pool.shutdown(WAIT_S)
+        workers.shutdown(WAIT_S)
 
 
-def test_shutdown_lets_admitted_jobs_finish_then_refuses() -> None:
-    pool = WorkerPool(workers=1, queue=2)
+def test_shutdown_finishes_admitted_requests_then_refuses() -> None:
+    queue = unbatched(slots=3)
     done: list[int] = []
+    workers = BatchWorkers(queue, lambda b: done.extend(i.payload for i in b.items), workers=1)
     for n in range(3):
-        assert pool.try_submit(lambda n=n: done.append(n))  # type: ignore[misc]
-    assert pool.shutdown(WAIT_S)
+        assert queue.offer(pending(f"r{n}", n)) is None
+    workers.start()
+    assert workers.shutdown(WAIT_S)
     assert sorted(done) == [0, 1, 2]
-    assert not pool.try_submit(lambda: None)
+    assert queue.offer(pending("r0", 9)) is Refusal.CLOSED
 
 
-def test_shutdown_gives_up_on_a_stuck_job_after_its_timeout() -> None:
-    pool = WorkerPool(workers=1, queue=0)
+def test_shutdown_gives_up_on_a_stuck_run_after_its_timeout() -> None:
+    queue = unbatched(slots=1)
     release = threading.Event()
-    assert pool.try_submit(lambda: release.wait(WAIT_S) and None)
+    workers = BatchWorkers(queue, lambda b: release.wait(WAIT_S) and None, workers=1)
+    workers.start()
+    assert queue.offer(pending("a", 1)) is None
     t0 = time.monotonic()
-    assert not pool.shutdown(0.1)
+    assert not workers.shutdown(0.1)
     assert time.monotonic() - t0 < 1.0
     release.set()
 
 
-@pytest.mark.parametrize(("workers", "queue"), [(0, 1), (1, -1)])
-def test_pool_sizes_are_checked(workers: int, queue: int) -> None:
+def test_worker_count_is_checked() -> None:
     with pytest.raises(ValueError):
-        WorkerPool(workers=workers, queue=queue)
+        BatchWorkers(unbatched(slots=1), lambda b: None, workers=0)
 
 
 def test_delayed_actions_run_in_due_order_after_their_delay() -> None:

@@ -1,0 +1,562 @@
+"""Many robots on this host (`elasticfog bench scale`): what the cloud serves as robots are added.
+
+Loopback, no root. For each number of deployments and each batching mode, a fleet is started as
+a user would start it (`elasticfog registry` and one `elasticfog cloud` per deployment, real
+subprocesses), and for each number of robots a load generator (`deploy.load_generator`, as
+Triton's perf_analyzer drives a server) emulates the robots: each declares its liveliness token,
+is routed by the registry, and sends real inference requests over Zenoh to its anycast service
+key at the robot frame rate, one frame at a time, with the fleet's deadline. The robots are
+emulated, not robot daemons: they run no prefix, no policy and publish no telemetry, and a frame
+the cloud does not serve (busy, error, timeout) is counted, not finished locally.
+
+Routing: the fleet's initial_policy puts robot i in service on deployment i mod D, and the
+registry places each robot there when its token appears (the registry's own placement; with no
+telemetry nothing moves a robot afterwards), so with two deployments each serves half.
+
+Per cell (robots x deployments x batching), over a window after a warm-up: frames per second
+served by the cloud, the served frames' latency (median, p95; send to reply, as the robot sees
+the cloud part of a frame), the rates of busy and timeout replies, each deployment's share of
+the served frames, and the cloud daemons' CPU seconds (user + system, read from /proc through
+psutil) per served frame, hence frames per second per core. Each configuration's daemons are
+started once and serve its robot counts in turn.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import shutil
+import statistics
+import tempfile
+import threading
+import time
+import uuid
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import psutil
+
+from common.config import FleetConfig, load_fleet
+from common.errors import UserError
+from deploy.load_generator import LoadGenerator, summarize
+from deploy.procs import DaemonProc, LocalFleet, write_local_fleet
+
+from . import scale_defaults as defaults
+from .neighbour import NeighbourProcess
+from .report import fmt, md_table, save_plot, use_agg
+
+LOAD_KIND = "load generator (emulated robots; real Zenoh requests to real cloud daemons)"
+ROUTED_TIMEOUT_S = 60.0
+"""How long every robot of a cell may take to be routed and have a first frame served."""
+MUST_SHOW_ROBOTS = 8
+MUST_SHOW_RATIO = 1.5
+"""The issue's bar: frames/s per core with batching >= 1.5x without, at 8 robots, 1 deployment."""
+
+
+@dataclass
+class ScaleOptions:
+    """What `elasticfog bench scale` runs (the defaults are the issue's setting)."""
+
+    robots: Sequence[int] = defaults.ROBOTS
+    deployments: Sequence[int] = defaults.DEPLOYMENTS
+    batching: Sequence[bool] = (False, True)
+    model: str = defaults.MODEL
+    input_shape: tuple[int, ...] = defaults.INPUT_SHAPE
+    fps: float = defaults.FPS
+    warmup_s: float = defaults.WARMUP_S
+    duration_s: float = defaults.DURATION_S
+    cut: int = defaults.CUT
+    codec: str = defaults.CODEC
+    deadline_s: float = defaults.DEADLINE_S
+    bound_s: float = defaults.BOUND_S
+    """The fleet's latency bound (p95 of the frames' latency), seconds."""
+    workers: int = defaults.WORKERS
+    threads: int = defaults.THREADS
+    queue: int = defaults.QUEUE
+    max_queue_delay_ms: float = defaults.MAX_QUEUE_DELAY_MS
+    batch_sizes: Sequence[int] = defaults.BATCH_SIZES
+    max_in_flight_per_robot: int = defaults.MAX_IN_FLIGHT_PER_ROBOT
+    workdir: Path | None = None
+    log: Callable[[str], None] = field(default=lambda message: None)
+
+    def check(self) -> None:
+        if not self.robots or min(self.robots) < 1:
+            raise UserError("--robots: expected positive counts, e.g. 1,2,4,8")
+        if not self.deployments or min(self.deployments) < 1:
+            raise UserError("--deployments: expected positive counts, e.g. 1,2")
+        for name, value in (
+            ("--fps", self.fps),
+            ("--duration-s", self.duration_s),
+            ("--deadline-s", self.deadline_s),
+            ("--bound-s", self.bound_s),
+        ):
+            if not value > 0:
+                raise UserError(f"{name} {value:g}: expected a positive number")
+        if self.warmup_s < 0:
+            raise UserError(f"--warmup-s {self.warmup_s:g}: expected >= 0")
+        if self.workers < 1 or self.queue < 0 or self.threads < 0:
+            raise UserError("--workers >= 1, --queue >= 0 and --threads >= 0 are expected")
+
+
+def parse_counts(text: str, what: str) -> list[int]:
+    """'1,2,4' -> [1, 2, 4]; a UserError naming `what` for anything else."""
+    counts = []
+    for part in (p.strip() for p in text.split(",")):
+        if not part.isdigit() or int(part) < 1:
+            raise UserError(f"{what}: {part!r} is not a positive whole number (e.g. 1,2,4)")
+        counts.append(int(part))
+    return list(dict.fromkeys(counts))
+
+
+def parse_batching(text: str) -> list[bool]:
+    """--batching on|off|both -> the modes to run (off first: the baseline)."""
+    modes = {"on": [True], "off": [False], "both": [False, True]}
+    if text not in modes:
+        raise UserError(f"--batching {text!r}: expected on, off or both")
+    return modes[text]
+
+
+def cloud_ids(deployments: int) -> list[str]:
+    return [f"edge-{i}" for i in range(1, deployments + 1)]
+
+
+def robot_ids(robots: int) -> list[str]:
+    return [f"robot-{i}" for i in range(1, robots + 1)]
+
+
+def fleet_changes(options: ScaleOptions, deployments: int, batching: bool) -> dict[str, Any]:
+    """What the bench changes in `elasticfog init`'s fleet: the model, the deadline and bound,
+    the deployments (workers, batching) and the robots, robot i served by deployment i mod D."""
+    clouds = cloud_ids(deployments)
+    robots = robot_ids(max(options.robots))
+    section = {
+        "enabled": batching,
+        "max_queue_delay_ms": options.max_queue_delay_ms,
+        "preferred_batch_sizes": list(options.batch_sizes),
+        "max_in_flight_per_robot": options.max_in_flight_per_robot,
+    }
+    machines: dict[str, Any] = {
+        cloud: {
+            "role": "cloud",
+            "listen": ["tcp/127.0.0.1:0"],
+            "workers": options.workers,
+            "threads": options.threads,
+            "queue": options.queue,
+            "batching": section,
+        }
+        for cloud in clouds
+    }
+    machines.update({r: {"role": "robot", "listen": ["tcp/127.0.0.1:0"]} for r in robots})
+    policy: dict[str, Any] = {r: "robot" for r in robots}
+    for i, cloud in enumerate(clouds):
+        policy[cloud] = {
+            r: "service" if j % deployments == i else "standby" for j, r in enumerate(robots)
+        }
+    return {
+        "input_shape": list(options.input_shape),
+        "deadline_s": options.deadline_s,
+        "latency_bound": {"stat": "p95", "seconds": options.bound_s},
+        "policy": {"kind": "cloud"},
+        "machines": machines,
+        "initial_policy": policy,
+    }
+
+
+@contextlib.contextmanager
+def running_fleet(
+    options: ScaleOptions, workdir: Path, deployments: int, batching: bool, label: str = ""
+) -> Iterator[tuple[FleetConfig, list[DaemonProc]]]:
+    """A registry and `deployments` cloud daemons of a fresh fleet, ready, stopped on exit."""
+    label = label or f"d{deployments}-{'on' if batching else 'off'}"
+    directory = workdir / label
+    path = write_local_fleet(
+        directory,
+        fleet=f"scale-{uuid.uuid4().hex[:8]}",
+        model=options.model,
+        changes=fleet_changes(options, deployments, batching),
+    )
+    cfg = load_fleet(path)
+    with LocalFleet(path, directory, startup_timeout_s=ROUTED_TIMEOUT_S) as lf:
+        options.log(f"{label}: starting the registry and {deployments} cloud daemon(s)")
+        lf.start_registry()
+        clouds = lf.start_clouds(cloud_ids(deployments))
+        yield cfg, clouds
+
+
+def cpu_seconds(procs: Sequence[DaemonProc]) -> dict[str, float]:
+    """User + system CPU seconds each daemon has used so far."""
+    out = {}
+    for proc in procs:
+        times = psutil.Process(proc.pid).cpu_times()
+        out[proc.name] = float(times.user + times.system)
+    return out
+
+
+def run_cell(
+    options: ScaleOptions,
+    cfg: FleetConfig,
+    clouds: Sequence[DaemonProc],
+    robots: int,
+    deployments: int,
+    batching: bool,
+) -> dict[str, Any]:
+    """One cell: `robots` emulated robots against the running deployments."""
+    pause = threading.Event()  # a timed measurement window, not a wait for readiness
+    with LoadGenerator(
+        cfg, robot_ids(robots), fps=options.fps, cut=options.cut, codec=options.codec
+    ) as gen:
+        gen.wait_served(ROUTED_TIMEOUT_S)
+        pause.wait(options.warmup_s)
+        t0, cpu0 = time.monotonic(), cpu_seconds(clouds)
+        pause.wait(options.duration_s)
+        t1, cpu1 = time.monotonic(), cpu_seconds(clouds)
+    # Read after the robots stopped: frames sent in the window and answered after it count.
+    figures = summarize(gen.records(t0, t1), t1 - t0)
+    cpu_s = {name: cpu1[name] - cpu0[name] for name in cpu1}
+    total_cpu_s = sum(cpu_s.values())
+    served = figures["served"]
+    p95 = figures["p95_latency_s"]
+    return {
+        "robots": robots,
+        "deployments": deployments,
+        "batching": "on" if batching else "off",
+        "served_fps": figures["served_fps"],
+        "p50_latency_s": figures["p50_latency_s"],
+        "p95_latency_s": p95,
+        "busy_rate": figures["busy_rate"],
+        "timeout_rate": figures["timeout_rate"],
+        "by_deployment": figures["by_deployment"],
+        "error_rate": figures["error_rate"],
+        "frames": figures["frames"],
+        "offered_fps": figures["frames"] / (t1 - t0),
+        "window_s": t1 - t0,
+        "cloud_cpu_s": total_cpu_s,
+        "cloud_cpu_s_by_deployment": cpu_s,
+        "cloud_cpu_per_frame_s": total_cpu_s / served if served else None,
+        "served_fps_per_core": served / total_cpu_s if total_cpu_s > 0 else None,
+        "p95_within_bound": p95 is not None and p95 <= options.bound_s,
+    }
+
+
+def run(options: ScaleOptions) -> dict[str, Any]:
+    """Every cell; batching modes side by side for each deployment count."""
+    options.check()
+    own = options.workdir is None
+    workdir = options.workdir or Path(tempfile.mkdtemp(prefix="elasticfog-scale-"))
+    results: list[dict[str, Any]] = []
+    ok = False
+    try:
+        for deployments in options.deployments:
+            for batching in options.batching:
+                with running_fleet(options, workdir, deployments, batching) as (cfg, clouds):
+                    for robots in options.robots:
+                        cell = run_cell(options, cfg, clouds, robots, deployments, batching)
+                        options.log(_progress(cell))
+                        results.append(cell)
+        ok = True
+    finally:
+        if own and ok:
+            shutil.rmtree(workdir, ignore_errors=True)
+        elif own:
+            options.log(f"logs kept in {workdir}")
+    return {"load": LOAD_KIND, "settings": _settings(options), "results": results}
+
+
+# -- fairness ------------------------------------------------------------------------------------
+def measure_fairness(
+    cfg: FleetConfig,
+    victim: str,
+    neighbour: str,
+    *,
+    fps: float,
+    rounds: int = defaults.FAIRNESS_ROUNDS,
+    phase_s: float = defaults.FAIRNESS_PHASE_S,
+    hog_in_flight: int = defaults.FAIRNESS_HOG_IN_FLIGHT,
+    cut: int = 0,
+    codec: str = "raw",
+    log: Callable[[str], None] = lambda message: None,
+) -> dict[str, Any]:
+    """The victim's latency beside a polite neighbour and beside a hog, on one deployment.
+
+    The victim sends at `fps` all along, from this process; the neighbour runs in a process of
+    its own (`neighbour`). Phases alternate, `rounds` times: the neighbour sends at `fps` too
+    (polite), then as fast as it can with `hog_in_flight` frames in flight (hog). Alternating
+    short phases and taking the median of each kind's p95 keeps a drifting load on the host
+    (other processes) from deciding the comparison."""
+    if cfg.source_path is None:
+        raise ValueError("the fleet must come from a file (the neighbour process loads it)")
+    pause = threading.Event()  # timed measurement windows, not waits for readiness
+    phases: list[tuple[str, float, float, dict[str, Any]]] = []
+    with (
+        LoadGenerator(cfg, [victim], fps=fps, cut=cut, codec=codec) as victim_gen,
+        NeighbourProcess(str(cfg.source_path), neighbour, cut=cut, codec=codec) as other,
+    ):
+        victim_gen.wait_served(ROUTED_TIMEOUT_S)
+        for round_ in range(rounds):
+            for kind in ("polite", "hog"):
+                hog = kind == "hog"
+                other.start_phase(None if hog else fps, hog_in_flight if hog else 1, round_)
+                t0 = time.monotonic()
+                pause.wait(phase_s)
+                t1 = time.monotonic()
+                phases.append((kind, t0, t1, other.stop_phase()))
+    rows = []
+    for kind, t0, t1, theirs in phases:
+        mine = summarize(victim_gen.records(t0, t1), t1 - t0)
+        rows.append(
+            {
+                "phase": kind,
+                "victim_p50_latency_s": mine["p50_latency_s"],
+                "victim_p95_latency_s": mine["p95_latency_s"],
+                "victim_p95_queue_s": mine["p95_queue_s"],
+                "victim_p95_compute_s": mine["p95_compute_s"],
+                "victim_busy_rate": mine["busy_rate"],
+                "victim_frames": mine["frames"],
+                "neighbour_served_fps": theirs["served_fps"],
+                "neighbour_busy_rate": theirs["busy_rate"],
+            }
+        )
+        log(
+            f"fairness {kind}: victim p95 {fmt(mine['p95_latency_s'], 4)} s (queue "
+            f"{fmt(mine['p95_queue_s'], 4)}, compute {fmt(mine['p95_compute_s'], 4)}), neighbour "
+            f"{theirs['served_fps']:.0f} frames/s served, busy {100 * theirs['busy_rate']:.0f}%"
+        )
+
+    def median_of(kind: str, key: str) -> float | None:
+        values = [r[key] for r in rows if r["phase"] == kind and r[key] is not None]
+        return statistics.median(values) if values else None
+
+    polite = median_of("polite", "victim_p95_latency_s")
+    hogged = median_of("hog", "victim_p95_latency_s")
+    return {
+        "phases": rows,
+        "polite_p95_s": polite,
+        "hog_p95_s": hogged,
+        "ratio": hogged / polite if polite and hogged is not None else None,
+        "hog_busy_rate": median_of("hog", "neighbour_busy_rate"),
+        "hog_served_fps": median_of("hog", "neighbour_served_fps"),
+        "victim_busy_rate": max(r["victim_busy_rate"] for r in rows),
+    }
+
+
+def run_fairness(options: ScaleOptions) -> dict[str, Any]:
+    """The victim beside a polite neighbour and a hog on one deployment, with the per-robot
+    in-flight limit (`options.max_in_flight_per_robot`) and without one (every slot)."""
+    options.check()
+    own = options.workdir is None
+    workdir = options.workdir or Path(tempfile.mkdtemp(prefix="elasticfog-fairness-"))
+    unlimited = options.workers * max(options.batch_sizes) + options.queue
+    results = []
+    ok = False
+    try:
+        for batching in options.batching:
+            for limit in (options.max_in_flight_per_robot, unlimited):
+                limited = dataclasses.replace(options, robots=(2,), max_in_flight_per_robot=limit)
+                label = f"fairness-{'on' if batching else 'off'}-limit{limit}"
+                with running_fleet(limited, workdir, 1, batching, label) as (cfg, _):
+                    figures = measure_fairness(
+                        cfg,
+                        "robot-1",
+                        "robot-2",
+                        fps=options.fps,
+                        cut=options.cut,
+                        codec=options.codec,
+                        log=options.log,
+                    )
+                results.append(
+                    {
+                        "batching": "on" if batching else "off",
+                        "max_in_flight_per_robot": limit,
+                        **figures,
+                    }
+                )
+        ok = True
+    finally:
+        if own and ok:
+            shutil.rmtree(workdir, ignore_errors=True)
+        elif own:
+            options.log(f"logs kept in {workdir}")
+    return {"load": LOAD_KIND, "settings": _settings(options), "fairness": results}
+
+
+def fairness_markdown(result: dict[str, Any]) -> str:
+    settings = result["settings"]
+    header = [
+        "batching",
+        "per-robot limit",
+        "victim p95, polite neighbour (s)",
+        "victim p95, hog (s)",
+        "ratio",
+        "hog served frames/s",
+        "hog busy",
+        "victim busy",
+    ]
+    rows = [
+        [
+            r["batching"],
+            r["max_in_flight_per_robot"],
+            fmt(r["polite_p95_s"], 4),
+            fmt(r["hog_p95_s"], 4),
+            fmt(r["ratio"], 2),
+            fmt(r["hog_served_fps"], 0),
+            f"{100 * (r['hog_busy_rate'] or 0):.0f}%",
+            f"{100 * r['victim_busy_rate']:.0f}%",
+        ]
+        for r in result["fairness"]
+    ]
+    return (
+        f"Load: {result['load']}; {settings['model']} at "
+        f"{'x'.join(map(str, settings['input_shape']))}; the victim and the polite neighbour "
+        f"send {settings['fps_per_robot']:g} fps, the hog as fast as it can with "
+        f"{defaults.FAIRNESS_HOG_IN_FLIGHT} frames in flight; medians of "
+        f"{defaults.FAIRNESS_ROUNDS} alternating phases of {defaults.FAIRNESS_PHASE_S:g} s; "
+        f"{settings['workers']} workers.\n\n" + md_table(header, rows) + "\n"
+    )
+
+
+def _settings(options: ScaleOptions) -> dict[str, Any]:
+    return {
+        "model": options.model,
+        "input_shape": list(options.input_shape),
+        "cut": options.cut,
+        "codec": options.codec,
+        "fps_per_robot": options.fps,
+        "warmup_s": options.warmup_s,
+        "duration_s": options.duration_s,
+        "deadline_s": options.deadline_s,
+        "bound_p95_s": options.bound_s,
+        "workers": options.workers,
+        "threads": options.threads,
+        "queue": options.queue,
+        "max_queue_delay_ms": options.max_queue_delay_ms,
+        "preferred_batch_sizes": list(options.batch_sizes),
+        "max_in_flight_per_robot": options.max_in_flight_per_robot,
+        "routing": "initial_policy: robot i on deployment i mod D, placed by the registry",
+        "host_cpus": psutil.cpu_count(),
+    }
+
+
+def _progress(cell: dict[str, Any]) -> str:
+    return (
+        f"{cell['robots']} robot(s), {cell['deployments']} deployment(s), batching "
+        f"{cell['batching']}: {cell['served_fps']:.1f} frames/s served, p95 "
+        f"{fmt(cell['p95_latency_s'])} s, busy {100 * cell['busy_rate']:.1f}%, timeout "
+        f"{100 * cell['timeout_rate']:.1f}%, "
+        f"{fmt(cell['served_fps_per_core'], 1)} frames/s per core"
+    )
+
+
+def must_show(result: dict[str, Any]) -> dict[str, Any] | None:
+    """Batching's frames/s per core against none at 8 robots on one deployment, if measured."""
+    cells = {
+        r["batching"]: r
+        for r in result["results"]
+        if r["robots"] == MUST_SHOW_ROBOTS and r["deployments"] == 1
+    }
+    on, off = cells.get("on"), cells.get("off")
+    if on is None or off is None or not on["served_fps_per_core"] or not off["served_fps_per_core"]:
+        return None
+    ratio = on["served_fps_per_core"] / off["served_fps_per_core"]
+    return {
+        "ratio": ratio,
+        "met": ratio >= MUST_SHOW_RATIO and bool(on["p95_within_bound"]),
+        "on": on["served_fps_per_core"],
+        "off": off["served_fps_per_core"],
+        "p95_on_s": on["p95_latency_s"],
+    }
+
+
+def _share(by_deployment: dict[str, float]) -> str:
+    return ", ".join(f"{dep} {100 * share:.0f}%" for dep, share in by_deployment.items()) or "-"
+
+
+def markdown(result: dict[str, Any]) -> str:
+    settings = result["settings"]
+    header = [
+        "robots",
+        "deployments",
+        "batching",
+        "served frames/s",
+        "p50 s",
+        "p95 s",
+        "busy",
+        "timeout",
+        "served by",
+        "cloud CPU ms/frame",
+        "frames/s per core",
+    ]
+    rows = []
+    for r in result["results"]:
+        per_frame = r["cloud_cpu_per_frame_s"]
+        rows.append(
+            [
+                r["robots"],
+                r["deployments"],
+                r["batching"],
+                f"{r['served_fps']:.1f}",
+                fmt(r["p50_latency_s"]),
+                fmt(r["p95_latency_s"]),
+                f"{100 * r['busy_rate']:.1f}%",
+                f"{100 * r['timeout_rate']:.1f}%",
+                _share(r["by_deployment"]),
+                "n/a" if per_frame is None else f"{1000 * per_frame:.1f}",
+                fmt(r["served_fps_per_core"], 1),
+            ]
+        )
+    lines = [
+        f"Load: {result['load']}; {settings['model']} at "
+        f"{'x'.join(map(str, settings['input_shape']))}, cut {settings['cut']} "
+        f"({settings['codec']}), {settings['fps_per_robot']:g} fps per robot, deadline "
+        f"{settings['deadline_s']:g} s, {settings['duration_s']:g} s per cell.",
+        "",
+        md_table(header, rows),
+    ]
+    check = must_show(result)
+    if check is not None:
+        lines += [
+            "",
+            f"Batching at {MUST_SHOW_ROBOTS} robots on one deployment: "
+            f"{check['on']:.1f} vs {check['off']:.1f} frames/s per core = "
+            f"{check['ratio']:.2f}x (bar: {MUST_SHOW_RATIO:g}x with p95 inside "
+            f"{settings['bound_p95_s']:g} s): {'met' if check['met'] else 'not met'}.",
+        ]
+    return "\n".join(lines) + "\n"
+
+
+def plot(result: dict[str, Any], out_dir: Path) -> list[Path]:
+    use_agg()
+    import matplotlib.pyplot as plt
+
+    fig, (ax_fps, ax_p95) = plt.subplots(1, 2, figsize=(10, 4))
+    series = sorted({(r["deployments"], r["batching"]) for r in result["results"]})
+    for deployments, batching in series:
+        cells = [
+            r
+            for r in result["results"]
+            if (r["deployments"], r["batching"]) == (deployments, batching)
+        ]
+        cells.sort(key=lambda r: r["robots"])
+        label = f"{deployments} deployment(s), batching {batching}"
+        xs = [r["robots"] for r in cells]
+        ax_fps.plot(xs, [r["served_fps"] for r in cells], marker="o", label=label)
+        ax_p95.plot(
+            xs,
+            [float("nan") if r["p95_latency_s"] is None else r["p95_latency_s"] for r in cells],
+            marker="o",
+            label=label,
+        )
+    ax_fps.set_xlabel("robots")
+    ax_fps.set_ylabel("frames/s served by the cloud")
+    ax_p95.set_xlabel("robots")
+    ax_p95.set_ylabel("p95 latency of served frames (s)")
+    ax_p95.axhline(result["settings"]["bound_p95_s"], color="grey", linestyle="--", label="bound")
+    counts = sorted({r["robots"] for r in result["results"]})
+    for ax in (ax_fps, ax_p95):
+        ax.grid(True, alpha=0.3)
+        ax.set_xscale("log", base=2)
+        ax.set_xticks(counts, [str(n) for n in counts])
+        ax.minorticks_off()
+    ax_p95.legend(fontsize=8)
+    return [save_plot(fig, out_dir / "scale.png")]
