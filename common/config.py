@@ -607,7 +607,12 @@ class FleetConfig(_Model):
 
     def _resolve_paths(self, base: Path) -> None:
         def resolve(value: str | None) -> str | None:
-            return None if value is None else str((base / Path(value).expanduser()).resolve())
+            if value is None:
+                return None
+            try:
+                return str((base / Path(value).expanduser()).resolve())
+            except RuntimeError:  # `~name/...` of a user this host does not have
+                raise ValueError(f"{value!r}: cannot expand '~' (no such user here)") from None
 
         if not self.model.startswith(ZOO_PREFIX):
             self.model = str(resolve(self.model))
@@ -734,6 +739,27 @@ def _base_dir(info: ValidationInfo) -> Path:
 
 
 # -- loading ---------------------------------------------------------------------------------------
+YAML_ESCAPES: tuple[type[Exception], ...] = (
+    ValueError,
+    LookupError,
+    AttributeError,
+    TypeError,
+    RecursionError,
+)
+"""What PyYAML's safe loading raises on bad text besides YAMLError (found by
+tests/unit/test_fuzz_config.py): ValueError for a 13th month or a 5000-digit integer, KeyError for
+`!!bool maybe`, AttributeError for `!!timestamp x`, RecursionError for thousands of nested
+brackets. Every YAML loader catches these too, so bad text is a UserError, not a traceback."""
+
+
+def yaml_escape_problem(exc: Exception) -> str:
+    """One of YAML_ESCAPES as one line."""
+    if isinstance(exc, RecursionError):
+        return "nested too deeply"
+    text = " ".join(str(exc).split())
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+
+
 class _StrictLoader(yaml.SafeLoader):
     """SafeLoader that refuses duplicate keys (PyYAML keeps the last one silently)."""
 
@@ -742,7 +768,11 @@ def _no_duplicates(loader: _StrictLoader, node: yaml.MappingNode, deep: bool = F
     seen: set[Any] = set()
     for key_node, _ in node.value:
         key = loader.construct_object(key_node, deep=deep)
-        if isinstance(key, typing.Hashable) and key in seen:
+        try:
+            duplicate = key in seen
+        except TypeError:  # a list or map as a key: construct_mapping below names the problem
+            continue
+        if duplicate:
             mark = key_node.start_mark
             raise yaml.constructor.ConstructorError(None, None, f"duplicate key {key!r}", mark)
         seen.add(key)
@@ -768,6 +798,8 @@ def load_fleet(path: str | Path) -> FleetConfig:
         data = yaml.load(text, Loader=_StrictLoader)  # a SafeLoader subclass
     except yaml.YAMLError as exc:
         raise UserError(f"{name}: invalid YAML: {_yaml_problem(exc)}") from None
+    except YAML_ESCAPES as exc:
+        raise UserError(f"{name}: invalid YAML: {yaml_escape_problem(exc)}") from None
     return fleet_from_dict(data, source=path)
 
 
@@ -821,7 +853,9 @@ def _format_loc(loc: tuple[Any, ...]) -> str:
         elif part == "[key]":
             out += " (key)"
         else:
-            out += f".{part}" if out else str(part)
+            # A key with a newline or a control character is quoted: the error stays one line.
+            text = str(part) if str(part).isprintable() else repr(part)
+            out += f".{text}" if out else text
     return out
 
 

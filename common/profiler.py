@@ -16,6 +16,7 @@ from __future__ import annotations
 import functools
 import hashlib
 import json
+import math
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -165,7 +166,35 @@ def _cache_key(digest: str, options: dict[str, Any], runs: int, threads: int | N
 
 
 def _read(path: Path) -> dict[str, Any] | None:
-    data = read_cached_json(path)
-    if not isinstance(data, dict) or not {"digest", "full_ms", "cuts"} <= data.keys():
+    """The cached profile at `path`, or None when there is none or it is not of the contract's
+    form (a broken entry is measured again, and never reaches a policy)."""
+    try:
+        data = read_cached_json(path)
+    except RecursionError:  # JSON nested thousands deep (tests/unit/test_fuzz_partition.py)
         return None
-    return data
+    return data if _is_profile(data) else None
+
+
+def _is_profile(data: Any) -> bool:
+    """A digest, a finite `full_ms` and cuts each with an integer index and byte count and
+    finite times: what the policies read."""
+    if not isinstance(data, dict) or not isinstance(data.get("digest"), str):
+        return False
+    cuts = data.get("cuts")
+    if not _non_negative(data.get("full_ms"), float) or not isinstance(cuts, list):
+        return False
+    return all(
+        isinstance(cut, dict)
+        and _non_negative(cut.get("index"), int)
+        and _non_negative(cut.get("bytes"), int)
+        and _non_negative(cut.get("prefix_ms"), float)
+        and _non_negative(cut.get("suffix_ms"), float)
+        for cut in cuts
+    )
+
+
+def _non_negative(value: Any, kind: type) -> bool:
+    """A finite number >= 0 (an int where `kind` is int; booleans are not numbers here)."""
+    if isinstance(value, bool) or not isinstance(value, int if kind is int else (int, float)):
+        return False
+    return math.isfinite(value) and value >= 0

@@ -3,18 +3,22 @@
 Zenoh reports a bad TLS file or an untrusted peer with a WARN in its log and then retries
 forever: a daemon would look alive and never join the fleet. So before `zenoh.open`:
 
-1. The files (`common.certs.check_tls_files`): each exists and is PEM, the key matches the
+1. The permissions (`check_permissions`): no folder holding the CA, the certificate or the key,
+   and neither certificate, is group- or world-writable (another local user could swap in their
+   own CA), and the key is readable by its owner only.
+2. The files (`common.certs.check_tls_files`): each exists and is PEM, the key matches the
    certificate, both the CA and the certificate are in date, the CA signed the certificate and,
    with access control on, its common name is this host's id.
-2. The names: the certificate carries the host of each `tls/` endpoint it listens on (peers
+3. The names: the certificate carries the host of each `tls/` endpoint it listens on (peers
    check the name they connect to), and the registry's carries the host of `registry.endpoint`.
-3. The registry: one TLS handshake with its endpoint, as Zenoh will make it (this host's CA,
+4. The registry: one TLS handshake with its endpoint, as Zenoh will make it (this host's CA,
    certificate and the endpoint's name). An unknown CA, an expired or not-yet-valid certificate
    or a name missing from its SANs is reported with the endpoint; so is the registry refusing
    this host's certificate (its TLS alert arrives right after the handshake). Nobody listening
    there is not an error: daemons start before the registry and outlive its restarts.
 
-Every failure is one `CertError` line (exit 2) naming the file or the endpoint and the reason.
+Every failure is one `CertError` line (exit 2) naming the file (and its mode) or the endpoint and
+the reason.
 """
 
 from __future__ import annotations
@@ -27,6 +31,12 @@ from pathlib import Path
 
 from common.certs import CertError, check_san, check_tls_files
 from common.config import CLI_IDENTITY, FleetConfig, TlsConfig
+from common.file_safety import (
+    UnsafePermissions,
+    check_secret_file,
+    check_trusted_dir,
+    check_trusted_file,
+)
 
 log = logging.getLogger(__name__)
 
@@ -88,6 +98,7 @@ def check_session(
             f"(make one with `elasticfog certs add {identity or 'HOST'}`)"
         )
     expected = identity if cfg.access_control and identity is not None else None
+    check_permissions(tls)
     check_tls_files(tls.ca, tls.cert, tls.key, common_name_expected=expected)
     if tls.cert is not None:
         for endpoint in listen:
@@ -105,6 +116,24 @@ def check_session(
     for endpoint in connect:
         if split_tls_endpoint(endpoint) is not None:
             probe_endpoint(endpoint, tls)
+
+
+def check_permissions(tls: TlsConfig) -> None:
+    """CertError naming the path and its mode when another local user could have changed one of
+    this host's TLS files or their folders, or could read its key (a missing file is left to
+    `check_tls_files`, which names it)."""
+    files = [p for p in (tls.ca, tls.cert, tls.key) if p is not None]
+    try:
+        for folder in dict.fromkeys(Path(p).parent for p in files):
+            check_trusted_dir(folder, "certificate folder")
+        if tls.ca is not None:
+            check_trusted_file(tls.ca, "CA certificate")
+        if tls.cert is not None:
+            check_trusted_file(tls.cert, "certificate")
+        if tls.key is not None:
+            check_secret_file(tls.key, "private key")
+    except UnsafePermissions as exc:
+        raise CertError(str(exc)) from None
 
 
 def probe_endpoint(

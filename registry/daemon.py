@@ -63,6 +63,7 @@ import zenoh
 from common import keys
 from common.config import FleetConfig
 from common.daemon import Daemon
+from common.file_safety import check_private_file
 from common.membership import MemberChange, MembershipView
 from common.session import open_session
 from common.wire import ErrorCode, ErrorReply, Message, WireError
@@ -73,7 +74,7 @@ from registry.measurements import Measurements
 from registry.prober import Probed, Prober
 from registry.registration import Registrar, RegistrationState, Role, fleet_model_digest
 from registry.replies import MAX_REQUEST_BYTES, answer, decode_query, error_payload, refusal
-from registry.rib import DeploymentRow, Rib
+from registry.rib import MEMORY, DeploymentRow, Rib
 from registry.scheduler import (
     Decision,
     DeploymentView,
@@ -206,6 +207,8 @@ class RegistryDaemon(Daemon):
         """Open the RIB and the session, declare everything, follow membership, then go live."""
         self._started_at = time.monotonic()
         cfg, fleet = self.cfg, self.fleet
+        if str(self.db_path) != MEMORY:
+            check_private_file(self.db_path, "RIB file")  # refuse a world-writable RIB
         rib = self.hold(Rib(self.db_path), "RIB")
         rib.reset_liveness()
         self.measurements.restore(rib)

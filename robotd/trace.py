@@ -18,6 +18,7 @@ falls back to a default. Every problem is reported as one line naming the file a
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -25,14 +26,19 @@ import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from common.config import YAML_ESCAPES, yaml_escape_problem
 from common.errors import UserError
 from robotd.policies.base import CutTable, one_line_validation_error
+
+# Unknown keys are errors; so are .inf and .nan, which YAML reads as floats and which every bound
+# of the form `gt=0` lets through (tests/unit/test_fuzz_trace.py checks both).
+_STRICT = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
 class NoiseModel(BaseModel):
     """Randomness of the simulated times."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = _STRICT
 
     jitter: float = Field(
         default=0.0,
@@ -46,7 +52,7 @@ class NoiseModel(BaseModel):
 class UniformEntropy(BaseModel):
     """Per-frame entropy drawn uniformly in [low, high]."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = _STRICT
 
     kind: Literal["uniform"] = "uniform"
     low: float = Field(default=0.5, ge=0, le=1, description="Lowest normalized entropy.")
@@ -62,7 +68,7 @@ class UniformEntropy(BaseModel):
 class ConstantEntropy(BaseModel):
     """The same entropy for every frame."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = _STRICT
 
     kind: Literal["constant"]
     value: float = Field(ge=0, le=1, description="Normalized entropy of every frame.")
@@ -71,7 +77,7 @@ class ConstantEntropy(BaseModel):
 class VideoEntropy(BaseModel):
     """Entropy of real frames read from a video file (looped when shorter than the trace)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = _STRICT
 
     kind: Literal["video"]
     path: str = Field(min_length=1, description="Video file, relative to the trace file.")
@@ -85,7 +91,7 @@ EntropySource = Annotated[
 class Segment(BaseModel):
     """Conditions held for a number of frames."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = _STRICT
 
     frames: int = Field(ge=1, description="Number of frames in the segment.")
     uplink_mbit: float = Field(gt=0, description="Robot → cloud bandwidth, Mbit/s.")
@@ -101,7 +107,7 @@ class Segment(BaseModel):
 class Trace(BaseModel):
     """A whole trace: segments replayed in order."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = _STRICT
 
     frames_per_second: float = Field(gt=0, description="Frame rate (time axis of the plots).")
     noise: NoiseModel = Field(default_factory=NoiseModel, description="Jitter.")
@@ -158,6 +164,8 @@ def load_trace(path: str | Path) -> tuple[Trace, Path]:
     except yaml.YAMLError as exc:
         first = str(exc).splitlines()[0] if str(exc) else "parse error"
         raise UserError(f"trace {file}: not valid YAML ({first})") from None
+    except YAML_ESCAPES as exc:
+        raise UserError(f"trace {file}: not valid YAML ({yaml_escape_problem(exc)})") from None
     return trace_from_dict(data, f"trace {file}"), file.resolve()
 
 
@@ -166,12 +174,28 @@ def load_profile(path: str | Path) -> tuple[CutTable, dict[str, Any]]:
     file = Path(path)
     text = _read_text(file, "profile")
     try:
-        data = json.loads(text)
+        data = json.loads(text, parse_constant=_refuse_constant, parse_float=_finite_float)
     except json.JSONDecodeError as exc:
         raise UserError(
             f"profile {file}: not valid JSON ({exc.msg} at line {exc.lineno})"
         ) from None
+    except ValueError as exc:  # a 5000-digit integer, a non-finite number
+        raise UserError(f"profile {file}: {' '.join(str(exc).split())}") from None
+    except RecursionError:
+        raise UserError(f"profile {file}: not valid JSON (nested too deeply)") from None
     return CutTable.from_profile(data, f"profile {file}"), data
+
+
+def _refuse_constant(name: str) -> float:
+    """NaN and Infinity, which Python's json reads although JSON has no such values."""
+    raise ValueError(f"{name} is not a number a profile may hold")
+
+
+def _finite_float(text: str) -> float:
+    value = float(text)
+    if not math.isfinite(value):  # e.g. 1e400
+        raise ValueError(f"{text} is out of range for a float")
+    return value
 
 
 # Upper bound on frames read from a video, whatever the trace length (the entropies then loop).

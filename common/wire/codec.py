@@ -212,8 +212,15 @@ def _decode_any(value: Any, path: str, depth: int = 0) -> Any:
         return [_decode_any(v, f"{path}[{i}]", depth + 1) for i, v in enumerate(value)]
     if kind is dict:
         _check_keys(value, path)
-        return {k: _decode_any(v, f"{path}.{k}", depth + 1) for k, v in value.items()}
+        return {k: _decode_any(v, key_path(path, k), depth + 1) for k, v in value.items()}
     raise WrongFieldType(f"{path}: expected JSON-like data, got {_type_name(value)}")
+
+
+def key_path(path: str, key: str) -> str:
+    """`path.key` for an error reason, the key quoted when it holds a newline or another
+    character that does not print: reasons are logged and sent back on one line, and a sender's
+    map key must not forge a log line (found by tests/unit/test_fuzz_wire.py)."""
+    return f"{path}.{key}" if key.isprintable() else f"{path}.{key!r}"
 
 
 def _check_keys(value: dict[Any, Any], path: str) -> None:
@@ -299,7 +306,7 @@ def _decoder_for(tp: Any) -> _Decoder:
             if type(value) is not dict:
                 raise WrongFieldType(f"{path}: expected map, got {_type_name(value)}")
             _check_keys(value, path)
-            return {k: item(v, f"{path}.{k}") for k, v in value.items()}
+            return {k: item(v, key_path(path, k)) for k, v in value.items()}
 
         return mapping
     raise TypeError(f"no wire decoder for {tp}")

@@ -10,7 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import ClassVar
 
-from common.wire.codec import Message, register
+from common.wire.codec import Message, key_path, register
 from common.wire.tensor_codecs import EncodedTensor, check_encoded
 
 
@@ -54,4 +54,4 @@ class InferRequest(Message):
                     "(EncodedTensor.raw(array) or encode_tensor_as(array, codec))",
                 )
             # Codec, dtype, shape, data length and int8 parameters, before any data is decoded.
-            check_encoded(tensor, f"{self.TYPE}.tensors.{name}")
+            check_encoded(tensor, key_path(f"{self.TYPE}.tensors", name))

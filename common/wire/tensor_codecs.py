@@ -52,7 +52,7 @@ from typing import Any
 import numpy as np
 import zstandard
 
-from common.wire.codec import DTYPES, MAX_TENSOR_NDIM, Buffer, Struct
+from common.wire.codec import DTYPES, MAX_TENSOR_NDIM, Buffer, Struct, key_path
 from common.wire.errors import (
     BadDtype,
     BadQuantization,
@@ -100,6 +100,8 @@ _FP16_SOURCES = frozenset({"float32", "float64"})
 _INT8_SOURCES = frozenset({"float16", "float32", "float64"})
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _PNG_IHDR = struct.Struct(">I4sIIBB")  # chunk length, b"IHDR", width, height, depth, color type
+_PNG_CHUNK_HEAD = struct.Struct(">I4s")  # chunk length, chunk type
+_PNG_CHUNK_OVERHEAD = 12  # length, type and CRC around a chunk's data
 _PNG_COLOR_TYPES = {1: 0, 3: 2}  # channels -> PNG color type (0 = gray, 2 = RGB)
 _JPEG_COLORSPACES = {1: ("Gray",), 3: ("YCbCr", "RGB")}  # channels -> header colorspaces
 
@@ -474,6 +476,7 @@ class PngCodec(_ImageCodec):
             raise self._disagrees(where, "height×width", f"{got_h}×{got_w}", enc)
         if depth != 8 or color != _PNG_COLOR_TYPES[c]:
             raise self._disagrees(where, "bit depth/color type", f"{depth}/{color}", enc)
+        _check_png_chunks(memoryview(enc.data), where)
         try:
             image = cv2.imdecode(np.frombuffer(enc.data, np.uint8), cv2.IMREAD_UNCHANGED)
         except Exception as exc:  # cv2.error
@@ -553,8 +556,8 @@ def decode_tensors(
     for all of them before any is decoded."""
     total = 0
     for name, enc in tensors.items():
-        dtype, count = check_encoded(enc, f"{where}.{name}")
-        _check_size(enc, count * dtype.itemsize, max_bytes, f"{where}.{name}")
+        dtype, count = check_encoded(enc, key_path(where, name))
+        _check_size(enc, count * dtype.itemsize, max_bytes, key_path(where, name))
         total += count * dtype.itemsize
     if total > max_bytes:
         raise TensorTooLarge(
@@ -562,7 +565,7 @@ def decode_tensors(
             f"{max_bytes} bytes"
         )
     return {
-        name: decode_encoded(enc, max_bytes=max_bytes, name=f"{where}.{name}")
+        name: decode_encoded(enc, max_bytes=max_bytes, name=key_path(where, name))
         for name, enc in tensors.items()
     }
 
@@ -619,6 +622,27 @@ def _check_length(enc: EncodedTensor, expected: int, where: str) -> None:
             f"{where}: shape {enc.shape} of {enc.dtype} as {enc.codec} needs {expected} bytes, "
             f"got {got}"
         )
+
+
+def _check_png_chunks(data: memoryview, where: str) -> None:
+    """Every chunk up to IEND lies within `data`. OpenCV's PNG reader reserves what a chunk's
+    length field says before reading it: a 116-byte PNG whose IDAT claimed 3.6 GB made it take
+    3.5 GB of memory and 3 s (found by tests/unit/test_fuzz_codecs.py)."""
+    pos, end = len(_PNG_SIGNATURE), data.nbytes
+    while pos < end:
+        if end - pos < _PNG_CHUNK_OVERHEAD:
+            raise CorruptPayload(f"{where}: corrupt or truncated PNG (a chunk cut at byte {pos})")
+        length, tag = _PNG_CHUNK_HEAD.unpack_from(data, pos)
+        left = end - pos - _PNG_CHUNK_OVERHEAD
+        if length > left:
+            raise CorruptPayload(
+                f"{where}: corrupt or truncated PNG (chunk {tag!r} at byte {pos} claims "
+                f"{length} bytes, {left} follow)"
+            )
+        pos += _PNG_CHUNK_OVERHEAD + length
+        if tag == b"IEND":
+            return
+    raise CorruptPayload(f"{where}: corrupt or truncated PNG (no IEND chunk)")
 
 
 def _channel_groups(shape: Sequence[int]) -> tuple[int, int, int]:
