@@ -1,14 +1,23 @@
-"""`elasticfog demo`: the whole runtime on this host, in one command.
+"""`elasticfog demo`: the whole runtime on this host, in one command, showing elasticity.
 
 Writes a single-host fleet (`elasticfog init`'s template) into a temporary folder with a free
 registry port, starts the registry, two cloud daemons (`edge-1` in service, `edge-2` standby) and
 `robot-1` as real subprocesses on loopback, waits for each to be ready (liveliness tokens and the
-registry's view, never a sleep), follows the robot's telemetry over Zenoh with a progress bar, and
-prints what happened: who answered, which cuts the policy chose, latency, fallbacks and failovers.
+registry's view, never a sleep), follows the robot's telemetry over Zenoh with a live view, and
+prints what happened, phase by phase.
 
-`--kill-service-at K` SIGKILLs the deployment serving the robot when the robot's telemetry reaches
-frame K; the failover time is from the kill to the first frame answered by another deployment
-(both instants on this host's wall clock: the kill here, the frame's completion in its telemetry).
+On one host the robot computes as fast as the cloud over a link of gigabytes per second, so the
+demo *emulates* a real robot (`robotd.emulation`): it runs `--robot-slowdown` times slower than
+this host, and its uplink is paced in the application, both switched by the robot itself at the
+phase boundaries of a script (`deploy.demo_script`; the default: a good link, a bad one, the link
+back, then the serving deployment killed). A phase with `kill_service` (or `--kill-service-at K`)
+SIGKILLs the deployment serving the robot when the telemetry reaches that frame; the failover
+time is from the kill to the first frame answered by another deployment (both instants on this
+host's wall clock: the kill here, the frame's completion in its telemetry).
+
+`--compare` runs the same script again with the `robot` and `cloud:jpeg80` policies (a fresh
+fleet each) and says, per phase, which was fastest and whether the demo's policy chose like it
+(`deploy.demo_summary.compare_verdict`). `--plot FILE.png` draws each frame's latency.
 
 Everything started is stopped on the way out, also on Ctrl-C or SIGTERM (`deploy.procs`), and the
 temporary folder is removed unless the run failed (then its logs are named) or `--keep` was given.
@@ -17,68 +26,112 @@ temporary folder is removed unless the run failed (then its logs are named) or `
 from __future__ import annotations
 
 import json
-import math
 import os
 import shutil
 import tempfile
 import threading
-from collections import Counter
-from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, field
+import time
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import typer
 from rich.console import Console
-from rich.table import Table
 
 from common.errors import UserError
+from deploy.demo_summary import (
+    Failover,
+    answered_by,
+    compare_verdict,
+    complete_failovers,
+    read_telemetry,
+    summarize,
+    summarize_phases,
+)
 from robotd.source_names import DEFAULT_CAMERA_SOURCE
 
 if TYPE_CHECKING:
+    from deploy.demo_script import DemoScript
     from deploy.procs import LocalFleet
+
+# Re-exported: the e2e tests and benchmarks read telemetry through the demo's helpers.
+__all__ = ["DemoOptions", "answered_by", "read_telemetry", "run_compare", "run_demo", "summarize"]
 
 ROBOT_ID = "robot-1"
 CLOUD_IDS = ("edge-1", "edge-2")
-DEFAULT_FRAMES = 150
+DEFAULT_POLICY = "elastic"
+COMPARE_POLICIES = ("robot", "cloud:jpeg80")
+"""`--compare` runs these after the demo's own policy: all on the robot, and the compressed full
+offload that a user would do anyway (DESIGN.md: the baseline to beat)."""
 DEFAULT_FPS = 15.0
 STARTUP_TIMEOUT_S = 60.0
 """Per stage (registry, clouds): daemons import onnxruntime and load the cached split."""
 ROBOT_SLACK_S = 60.0
-"""Beyond frames/fps, how long the robot may take (startup, slow frames) before we give up."""
+"""Beyond its frames, how long the robot may take (startup, profiling) before we give up."""
 INTERRUPTED_EXIT_CODE = 130
 
 
 @dataclass
 class DemoOptions:
-    """What `elasticfog demo` was asked to do."""
+    """What `elasticfog demo` was asked to do. Without `script` and `frames` the default script
+    runs; `frames` runs one phase of that many frames instead."""
 
-    frames: int = DEFAULT_FRAMES
+    script: Path | None = None
+    frames: int | None = None
     policy: str | None = None
     uplink_mbit: float | None = None
+    robot_slowdown: float | None = None
     kill_service_at: int | None = None
-    fps: float | None = DEFAULT_FPS
+    fps: float | None = None
     model: str | None = None
     source: str = DEFAULT_CAMERA_SOURCE
     keep: bool = False
     workdir: Path | None = None
 
-    def check(self) -> None:
-        if self.frames < 1:
-            raise UserError(f"--frames {self.frames}: expected at least 1 frame")
-        if self.uplink_mbit is not None and not (
-            self.uplink_mbit > 0 and math.isfinite(self.uplink_mbit)
-        ):
-            raise UserError(f"--uplink-mbit {self.uplink_mbit}: expected a positive number")
-        if self.fps is not None and not (self.fps > 0 and math.isfinite(self.fps)):
-            raise UserError(f"--fps {self.fps}: expected a positive number")
+    def resolve(self) -> DemoScript:
+        """The script this run follows, with the command line's overrides; UserError naming the
+        first bad option before anything starts."""
+        from deploy.demo_script import (
+            check_positive,
+            default_script,
+            load_script,
+            single_phase,
+        )
+        from robotd.emulation import check_slowdown
+
+        check_positive(self.uplink_mbit, "--uplink-mbit")
+        check_positive(self.fps, "--fps")
+        if self.robot_slowdown is not None:
+            check_slowdown(self.robot_slowdown)
         if self.policy is not None:
             _check_policy(self.policy)
-        if self.kill_service_at is not None and not 0 <= self.kill_service_at < self.frames:
-            last = self.frames - 1
-            raise UserError(
-                f"--kill-service-at {self.kill_service_at}: expected a frame in 0..{last}"
+        if self.script is not None and self.frames is not None:
+            raise UserError("--script and --frames: give one (a script sets its own frames)")
+        if self.script is not None:
+            script = load_script(self.script)
+        elif self.frames is not None:
+            base = default_script()
+            script = single_phase(
+                self.frames,
+                uplink_mbit=self.uplink_mbit,
+                slowdown=base.phases[0].slowdown,
+                kill_at=None,
             )
+            script = replace(script, fps=base.fps)
+        else:
+            script = default_script()
+        script = script.with_overrides(
+            uplink_mbit=self.uplink_mbit,
+            slowdown=self.robot_slowdown,
+            kill_at=self.kill_service_at,
+        )
+        if self.fps is not None:
+            script = replace(script, fps=self.fps)
+        if script.kill_at is not None and not 0 <= script.kill_at < script.frames:
+            raise UserError(
+                f"--kill-service-at {script.kill_at}: expected a frame in 0..{script.frames - 1}"
+            )
+        return script
 
 
 def _check_policy(spec: str) -> None:
@@ -92,136 +145,15 @@ def _check_policy(spec: str) -> None:
 
 
 @dataclass
-class Failover:
-    """One forced loss of the serving deployment, and how long until another one answered."""
-
-    at_frame: int
-    killed: str
-    killed_at: float  # wall clock
-    to: str | None = None
-    ms: float | None = None
-
-    def to_json(self) -> dict[str, Any]:
-        ms = None if self.ms is None else round(self.ms, 1)
-        return {"at_frame": self.at_frame, "from": self.killed, "to": self.to, "ms": ms}
-
-
-@dataclass
 class DemoResult:
-    """The `--json` object and what the readable summary shows besides it."""
+    """The `--json` object, and what the readable summary and the plot use besides it."""
 
     summary: dict[str, Any]
     reasons: dict[str, int] = field(default_factory=dict)
+    records: list[dict[str, Any]] = field(default_factory=list)
     workdir: Path | None = None
     robot_exit: int | None = None
     stop_s: dict[str, float] = field(default_factory=dict)
-
-
-# -- summary ---------------------------------------------------------------------------------------
-def read_telemetry(path: Path) -> list[dict[str, Any]]:
-    """The robot's `--telemetry` JSONL (one object per frame); a torn last line is skipped."""
-    records: list[dict[str, Any]] = []
-    if not path.exists():
-        return records
-    for line in path.read_text(encoding="utf-8").splitlines():
-        line = line.strip()
-        if not line:
-            continue
-        try:
-            obj = json.loads(line)
-        except json.JSONDecodeError:
-            continue  # the robot was killed mid-write
-        if isinstance(obj, dict):
-            records.append(obj)
-    return records
-
-
-def percentile(values: Sequence[float], q: float) -> float | None:
-    """Linear-interpolated percentile (numpy's default method), None for no values."""
-    if not values:
-        return None
-    ordered = sorted(values)
-    pos = (len(ordered) - 1) * q / 100.0
-    lo = math.floor(pos)
-    hi = min(lo + 1, len(ordered) - 1)
-    return ordered[lo] + (ordered[hi] - ordered[lo]) * (pos - lo)
-
-
-def answered_by(record: dict[str, Any]) -> str | None:
-    """The deployment whose reply served this frame, or None (computed on the robot)."""
-    deployment = record.get("deployment")
-    if deployment and not record.get("fallback"):
-        return str(deployment)
-    return None
-
-
-def summarize(
-    records: Iterable[dict[str, Any]], frames: int, failovers: Sequence[Failover] = ()
-) -> tuple[dict[str, Any], dict[str, int]]:
-    """The demo's JSON summary from telemetry records, and the fallback reasons beside it.
-
-    A frame is `answered` when a deployment's reply served it; `fallbacks` are frames the robot
-    finished itself after offloading (busy, error, timeout, no route); `lost` are frames asked for
-    that have no telemetry record at all (the runtime promises none).
-    """
-    by_frame: dict[int, dict[str, Any]] = {}
-    for rec in records:
-        frame = rec.get("frame")
-        if isinstance(frame, int):
-            by_frame.setdefault(frame, rec)
-    recs = [by_frame[f] for f in sorted(by_frame)]
-    by_deployment: Counter[str] = Counter()
-    actions: Counter[str] = Counter()
-    reasons: Counter[str] = Counter()
-    latencies: list[float] = []
-    fallbacks = 0
-    for rec in recs:
-        actions[str(rec.get("action"))] += 1
-        dep = answered_by(rec)
-        if dep is not None:
-            by_deployment[dep] += 1
-        if rec.get("fallback"):
-            fallbacks += 1
-            reasons[str(rec.get("reason") or "unknown")] += 1
-        latency = rec.get("latency_s")
-        if isinstance(latency, (int, float)):
-            latencies.append(float(latency))
-    seen = sum(1 for f in by_frame if 0 <= f < frames)
-    mean = sum(latencies) / len(latencies) if latencies else None
-    p95 = percentile(latencies, 95)
-    summary = {
-        "frames": frames,
-        "answered": sum(by_deployment.values()),
-        "lost": frames - seen,
-        "fallbacks": fallbacks,
-        "by_deployment": dict(sorted(by_deployment.items())),
-        "actions": dict(sorted(actions.items(), key=lambda kv: _action_order(kv[0]))),
-        "mean_latency_s": None if mean is None else round(mean, 6),
-        "p95_latency_s": None if p95 is None else round(p95, 6),
-        "failovers": [f.to_json() for f in failovers],
-    }
-    return summary, dict(reasons.most_common())
-
-
-def _action_order(label: str) -> tuple[int, int]:
-    if label.startswith("cut:") and label[4:].isdigit():
-        return (0, int(label[4:]))
-    return (1, 0)
-
-
-def complete_failovers(failovers: Sequence[Failover], records: Iterable[dict[str, Any]]) -> None:
-    """Fill `to` and `ms` of each failover from telemetry carrying `at` (completion wall clock):
-    the first frame completed after the kill and answered by another deployment."""
-    ordered = sorted(
-        (r for r in records if isinstance(r.get("at"), (int, float))), key=lambda r: r["at"]
-    )
-    for fo in failovers:
-        for rec in ordered:
-            dep = answered_by(rec)
-            if rec["at"] >= fo.killed_at and dep is not None and dep != fo.killed:
-                fo.to = dep
-                fo.ms = (float(rec["at"]) - fo.killed_at) * 1000.0
-                break
 
 
 # -- live part -------------------------------------------------------------------------------------
@@ -240,7 +172,8 @@ class KillSwitch:
         self.failovers: list[Failover] = []
         self._lock = threading.Lock()
 
-    def on_record(self, rec: dict[str, Any]) -> None:
+    def on_record(self, rec: dict[str, Any]) -> Failover | None:
+        """Follow the robot; the failover started when this record made it kill, else None."""
         with self._lock:
             dep = answered_by(rec)
             if dep is not None:
@@ -252,12 +185,13 @@ class KillSwitch:
                 or not isinstance(frame, int)
                 or frame < self.at_frame
             ):
-                return
+                return None
             target = self.serving or self._route()
             if target is None:
-                return  # nobody serves yet: try again on the next frame
+                return None  # nobody serves yet: try again on the next frame
             killed_at = self.fleet.kill(target)
             self.failovers.append(Failover(at_frame=frame, killed=target, killed_at=killed_at))
+            return self.failovers[-1]
 
     def _route(self) -> str | None:
         from deploy.procs import DaemonError
@@ -283,16 +217,18 @@ def run_demo(
     *,
     console: Console | None = None,
     progress: bool = True,
+    script: DemoScript | None = None,
 ) -> DemoResult:
-    """Run the demo and return its result; every process started is stopped before returning."""
-    options.check()
+    """Run the demo once and return its result; every process started is stopped before
+    returning. `script`: already resolved from `options` (`--compare` resolves it once)."""
+    script = script or options.resolve()
     console = console or Console(stderr=True)
     own_dir = options.workdir is None
     workdir = options.workdir or Path(tempfile.mkdtemp(prefix="elasticfog-demo-"))
     workdir.mkdir(parents=True, exist_ok=True)
     keep = options.keep
     try:
-        return _run(options, workdir, console, progress)
+        return _run(options, script, workdir, console, progress)
     except KeyboardInterrupt:
         raise
     except BaseException:
@@ -306,76 +242,66 @@ def run_demo(
             shutil.rmtree(workdir, ignore_errors=True)
 
 
-def _run(options: DemoOptions, workdir: Path, console: Console, show: bool) -> DemoResult:
-    # Imports where the demo runs (pydantic, the daemons' supervision, progress bars):
+def _run(
+    options: DemoOptions, script: DemoScript, workdir: Path, console: Console, show: bool
+) -> DemoResult:
+    # Imports where the demo runs (pydantic, the daemons' supervision, rich's live view):
     # `elasticfog --help` must stay fast.
-    from rich.progress import (
-        BarColumn,
-        MofNCompleteColumn,
-        Progress,
-        TextColumn,
-        TimeElapsedColumn,
-    )
-
     from common.config import load_fleet
+    from deploy.demo_view import LiveView
     from deploy.procs import DaemonError, LocalFleet, write_local_fleet
 
+    started = time.monotonic()
+    policy = options.policy or DEFAULT_POLICY
     cfg_path = write_local_fleet(workdir, fleet=f"demo-{os.getpid()}", model=options.model)
     cfg = load_fleet(cfg_path)
     with console.status(f"preparing {cfg.model} (split and verify; cached after the first run)"):
         prepare_model(cfg)
-
+    phases_path = workdir / "phases.yaml"
+    phases_path.write_text(script.robot_phases_yaml(), encoding="utf-8")
     telemetry_path = workdir / "telemetry.jsonl"
     result = DemoResult(summary={}, workdir=workdir)
-    bar = Progress(
-        TextColumn("[bold]{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TextColumn("{task.fields[status]}"),
-        TimeElapsedColumn(),
-        console=console,
-        disable=not show,
-    )
-    # Started when the robot starts, so the elapsed time is the robot's run, not the startup.
-    task = bar.add_task(ROBOT_ID, total=options.frames, status="starting", start=False)
-    counts: Counter[str] = Counter()
+    view = LiveView(script, policy, console, enabled=show)
 
     with LocalFleet(cfg_path, workdir, startup_timeout_s=STARTUP_TIMEOUT_S) as fleet:
-        killer = KillSwitch(fleet, ROBOT_ID, options.kill_service_at)
+        killer = KillSwitch(fleet, ROBOT_ID, script.kill_at)
 
         def on_record(rec: dict[str, Any]) -> None:
-            killer.on_record(rec)
-            counts[answered_by(rec) or "robot"] += 1
-            status = "  ".join(f"{k} {v}" for k, v in sorted(counts.items()))
-            bar.update(task, advance=1, status=status)
+            view.on_record(rec)
+            failover = killer.on_record(rec)
+            if failover is not None:
+                view.event(f"frame {failover.at_frame}: killed {failover.killed} (SIGKILL)")
 
         with console.status("starting the registry"):
             fleet.start_registry()
         with console.status("starting edge-1 and edge-2"):
             fleet.start_clouds(CLOUD_IDS)
         tap = fleet.tap(ROBOT_ID, on_record)
-        robot_args: list[str] = ["--source", options.source]
-        if options.policy:
-            robot_args += ["--policy", options.policy]
-        if options.uplink_mbit is not None:
-            robot_args += ["--uplink-mbit", str(options.uplink_mbit)]
-        if options.fps is not None:
-            robot_args += ["--fps", str(options.fps)]
-        with bar:
-            bar.start_task(task)
+        robot_args = ["--source", options.source, "--policy", policy, "--phases", str(phases_path)]
+        fps = script.fps or DEFAULT_FPS
+        robot_args += ["--fps", str(fps)]
+        with view:
             robot = fleet.start_robot(
-                ROBOT_ID, *robot_args, frames=options.frames, telemetry=telemetry_path
+                ROBOT_ID, *robot_args, frames=script.frames, telemetry=telemetry_path
             )
-            budget_s = options.frames / (options.fps or 10.0) + ROBOT_SLACK_S
+            # A bound against a hung robot, not an estimate: a frame takes at most about its
+            # deadline (the robot then finishes it itself).
+            budget_s = ROBOT_SLACK_S + script.frames * max(1.0 / fps, cfg.deadline_s)
             result.robot_exit = robot.wait(budget_s)
-            bar.update(task, completed=len(read_telemetry(telemetry_path)))
         live = tap.snapshot()
         stops = fleet.close()
         result.stop_s = {s.name: round(s.stop_s, 3) for s in stops}
 
     records = read_telemetry(telemetry_path) or live
     complete_failovers(killer.failovers, live)
-    result.summary, result.reasons = summarize(records, options.frames, killer.failovers)
+    summary, result.reasons = summarize(records, script.frames, killer.failovers)
+    result.summary = {
+        "policy": policy,
+        **summary,
+        "phases": summarize_phases(records, script.phases),
+        "wall_s": round(time.monotonic() - started, 1),
+    }
+    result.records = records
     if result.robot_exit != 0:
         last = robot.log_tail(1).strip() or "(empty log)"
         raise DaemonError(
@@ -384,52 +310,90 @@ def _run(options: DemoOptions, workdir: Path, console: Console, show: bool) -> D
     return result
 
 
-# -- output ----------------------------------------------------------------------------------------
-def render_summary(result: DemoResult, console: Console) -> None:
-    """The readable summary (what `elasticfog demo` prints without --json)."""
-    s = result.summary
-    frames = s["frames"]
-    table = Table(title="elasticfog demo: robot-1", show_header=False, title_justify="left")
-    table.add_column("what", style="bold")
-    table.add_column("value")
-    table.add_row("frames", f"{frames} asked, {frames - s['lost']} done, {s['lost']} lost")
-    answered = ", ".join(f"{k} {v}" for k, v in s["by_deployment"].items()) or "none"
-    table.add_row("answered by a deployment", f"{s['answered']} ({answered})")
-    local = frames - s["lost"] - s["answered"]
-    reasons = ", ".join(f"{k} {v}" for k, v in result.reasons.items())
-    table.add_row(
-        "finished on the robot",
-        f"{local} ({s['fallbacks']} fallbacks{': ' + reasons if reasons else ''})",
+@dataclass
+class CompareResult:
+    """`--compare`: one demo result per policy, the per-phase verdict and the wall time."""
+
+    results: list[DemoResult]
+    verdict: list[dict[str, Any]]
+    wall_s: float
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "runs": [r.summary for r in self.results],
+            "verdict": self.verdict,
+            "wall_s": round(self.wall_s, 1),
+        }
+
+
+def compare_policies(policy: str | None) -> list[str]:
+    """The demo's policy first, then the baselines it is compared with (once each)."""
+    first = policy or DEFAULT_POLICY
+    return [first, *(p for p in COMPARE_POLICIES if p != first.strip().lower())]
+
+
+def run_compare(
+    options: DemoOptions, *, console: Console | None = None, progress: bool = True
+) -> CompareResult:
+    """The same script once per policy (`compare_policies`), each on a fresh fleet."""
+    script = options.resolve()
+    console = console or Console(stderr=True)
+    started = time.monotonic()
+    results = []
+    policies = compare_policies(options.policy)
+    for i, policy in enumerate(policies):
+        console.print(f"run {i + 1}/{len(policies)}: policy {policy}", highlight=False)
+        run_options = replace(options, policy=policy)
+        if options.workdir is not None:
+            run_options.workdir = options.workdir / policy.replace(":", "-")
+        results.append(run_demo(run_options, console=console, progress=progress, script=script))
+    verdict = compare_verdict([r.summary for r in results])
+    return CompareResult(results, verdict, time.monotonic() - started)
+
+
+def emulation_note(script: DemoScript) -> str:
+    """What is emulated, in a line (the demo prints it before it starts)."""
+    from deploy.demo_view import link_text
+    from robotd.emulation import robot_class
+
+    slowdowns = sorted({p.slowdown for p in script.phases})
+    factors = " / ".join(f"{f:g}×" for f in slowdowns)
+    classes = " / ".join(dict.fromkeys(robot_class(f) for f in slowdowns))
+    links = ", ".join(dict.fromkeys(link_text(p.uplink_mbit) for p in script.phases))
+    return (
+        f"emulation on one host: the robot runs {factors} slower than this host, like {classes} "
+        f"(after each model run it waits F-1 times the run's time); its uplink is paced in the "
+        f"application ({links}, by phase)"
     )
-    table.add_row("actions", ", ".join(f"{k} {v}" for k, v in s["actions"].items()) or "none")
-    table.add_row(
-        "latency",
-        f"mean {_ms(s['mean_latency_s'])}, p95 {_ms(s['p95_latency_s'])}",
-    )
-    for fo in s["failovers"]:
-        to = fo["to"] or "nobody (robot finished every later frame itself)"
-        took = f" in {fo['ms']:.0f} ms" if fo["ms"] is not None else ""
-        table.add_row("failover", f"killed {fo['from']} at frame {fo['at_frame']} -> {to}{took}")
-    if result.stop_s:
-        slowest = max(result.stop_s.values())
-        table.add_row("shutdown", f"every daemon stopped (slowest {slowest:.2f} s)")
-    console.print(table)
 
 
-def _ms(seconds: float | None) -> str:
-    return "n/a" if seconds is None else f"{seconds * 1000:.1f} ms"
-
-
+# -- command ---------------------------------------------------------------------------------------
 def demo(
-    frames: int = typer.Option(DEFAULT_FRAMES, "--frames", help="Frames the robot runs."),
+    script: Path | None = typer.Option(
+        None,
+        "--script",
+        help="YAML file of phases (frames, uplink_mbit, slowdown, kill_service); default: the "
+        "packaged demo_scripts/default.yaml. See docs/demo.md.",
+    ),
+    frames: int | None = typer.Option(
+        None, "--frames", help="Run one phase of this many frames instead of a script."
+    ),
     policy: str | None = typer.Option(
         None,
         "--policy",
-        help="Split policy (elastic, robot, cloud, cloud:jpeg80, static:K[:CODEC], ...); default: "
-        "the fleet's (elastic).",
+        help="Split policy (elastic, robot, cloud, cloud:jpeg80, static:K[:CODEC], ...); "
+        "default: elastic.",
     ),
     uplink_mbit: float | None = typer.Option(
-        None, "--uplink-mbit", help="Pace the robot's uplink to this many Mbit/s (emulation)."
+        None,
+        "--uplink-mbit",
+        help="Pace the robot's uplink to this many Mbit/s in every phase (emulation).",
+    ),
+    robot_slowdown: float | None = typer.Option(
+        None,
+        "--robot-slowdown",
+        metavar="F",
+        help="Emulate a robot F times slower than this host in every phase; default: the script's.",
     ),
     kill_service_at: int | None = typer.Option(
         None,
@@ -437,9 +401,11 @@ def demo(
         metavar="FRAME",
         help="SIGKILL the deployment serving the robot when the robot reaches this frame.",
     ),
-    fps: float = typer.Option(DEFAULT_FPS, "--fps", help="Robot frame rate."),
+    fps: float | None = typer.Option(
+        None, "--fps", help=f"Robot frame rate; default: the script's, else {DEFAULT_FPS:g}."
+    ),
     model: str | None = typer.Option(
-        None, "--model", help="zoo:NAME or an ONNX file; default: init's model (zoo:vgg)."
+        None, "--model", help="zoo:NAME or an ONNX file; default: init's model."
     ),
     source: str = typer.Option(
         DEFAULT_CAMERA_SOURCE,
@@ -447,15 +413,24 @@ def demo(
         help="Frame source of the robot: photo (real photographs through a moving camera), "
         "synthetic, video:PATH or camera:N.",
     ),
+    compare: bool = typer.Option(
+        False, "--compare", help="Run the script again with the robot and cloud:jpeg80 policies."
+    ),
+    plot: Path | None = typer.Option(
+        None, "--plot", help="Save per-frame latency by action, phases marked, to this PNG."
+    ),
     keep: bool = typer.Option(False, "--keep", help="Keep the temporary folder (fleet, logs)."),
     as_json: bool = typer.Option(False, "--json", help="Print the summary as JSON on stdout."),
 ) -> None:
-    """Run registry + edge-1 + edge-2 + robot-1 on this host (loopback) and summarize."""
+    """Run registry + edge-1 + edge-2 + robot-1 on this host (loopback) through phases of an
+    emulated robot and link, and summarize per phase."""
     err = Console(stderr=True)
     options = DemoOptions(
+        script=script,
         frames=frames,
         policy=policy,
         uplink_mbit=uplink_mbit,
+        robot_slowdown=robot_slowdown,
         kill_service_at=kill_service_at,
         fps=fps,
         model=model,
@@ -463,19 +438,47 @@ def demo(
         keep=keep,
     )
     try:
-        result = run_demo(options, console=err, progress=True)
+        if plot is not None and plot.suffix.lower() != ".png":
+            raise UserError(f"--plot {plot}: expected a .png file")
+        if plot is not None and not plot.resolve().parent.is_dir():
+            raise UserError(f"--plot {plot}: no folder {plot.resolve().parent}")
+        resolved = options.resolve()
+        err.print(emulation_note(resolved), highlight=False, soft_wrap=True)
+        if compare:
+            outcome = run_compare(options, console=err)
+            results = outcome.results
+        else:
+            results = [run_demo(options, console=err, script=resolved)]
     except UserError as exc:
         err.print(f"[red]error:[/red] {exc}", highlight=False, soft_wrap=True)
         raise typer.Exit(exc.exit_code) from None
     except KeyboardInterrupt:
         err.print("interrupted; every daemon stopped", highlight=False)
         raise typer.Exit(INTERRUPTED_EXIT_CODE) from None
-    if as_json:
+    _print(outcome if compare else results[0], as_json=as_json)
+    if keep:
+        for result in results:
+            err.print(f"fleet, telemetry and logs kept in {result.workdir}", highlight=False)
+    if plot is not None:
+        from deploy.demo_view import save_plot
+
+        save_plot(plot, [(r.summary["policy"], r.records, r.summary) for r in results], resolved)
+        err.print(f"plot saved to {plot}", highlight=False)
+
+
+def _print(result: DemoResult | CompareResult, *, as_json: bool) -> None:
+    """The result on stdout: JSON, or the tables."""
+    from deploy.demo_view import render_compare, render_run
+
+    if isinstance(result, CompareResult):
+        if as_json:
+            typer.echo(json.dumps(result.to_json()))
+        else:
+            render_compare(result.to_json(), Console())
+    elif as_json:
         typer.echo(json.dumps(result.summary))
     else:
-        render_summary(result, Console())
-        if keep and result.workdir is not None:
-            err.print(f"fleet, telemetry and logs kept in {result.workdir}", highlight=False)
+        render_run(result.summary, result.reasons, Console())
 
 
 def register(app: typer.Typer) -> None:

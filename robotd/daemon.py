@@ -35,8 +35,11 @@ the next frames' model runs go to the low-priority thread too.
 Beside the daemon: `robotd.registry_link.RegistryLink` (registration, the route and its epoch,
 reroute requests, the "registry unreachable" reports), `robotd.request_sender` (the request on the
 service key, through the emulated uplink), `robotd.frame` (a frame's accounting),
-`robotd.failure_runs` (runs of cloud failures, and when they call for a reroute) and
-`robotd.robot_profile` (the startup profile and policy).
+`robotd.failure_runs` (runs of cloud failures, and when they call for a reroute),
+`robotd.robot_profile` (the startup profile and policy) and `robotd.emulation` (on one host: a
+robot `--robot-slowdown` times slower than the host, every robot-side model run stretched by a
+wait, and `--phases` that change it and the emulated uplink at frame boundaries; the telemetry
+file records each frame's phase).
 """
 
 from __future__ import annotations
@@ -64,6 +67,7 @@ from common.session import open_session
 from common.split_runtime import SplitModel
 from common.wire.telemetry import ProbeReport, TelemetryRecord
 from common.wire.tensor_codecs import encode_tensor_as
+from robotd.emulation import Emulation, Phase, Slowdown, check_slowdown, robot_class, scaled_profile
 from robotd.entropy import frame_entropy
 from robotd.failure_runs import FailureRuns
 from robotd.frame import Frame, FrameResult
@@ -115,6 +119,13 @@ class RobotOptions:
     probe_padding_bytes: int | None = None
     registry_wait_s: float = REGISTRY_WAIT_S
     route_wait_s: float = ROUTE_WAIT_S
+    robot_slowdown: float = 1.0
+    phases: tuple[Phase, ...] = ()
+
+    @property
+    def initial_slowdown(self) -> float:
+        """The emulated slowdown of the first frames (the first phase's, if any)."""
+        return self.phases[0].slowdown if self.phases else self.robot_slowdown
 
     def check(self) -> None:
         """UserError naming the first bad option."""
@@ -128,6 +139,7 @@ class RobotOptions:
             raise UserError(f"--uplink-mbit must be a positive number, got {self.uplink_mbit}")
         if self.probe_interval_s <= 0:
             raise UserError(f"probe interval must be > 0 s, got {self.probe_interval_s}")
+        check_slowdown(self.robot_slowdown)
 
 
 class RobotDaemon(Daemon):
@@ -183,6 +195,10 @@ class RobotDaemon(Daemon):
         self._requests: RequestSender
         self._position: dict[int, int] = {}
         self._local: LocalRunner | None = None
+        # Emulation (`robotd.emulation`): every robot-side model run goes through the slowdown;
+        # phases switch it and the uplink at frame boundaries.
+        self._slowdown = Slowdown(self.options.initial_slowdown, stop=self.should_exit)
+        self._emulation: Emulation
 
     # -- public ----------------------------------------------------------------------------
     @property
@@ -230,15 +246,18 @@ class RobotDaemon(Daemon):
         self.policy = self._policy_override or build_policy(
             self.policy_spec,
             cfg,
-            measured_profile(
-                self.model,
-                feeds,
-                config=cfg,
-                adapter=self._adapter,
-                source_spec=self.source_spec,
-                seed=self.options.seed,
-                threads=self.machine.threads,
-                policy_spec=self.policy_spec,
+            scaled_profile(
+                measured_profile(
+                    self.model,
+                    feeds,
+                    config=cfg,
+                    adapter=self._adapter,
+                    source_spec=self.source_spec,
+                    seed=self.options.seed,
+                    threads=self.machine.threads,
+                    policy_spec=self.policy_spec,
+                ),
+                self._slowdown.factor,
             ),
             self._objective,
         )
@@ -254,9 +273,10 @@ class RobotDaemon(Daemon):
         if self.options.telemetry is not None:
             self._telemetry = self.hold(TelemetryFile(self.options.telemetry), "telemetry file")
         self._open_zenoh()
+        slowdown = self._slowdown.factor
         log.info(
             "%s: model %s (%d cuts, digest %s), policy %s, source %s, deadline %.3f s, "
-            "registry %s%s",
+            "registry %s%s%s",
             self.robot,
             cfg.model,
             self.model.num_cuts,
@@ -266,7 +286,10 @@ class RobotDaemon(Daemon):
             self.deadline_s,
             cfg.registry.endpoint,
             f", uplink paced to {self.uplink_mbit:g} Mbit/s (emulation)"
-            if self._requests.uplink
+            if self._requests.uplink and not self.options.phases
+            else "",
+            f", robot {slowdown:g}× slower than this host (emulation: {robot_class(slowdown)})"
+            if slowdown != 1.0 and not self.options.phases
             else "",
         )
         self._wait_for_fleet()
@@ -282,6 +305,9 @@ class RobotDaemon(Daemon):
             deadline_s=self.deadline_s,
             max_reply_bytes=cfg.max_payload_bytes,
             uplink=None if self.uplink_mbit is None else TokenBucket.from_mbit(self.uplink_mbit),
+        )
+        self._emulation = Emulation(
+            self.options.phases, self._slowdown, self._set_uplink, robot=self.robot
         )
         self._link = link = RegistryLink(
             session,
@@ -375,6 +401,10 @@ class RobotDaemon(Daemon):
         if change.role == "registry":
             self.link.registry_changed(bool(change.alive_ids))
 
+    def _set_uplink(self, bucket: TokenBucket | None) -> None:
+        """A phase's emulated uplink (None: requests are not paced)."""
+        self._requests.uplink = bucket
+
     def _on_matching(self, status: zenoh.MatchingStatus) -> None:
         if status.matching:
             self._served.set()
@@ -392,6 +422,7 @@ class RobotDaemon(Daemon):
             if not pacer.wait(self.should_exit):
                 break
             self._settle_pending(block=False)
+            self._emulation.enter(n)
             frame = self._source.read()
             self.run_frame(n, frame)
             n += 1
@@ -463,9 +494,9 @@ class RobotDaemon(Daemon):
             or pending.call.settled
             or pending.decision.local_expected
         ):
-            return dict(run(None))
+            return dict(self._slowdown.run(run, None))
         assert self._local is not None
-        job = self._local.submit(run)
+        job = self._local.submit(self._slowdown.stretched(run))
         job.wait()  # as long as the run takes, as if computed in this thread
         if job.error is not None:
             raise job.error
@@ -512,7 +543,10 @@ class RobotDaemon(Daemon):
             return
         model, feeds = self.model, f.feeds
         job = self._local.submit(
-            lambda options: model.run_suffix(k, sent, feeds, run_options=options), wake
+            self._slowdown.stretched(
+                lambda options: model.run_suffix(k, sent, feeds, run_options=options)
+            ),
+            wake,
         )
         self._wait_until(wake, cloud_limit, lambda: job.done or call.settled)
         if not job.done and call.settled and self._served_by_reply(f):
@@ -534,7 +568,12 @@ class RobotDaemon(Daemon):
         call = f.call
         assert call is not None
         started = time.perf_counter()
-        outputs = dict(self.model.run_suffix(k, sent, f.feeds))
+        model, feeds = self.model, f.feeds
+        outputs = dict(
+            self._slowdown.run(
+                lambda options: model.run_suffix(k, sent, feeds, run_options=options), None
+            )
+        )
         local_done = time.perf_counter()
         f.local_s = local_done - started
         self._serve_first(f, outputs, local_done, call.deadline_at + FINISH_GRACE_S)
@@ -629,7 +668,12 @@ class RobotDaemon(Daemon):
             detail = res.detail if res is not None and record.fallback else ""
             self._telemetry.write(
                 jsonl_object(
-                    record, entropy=f.entropy, hedged=f.hedged, served_by=f.served_by, detail=detail
+                    record,
+                    entropy=f.entropy,
+                    hedged=f.hedged,
+                    served_by=f.served_by,
+                    detail=detail,
+                    phase=self._emulation.phase_name(f.n),
                 )
             )
         self.summary.add(record, hedged=f.hedged, served_by=f.served_by)

@@ -7,7 +7,8 @@ A request of n bytes thus leaves n·8/(X·10⁶) seconds after the previous one 
 link of that rate with a small buffer (`UPLINK_BURST_BYTES` pass at once). The bucket may go
 into debt: requests queue behind each other in order, as on a real link. Only requests are
 paced (replies and probes are not); on real networks (or the namespace testbed with `tc`) leave
-it off and let the network do the shaping.
+it off and let the network do the shaping. `set_rate` changes the rate while the robot runs
+(the phases of `robotd.emulation`, which also use a burst of one Ethernet frame).
 
 `FramePacer` starts frames on a fixed schedule (`--fps`) without drift, and does not try to catch
 up in a burst when a slow frame made it late.
@@ -62,6 +63,15 @@ class TokenBucket:
         if not (math.isfinite(mbit_per_s) and mbit_per_s > 0):
             raise ValueError(f"uplink rate must be a positive number of Mbit/s, got {mbit_per_s}")
         return cls(mbit_per_s * BITS_PER_MBIT / BITS_PER_BYTE, burst_bytes, clock=clock)
+
+    def set_rate(self, rate_bytes_per_s: float) -> None:
+        """Change the fill rate from now on (an emulated link that got faster or slower): what
+        the bucket held or owed until now is counted at the old rate."""
+        if not (math.isfinite(rate_bytes_per_s) and rate_bytes_per_s > 0):
+            raise ValueError(f"rate must be a positive number of bytes/s, got {rate_bytes_per_s}")
+        with self._lock:
+            self._refill()
+            self.rate_bytes_per_s = float(rate_bytes_per_s)
 
     def _refill(self) -> None:
         now = self._clock()

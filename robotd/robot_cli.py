@@ -2,6 +2,9 @@
 
     elasticfog robot --config fleet.yaml --id robot-1 --frames 100 --telemetry robot-1.jsonl
 
+On one host, `--robot-slowdown F` and `--phases FILE.yaml` emulate a slower robot and a changing
+uplink (`robotd.emulation`).
+
 The command parses its options, loads the fleet file and runs `robotd.daemon.RobotDaemon` until
 `--frames` frames are done or SIGINT/SIGTERM, then prints a summary (`--json`: the same as JSON on
 stdout). Logs go to stderr (level from `ELASTICFOG_LOG_LEVEL`, default INFO). Bad input is one
@@ -65,6 +68,19 @@ def robot_command(
         "--uplink-mbit",
         help="Pace requests to this many Mbit/s in the application (single-host emulation).",
     ),
+    robot_slowdown: float = typer.Option(
+        1.0,
+        "--robot-slowdown",
+        metavar="F",
+        help="Emulate a robot F times slower than this host: after each model run the robot "
+        "waits (F-1)x the run's time (single-host emulation, see robotd/emulation.py).",
+    ),
+    phases: Path | None = typer.Option(
+        None,
+        "--phases",
+        help="YAML file of emulation phases (frames, uplink_mbit, slowdown) switched while the "
+        "robot runs.",
+    ),
     seed: int = typer.Option(0, "--seed", help="Seed of the synthetic and photo frame sources."),
     json_out: bool = typer.Option(False, "--json", help="Print the summary as JSON on stdout."),
 ) -> None:
@@ -73,10 +89,17 @@ def robot_command(
     # must stay fast.
     from common.config import load_fleet
     from robotd.daemon import RobotDaemon, RobotOptions
+    from robotd.emulation import check_slowdown, load_phases
 
     with _logging_to_stderr():
         try:
             cfg = load_fleet(config)
+            check_slowdown(robot_slowdown)
+            loaded = (
+                ()
+                if phases is None
+                else tuple(load_phases(phases, uplink_mbit=uplink_mbit, slowdown=robot_slowdown))
+            )
             options = RobotOptions(
                 source=source,
                 frames=frames,
@@ -85,6 +108,8 @@ def robot_command(
                 telemetry=telemetry,
                 uplink_mbit=uplink_mbit,
                 seed=seed,
+                robot_slowdown=robot_slowdown,
+                phases=loaded,
             )
             daemon = RobotDaemon(cfg, robot_id, options)
             code = daemon.run()

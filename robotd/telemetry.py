@@ -6,8 +6,9 @@ Each line of the JSONL file is one frame: the contract fields of `common.wire.te
 suffix_local_s, latency_s, robot_cpu_s, energy_j, deployment, fallback, reason) followed by
 `EXTRA_FIELDS`: `at` (wall clock when the frame completed), `epoch` (the route epoch the robot
 knew), `entropy` (the frame's normalized grey-level entropy), `hedged` (the local suffix ran
-alongside the cloud), `served_by` (`cloud` or `robot`: which result the frame used) and `detail`
-(why the cloud failed, for a person). Lines are flushed as they are written, so a reader can
+alongside the cloud), `served_by` (`cloud` or `robot`: which result the frame used), `detail`
+(why the cloud failed, for a person) and `phase` (the emulation phase the frame ran in,
+`robotd.emulation`; null without `--phases`). Lines are flushed as they are written, so a reader can
 follow the file while the robot runs.
 
 The record itself is built here too (`frame_record`), from what the frame loop measured and what
@@ -33,7 +34,7 @@ from common.wire.telemetry import JSONL_FIELDS, TelemetryRecord, action_label, p
 if TYPE_CHECKING:  # only read here; importing it would load onnxruntime and zenoh
     from robotd.offload import CallResult
 
-EXTRA_FIELDS = ("at", "epoch", "entropy", "hedged", "served_by", "detail")
+EXTRA_FIELDS = ("at", "epoch", "entropy", "hedged", "served_by", "detail", "phase")
 SERVED_BY_CLOUD = "cloud"
 SERVED_BY_ROBOT = "robot"
 P95 = 95.0
@@ -113,6 +114,7 @@ def jsonl_object(
     hedged: bool,
     served_by: str,
     detail: str = "",
+    phase: str | None = None,
 ) -> dict[str, Any]:
     """The JSONL object of one frame (contract fields first, then EXTRA_FIELDS)."""
     obj = record.to_jsonl()
@@ -123,6 +125,7 @@ def jsonl_object(
         hedged=hedged,
         served_by=served_by,
         detail=detail or None,
+        phase=phase,
     )
     return obj
 

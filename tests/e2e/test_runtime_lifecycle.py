@@ -31,6 +31,7 @@ WAIT_S = 30.0
 STOP_WITHIN_S = 2.0
 """The daemons' promise: stopped this soon after SIGINT/SIGTERM."""
 DEMO_KEYS = {
+    "policy",
     "frames",
     "answered",
     "lost",
@@ -40,6 +41,8 @@ DEMO_KEYS = {
     "mean_latency_s",
     "p95_latency_s",
     "failovers",
+    "phases",
+    "wall_s",
 }
 MARKER_ENV = "ELASTICFOG_TEST_MARKER"
 """Set in the demo's environment; its daemons inherit it, which is how we find leftovers."""
