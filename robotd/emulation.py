@@ -43,6 +43,7 @@ from typing import TYPE_CHECKING, Any, TypeVar
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from common.config import YAML_ESCAPES, yaml_escape_problem
 from common.errors import UserError
 from robotd.pacing import BITS_PER_BYTE, BITS_PER_MBIT, TokenBucket
 from robotd.policies.base import one_line_validation_error
@@ -251,6 +252,8 @@ def read_yaml(path: Path, what: str) -> Any:
         where = f" at line {mark.line + 1}" if mark is not None else ""
         problem = getattr(exc, "problem", None) or "parse error"
         raise UserError(f"{what} {path}: not valid YAML ({problem}{where})") from None
+    except YAML_ESCAPES as exc:  # what safe_load raises besides YAMLError (e.g. `!!timestamp x`)
+        raise UserError(f"{what} {path}: not valid YAML ({yaml_escape_problem(exc)})") from None
 
 
 def load_phases(

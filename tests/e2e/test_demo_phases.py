@@ -23,6 +23,7 @@ from deploy.demo import read_telemetry
 from deploy.procs import elasticfog_argv
 from robotd.emulation import EMULATED_LINK_BURST_BYTES
 from robotd.pacing import BITS_PER_BYTE, BITS_PER_MBIT
+from tests.e2e.test_runtime_lifecycle import DEMO_KEYS
 
 pytestmark = [pytest.mark.e2e, pytest.mark.usefixtures("e2e_watchdog")]
 
@@ -39,20 +40,6 @@ phases:
   - {{name: failover, frames: {FRAMES_PER_PHASE}, uplink_mbit: null, kill_service: true}}
 """
 PHASE_NAMES = ["open", "slow link", "failover"]
-DEMO_KEYS = {
-    "policy",
-    "frames",
-    "answered",
-    "lost",
-    "fallbacks",
-    "by_deployment",
-    "actions",
-    "mean_latency_s",
-    "p95_latency_s",
-    "failovers",
-    "phases",
-    "wall_s",
-}
 PHASE_KEYS = {
     "name",
     "uplink_mbit",
