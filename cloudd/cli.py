@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import contextlib
 import faulthandler
-import logging
 import math
 import signal
 import sys
@@ -21,22 +20,10 @@ from typing import TYPE_CHECKING
 import typer
 
 from common.errors import UserError
+from common.logs import DEFAULT_LOG_LEVEL, LOG_LEVEL_ENV, LOG_LEVEL_HELP, logging_to_stderr
 
 if TYPE_CHECKING:  # the wire package imports numpy: only the command itself pays for it
     from common.wire.registry import FaultSpec
-
-LOG_LEVELS = ("debug", "info", "warning", "error")
-LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
-
-
-def setup_logging(level: str) -> None:
-    """Log lines with a timestamp on stderr at `level` (one of LOG_LEVELS)."""
-    name = level.strip().lower()
-    if name not in LOG_LEVELS:
-        raise UserError(f"--log-level {level!r}: expected one of {', '.join(LOG_LEVELS)}")
-    logging.basicConfig(
-        level=getattr(logging, name.upper()), format=LOG_FORMAT, stream=sys.stderr, force=True
-    )
 
 
 def dump_threads_on_sigusr1() -> None:
@@ -82,27 +69,27 @@ def cloud(
         help="Fault injection: probability of leaving an inference request unanswered.",
     ),
     log_level: str = typer.Option(
-        "info", "--log-level", envvar="ELASTICFOG_LOG_LEVEL", help="debug, info, warning, error."
+        DEFAULT_LOG_LEVEL, "--log-level", envvar=LOG_LEVEL_ENV, help=LOG_LEVEL_HELP
     ),
 ) -> None:
     """Run a cloud daemon: serve the model's suffixes to the robots the registry routes here."""
     try:
-        setup_logging(log_level)
-        from cloudd.daemon import CloudDaemon
-        from common.config import load_fleet
+        with logging_to_stderr(log_level):
+            from cloudd.daemon import CloudDaemon
+            from common.config import load_fleet
 
-        cfg = load_fleet(config)
-        machine = cfg.machine(deployment_id, role="cloud")
-        fault = fault_from_flags(
-            machine.fault.delay_ms,
-            machine.fault.drop,
-            machine.fault.stall,
-            inject_delay_ms,
-            inject_drop,
-        )
-        daemon = CloudDaemon(cfg, deployment_id, fault=fault)
-        dump_threads_on_sigusr1()
-        code = daemon.run()
+            cfg = load_fleet(config)
+            machine = cfg.machine(deployment_id, role="cloud")
+            fault = fault_from_flags(
+                machine.fault.delay_ms,
+                machine.fault.drop,
+                machine.fault.stall,
+                inject_delay_ms,
+                inject_drop,
+            )
+            daemon = CloudDaemon(cfg, deployment_id, fault=fault)
+            dump_threads_on_sigusr1()
+            code = daemon.run()
     except UserError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(exc.exit_code) from None

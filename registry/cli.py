@@ -7,23 +7,12 @@ use is one line on stderr and exit code 2.
 
 from __future__ import annotations
 
-import logging
 from pathlib import Path
 
 import typer
 
 from common.errors import UserError
-
-LOG_LEVEL_ENV = "ELASTICFOG_LOG_LEVEL"
-LOG_LEVELS = ("debug", "info", "warning", "error")
-LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
-
-
-def setup_logging(level: str) -> None:
-    """Log lines on stderr at `level` (one of LOG_LEVELS)."""
-    if level.lower() not in LOG_LEVELS:
-        raise UserError(f"--log-level {level!r}: expected one of {', '.join(LOG_LEVELS)}")
-    logging.basicConfig(level=level.upper(), format=LOG_FORMAT)
+from common.logs import DEFAULT_LOG_LEVEL, LOG_LEVEL_ENV, LOG_LEVEL_HELP, logging_to_stderr
 
 
 def registry(
@@ -35,7 +24,7 @@ def registry(
         "file, else <fleet>.rib.sqlite next to it).",
     ),
     log_level: str = typer.Option(
-        "info", "--log-level", envvar=LOG_LEVEL_ENV, help="debug, info, warning or error."
+        DEFAULT_LOG_LEVEL, "--log-level", envvar=LOG_LEVEL_ENV, help=LOG_LEVEL_HELP
     ),
 ) -> None:
     """Run the registry: the routing information base, the scheduler and the embedded Zenoh
@@ -46,9 +35,9 @@ def registry(
     from registry.daemon import run_registry
 
     try:
-        setup_logging(log_level)
-        cfg = load_fleet(config)
-        code = run_registry(cfg, db_path=db)
+        with logging_to_stderr(log_level):
+            cfg = load_fleet(config)
+            code = run_registry(cfg, db_path=db)
     except UserError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(exc.exit_code) from None

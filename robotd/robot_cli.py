@@ -7,30 +7,20 @@ uplink (`robotd.emulation`).
 
 The command parses its options, loads the fleet file and runs `robotd.daemon.RobotDaemon` until
 `--frames` frames are done or SIGINT/SIGTERM, then prints a summary (`--json`: the same as JSON on
-stdout). Logs go to stderr (level from `ELASTICFOG_LOG_LEVEL`, default INFO). Bad input is one
-line on stderr and exit code 2.
+stdout). Logs go to stderr (`common.logs`: level from `--log-level` or `ELASTICFOG_LOG_LEVEL`,
+default info). Bad input is one line on stderr and exit code 2.
 """
 
 from __future__ import annotations
 
-import contextlib
 import json
-import logging
-import os
-import sys
-from collections.abc import Iterator
 from pathlib import Path
 
 import typer
 from rich.console import Console
 
 from common.errors import UserError
-
-LOG_LEVEL_ENV = "ELASTICFOG_LOG_LEVEL"
-DEFAULT_LOG_LEVEL = "INFO"
-LOG_FORMAT = "%(asctime)s %(levelname)s %(message)s"
-# The robot daemon's own logger and the shared daemon lifecycle's.
-LOGGERS = ("robotd", "common")
+from common.logs import DEFAULT_LOG_LEVEL, LOG_LEVEL_ENV, LOG_LEVEL_HELP, logging_to_stderr
 
 
 def register(app: typer.Typer) -> None:
@@ -83,6 +73,9 @@ def robot_command(
     ),
     seed: int = typer.Option(0, "--seed", help="Seed of the synthetic and photo frame sources."),
     json_out: bool = typer.Option(False, "--json", help="Print the summary as JSON on stdout."),
+    log_level: str = typer.Option(
+        DEFAULT_LOG_LEVEL, "--log-level", envvar=LOG_LEVEL_ENV, help=LOG_LEVEL_HELP
+    ),
 ) -> None:
     """Run the robot daemon; exits 0 after --frames frames or on SIGINT/SIGTERM."""
     # Heavy imports (pydantic, zenoh, onnxruntime, cv2) where the command runs: `elasticfog --help`
@@ -91,8 +84,8 @@ def robot_command(
     from robotd.daemon import RobotDaemon, RobotOptions
     from robotd.emulation import check_slowdown, load_phases
 
-    with _logging_to_stderr():
-        try:
+    try:
+        with logging_to_stderr(log_level):
             cfg = load_fleet(config)
             check_slowdown(robot_slowdown)
             loaded = (
@@ -113,35 +106,12 @@ def robot_command(
             )
             daemon = RobotDaemon(cfg, robot_id, options)
             code = daemon.run()
-        except UserError as exc:
-            Console(stderr=True).print(f"[red]error:[/red] {exc}", highlight=False, soft_wrap=True)
-            raise typer.Exit(exc.exit_code) from None
+    except UserError as exc:
+        Console(stderr=True).print(f"[red]error:[/red] {exc}", highlight=False, soft_wrap=True)
+        raise typer.Exit(exc.exit_code) from None
     if json_out:
         typer.echo(json.dumps(daemon.summary.to_json()))
     else:
         for line in daemon.summary.lines():
             typer.echo(line)
     raise typer.Exit(code)
-
-
-@contextlib.contextmanager
-def _logging_to_stderr() -> Iterator[None]:
-    """The daemons' log lines on stderr for the duration of the command (level from
-    ELASTICFOG_LOG_LEVEL); the handler is removed afterwards, so running the command in-process
-    (tests) leaves logging as it was."""
-    level = logging.getLevelName(os.environ.get(LOG_LEVEL_ENV, DEFAULT_LOG_LEVEL).upper())
-    if not isinstance(level, int):
-        level = logging.INFO
-    handler = logging.StreamHandler(sys.stderr)
-    handler.setFormatter(logging.Formatter(LOG_FORMAT))
-    loggers = [logging.getLogger(name) for name in LOGGERS]
-    previous = [lg.level for lg in loggers]
-    for lg in loggers:
-        lg.addHandler(handler)
-        lg.setLevel(level)
-    try:
-        yield
-    finally:
-        for lg, old in zip(loggers, previous, strict=True):
-            lg.removeHandler(handler)
-            lg.setLevel(old)

@@ -1,0 +1,129 @@
+"""A cloud daemon's service keys `svc/<service>/<robot>/infer`: decode, check and admit requests.
+
+Runs on Zenoh's callback thread, so it only decides and returns; suffixes run on the workers
+(`cloudd.batch_runner`). In order: a stalled deployment holds the query; a request that does not
+decode is answered with the codec's error; a drop (fault injection) holds it; one that does not
+fit this model (`cloudd.validate.check_request`) is answered with what is wrong; one that
+reaches a deployment no longer serving its robot (it crossed a switch) is answered NOT_SERVING
+and the robot finishes the frame itself; the rest is offered to the queue, which admits it or
+refuses it at once (answered "busy"). Bad input is one throttled WARNING line, never a traceback.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import zenoh
+
+from cloudd.batch_queue import FairQueue, Pending
+from cloudd.batch_stats import BatchStats
+from cloudd.faults import FaultInjector
+from cloudd.replies import Replier, query_payload
+from cloudd.robot_book import RobotBook
+from cloudd.validate import check_request
+from common.partition import TensorSpec
+from common.throttled_log import ThrottledLog
+from common.wire import ErrorCode, ErrorReply, WireError, error_reply
+from common.wire.cloud_to_robot import BusyReply
+from common.wire.robot_to_cloud import InferRequest
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Job:
+    """What answering one admitted inference request needs."""
+
+    key: str
+    query: zenoh.Query
+    request: InferRequest
+
+
+class Admission:
+    """Decides, on the callback thread, what becomes of each inference request."""
+
+    def __init__(
+        self,
+        deployment: str,
+        *,
+        digest: str,
+        cut_specs: Sequence[Sequence[TensorSpec]],
+        queue: FairQueue[Job],
+        book: RobotBook,
+        faults: FaultInjector,
+        replies: Replier,
+        stats: BatchStats,
+        max_payload_bytes: int,
+        throttled: ThrottledLog,
+    ) -> None:
+        self.deployment = deployment
+        self._digest = digest
+        self._cut_specs = cut_specs
+        self._queue = queue
+        self._book = book
+        self._faults = faults
+        self._replies = replies
+        self._stats = stats
+        self._max_payload_bytes = max_payload_bytes
+        self._throttled = throttled
+
+    def on_query(self, robot: str, key: str, query: zenoh.Query) -> None:
+        """The callback of `robot`'s service key `key`."""
+        arrived = time.monotonic()
+        fault = self._faults.get()
+        if fault.stall:
+            self._replies.hold(query)
+            return
+        delay_s = fault.delay_ms / 1000.0
+        try:
+            request = InferRequest.from_wire(
+                query_payload(query), max_bytes=self._max_payload_bytes
+            )
+        except WireError as exc:
+            self._throttled.warning(
+                "%s: bad inference request for %s: %s", self.deployment, robot, exc.reason
+            )
+            self._replies.send(query, key, error_reply(exc), delay_s)
+            return
+        if self._faults.drop_now(fault):
+            self._replies.hold(query)
+            return
+        error = check_request(request, robot=robot, digest=self._digest, cut_specs=self._cut_specs)
+        if error is not None:
+            self._throttled.warning(
+                "%s: refused frame %d of %s: %s",
+                self.deployment,
+                request.frame,
+                robot,
+                error.reason,
+            )
+            self._replies.send(query, key, error.to_wire(), delay_s)
+            return
+        if not self._book.serving(robot):
+            # A request that crossed a switch: the robot finishes the frame itself.
+            log.info("%s: frame %d of %s arrived in standby", self.deployment, request.frame, robot)
+            reply = ErrorReply.make(
+                ErrorCode.NOT_SERVING, f"{self.deployment} does not serve {robot} now"
+            )
+            self._replies.send(query, key, reply.to_wire(), delay_s)
+            return
+        item = Pending(
+            robot=robot,
+            group=request.cut,
+            arrived=arrived,
+            deadline_at=arrived + request.deadline_s,
+            payload=Job(key, query, request),
+        )
+        refusal = self._queue.offer(item)
+        if refusal is not None:
+            self._stats.refuse(refusal)
+            busy = BusyReply(
+                frame=request.frame,
+                deployment=self.deployment,
+                queued=self._queue.load,
+                capacity=self._queue.capacity,
+            )
+            self._replies.send(query, key, busy.to_wire(), delay_s)

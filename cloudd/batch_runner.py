@@ -1,0 +1,173 @@
+"""A cloud daemon's workers' side: run a batch of one cut and answer each robot with its rows.
+
+`BatchRunner.run` is what each worker thread (`cloudd.workers.BatchWorkers`) calls with a batch
+from the queue. Expired requests are answered DEADLINE_EXPIRED without computing (the robot has
+finished the frame itself by now). Once the daemon is stopping, the batch is answered
+NOT_SERVING. Otherwise each request's tensors are decoded here, off Zenoh's callback thread (one
+that does not decode is answered with the codec's error), the suffix runs once for the whole
+batch, and each request gets an `InferReply` with its own outputs, its queueing and compute
+times and the robot's epoch. A request's slot is freed before its reply goes out, so a robot
+that sends its next frame on the reply is not refused for a slot still held.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import threading
+import time
+from collections.abc import Sequence
+
+import numpy as np
+
+from cloudd.admission import Job
+from cloudd.batch_queue import Batch, BatchCosts, FairQueue, Pending
+from cloudd.batch_stats import BatchStats
+from cloudd.replies import Replier
+from cloudd.robot_book import RobotBook
+from cloudd.validate import decode_tensors
+from common.partition import TensorSpec, ort_reason
+from common.split_runtime import SplitModel
+from common.throttled_log import ThrottledLog
+from common.wire import ErrorCode, ErrorReply, WireError, error_reply
+from common.wire.cloud_to_robot import InferReply
+
+log = logging.getLogger(__name__)
+
+
+class BatchRunner:
+    """Runs admitted batches on the model and sends their replies."""
+
+    def __init__(
+        self,
+        deployment: str,
+        *,
+        model: SplitModel,
+        cut_specs: Sequence[Sequence[TensorSpec]],
+        queue: FairQueue[Job],
+        costs: BatchCosts,
+        stats: BatchStats,
+        book: RobotBook,
+        replies: Replier,
+        closing: threading.Event,
+        throttled: ThrottledLog,
+    ) -> None:
+        self.deployment = deployment
+        self._model = model
+        self._cut_specs = cut_specs
+        self._queue = queue
+        self._costs = costs
+        self._stats = stats
+        self._book = book
+        self._replies = replies
+        self._closing = closing
+        self._throttled = throttled
+
+    def run(self, batch: Batch[Job]) -> None:
+        """Worker: answer the expired requests, then run the batch's requests together (one
+        cut) and answer each with its own results."""
+        for item in batch.expired:
+            # The robot has finished this frame itself by now: computing it helps nobody.
+            request = item.payload.request
+            waited_s = batch.taken_at - item.arrived
+            self._answer_error(
+                item,
+                ErrorReply.make(
+                    ErrorCode.DEADLINE_EXPIRED,
+                    f"frame {request.frame} cannot be answered within its deadline of "
+                    f"{request.deadline_s * 1000:.0f} ms (it waited {waited_s * 1000:.0f} ms for "
+                    "a worker)",
+                ),
+            )
+        if not batch.items:
+            return
+        started = time.monotonic()
+        if self._closing.is_set():
+            stopping = ErrorReply.make(ErrorCode.NOT_SERVING, f"{self.deployment} is stopping")
+            for item in batch.items:
+                self._answer_error(item, stopping)
+            return
+        ready: list[tuple[Pending[Job], dict[str, np.ndarray]]] = []
+        for item in batch.items:
+            request = item.payload.request
+            try:
+                # Decoding runs here, on a worker, not on Zenoh's callback thread.
+                ready.append((item, decode_tensors(request, self._cut_specs[request.cut])))
+            except WireError as exc:
+                self._throttled.warning(
+                    "%s: frame %d of %s: %s", self.deployment, request.frame, item.robot, exc.reason
+                )
+                self._release(item)
+                self._replies.send(
+                    item.payload.query, item.payload.key, error_reply(exc), self._replies.delay_s()
+                )
+        if not ready:
+            return
+        try:
+            outputs = self._model.run_suffix_batch(batch.group, [tensors for _, tensors in ready])
+        except Exception as exc:
+            reason = f"suffix of cut {batch.group} failed: {ort_reason(exc)}"
+            log.warning(
+                "%s: a batch of %d (%s): %s",
+                self.deployment,
+                len(ready),
+                ", ".join(f"{i.robot} frame {i.payload.request.frame}" for i, _ in ready),
+                reason,
+            )
+            for item, _ in ready:
+                self._answer_error(item, ErrorReply.make(ErrorCode.INTERNAL, reason))
+            return
+        compute_s = time.monotonic() - started
+        self._costs.record(batch.group, len(ready), compute_s)
+        self._stats.ran(len(ready))
+        for (item, _), result in zip(ready, outputs, strict=True):
+            self._answer(item, result, queue_s=started - item.arrived, compute_s=compute_s)
+
+    def _answer(
+        self,
+        item: Pending[Job],
+        outputs: dict[str, np.ndarray],
+        *,
+        queue_s: float,
+        compute_s: float,
+    ) -> None:
+        job, robot = item.payload, item.robot
+        epoch = self._book.wire_epoch(robot)
+        self._release(item)
+        reply = InferReply(
+            frame=job.request.frame,
+            deployment=self.deployment,
+            epoch=epoch,
+            outputs=outputs,
+            queue_s=queue_s,
+            compute_s=compute_s,
+        )
+        self._replies.send(
+            job.query,
+            job.key,
+            reply.to_wire(),
+            self._replies.delay_s(),
+            on_sent=functools.partial(self._count_served, robot, job.request.frame, epoch),
+        )
+
+    def _answer_error(self, item: Pending[Job], error: ErrorReply) -> None:
+        self._release(item)
+        self._replies.send(
+            item.payload.query, item.payload.key, error.to_wire(), self._replies.delay_s()
+        )
+
+    def _release(self, item: Pending[Job]) -> None:
+        """Free the request's slot before its reply goes out (`FairQueue.release`)."""
+        self._queue.release(item)
+
+    def _count_served(self, robot: str, frame: int, epoch: int) -> None:
+        if self._book.count_served(robot):
+            # One line per stay in service: shows that requests reach this deployment and that
+            # its replies go out (a robot that times out against it is then a network problem).
+            log.info(
+                "%s: first frame of %s answered at epoch %d (frame %d)",
+                self.deployment,
+                robot,
+                epoch,
+                frame,
+            )

@@ -1,0 +1,150 @@
+"""A cloud daemon's control key `dep/<id>/ctl`: fault settings, drain, service and standby.
+
+`Controller.on_query` decodes a `CtlRequest` and answers it with what `control` did. Service and
+standby follow the verdict of `cloudd.state` (through `RobotBook.decide`): a robot entering
+service has its service key declared before the ack, one leaving has it undeclared before the
+ack, since the registry relies on both having happened when it reads the ack. A key that cannot
+be declared undoes the verdict and is refused with the reason.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+
+import zenoh
+
+from cloudd.faults import FaultInjector, describe
+from cloudd.replies import Replier, query_payload
+from cloudd.robot_book import RobotBook
+from cloudd.state import Verdict
+from common.session import zenoh_error_text
+from common.throttled_log import ThrottledLog
+from common.wire import WireError, error_reply
+from common.wire.registry import CtlOp, CtlReply, CtlRequest, DeploymentState
+
+log = logging.getLogger(__name__)
+
+
+class Controller:
+    """Carries out a deployment's control requests; `declare_service(robot)` declares the
+    robot's service key (raising if it cannot)."""
+
+    def __init__(
+        self,
+        deployment: str,
+        *,
+        key: str,
+        book: RobotBook,
+        faults: FaultInjector,
+        replies: Replier,
+        declare_service: Callable[[str], None],
+        max_payload_bytes: int,
+        throttled: ThrottledLog,
+    ) -> None:
+        self.deployment = deployment
+        self.key = key
+        self._book = book
+        self._faults = faults
+        self._replies = replies
+        self._declare_service = declare_service
+        self._max_payload_bytes = max_payload_bytes
+        self._throttled = throttled
+
+    def on_query(self, query: zenoh.Query) -> None:
+        """The ctl queryable's callback: answered at once, in every fault state."""
+        try:
+            request = CtlRequest.from_wire(query_payload(query), max_bytes=self._max_payload_bytes)
+        except WireError as exc:
+            self._throttled.warning("%s: bad ctl request: %s", self.deployment, exc.reason)
+            self._replies.send(query, self.key, error_reply(exc), 0.0)
+            return
+        reply = self.control(request)
+        self._replies.send(query, self.key, reply.to_wire(), 0.0)
+
+    def control(self, request: CtlRequest) -> CtlReply:
+        """Carry out a control request (what the ctl key does) and return the reply."""
+        sender = f" from {request.sender}" if request.sender else ""
+        if request.op is CtlOp.FAULT:
+            assert request.fault is not None  # checked by CtlRequest
+            self._faults.set(request.fault)
+            log.info("%s: fault injection%s: %s", self.deployment, sender, describe(request.fault))
+            return CtlReply(ok=True, deployment=self.deployment, op=request.op)
+        if request.op is CtlOp.DRAIN:
+            return self._drain(request, sender)
+        assert request.robot is not None  # checked by CtlRequest for service and standby
+        return self._service_or_standby(request, request.robot, sender)
+
+    def _drain(self, request: CtlRequest, sender: str) -> CtlReply:
+        if request.robot is None:
+            moved = self._book.drain_all()
+            state = DeploymentState.DRAINING
+            epoch = 0
+        else:
+            st = self._book.drain_robot(request.robot)
+            moved = [request.robot] if st.serving else []
+            state, epoch = st.state, st.wire_epoch
+        log.info(
+            "%s: drain%s of %s: draining %s",
+            self.deployment,
+            sender,
+            request.robot or "the deployment",
+            ", ".join(moved) or "no robot",
+        )
+        return CtlReply(
+            ok=True,
+            deployment=self.deployment,
+            op=request.op,
+            robot=request.robot,
+            epoch=epoch,
+            state=state,
+        )
+
+    def _service_or_standby(self, request: CtlRequest, robot: str, sender: str) -> CtlReply:
+        decision = self._book.decide(request.op, robot, request.epoch)
+        verdict = decision.verdict
+        if decision.stopping:
+            return self._reply(request, verdict)
+        if verdict.declare:
+            try:
+                self._declare_service(robot)
+            except Exception as exc:
+                self._book.restore(verdict)
+                reason = f"cannot declare the service key of {robot}: {zenoh_error_text(exc)}"
+                log.warning("%s: %s", self.deployment, reason)
+                return self._reply(
+                    request, Verdict(False, robot, verdict.before, verdict.before, reason)
+                )
+        if decision.undeclare is not None:
+            decision.undeclare.undeclare()  # before the ack: the registry relies on it being gone
+        if verdict.ok:
+            log.info(
+                "%s: %s %s at epoch %d%s",
+                self.deployment,
+                robot,
+                verdict.after.state.value,
+                verdict.after.epoch,
+                sender,
+            )
+        else:
+            log.warning(
+                "%s: refused %s(%s, epoch %d)%s: %s",
+                self.deployment,
+                request.op.value,
+                robot,
+                request.epoch,
+                sender,
+                verdict.reason,
+            )
+        return self._reply(request, verdict)
+
+    def _reply(self, request: CtlRequest, verdict: Verdict) -> CtlReply:
+        return CtlReply(
+            ok=verdict.ok,
+            deployment=self.deployment,
+            op=request.op,
+            robot=verdict.robot,
+            epoch=verdict.after.wire_epoch,
+            state=verdict.after.state,
+            reason=verdict.reason,
+        )

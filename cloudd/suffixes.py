@@ -1,0 +1,84 @@
+"""A cloud daemon's model: the fleet's split loaded once, every suffix session built and warmed.
+
+Every suffix shares one copy of the weights (`SplitModel`), so memory stays flat in the number of
+cuts. Warming runs each suffix once on zeros at startup: nothing is built on the frame path, and
+the first frame of each cut costs what later ones do. With `batching.enabled`, each suffix is
+first given a batch axis and checked against one-item runs (`SplitModel.enable_batching`); a cut
+that cannot take a batch is named in the log and runs one request at a time. A suffix that cannot
+run with the machine's providers stops the daemon with a `UserError` naming the cut.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+
+import numpy as np
+
+from common.config import FleetConfig, MachineConfig
+from common.errors import UserError
+from common.partition import TensorSpec, load_partition, ort_reason
+from common.split_runtime import SplitModel
+
+log = logging.getLogger(__name__)
+
+
+def open_split_model(cfg: FleetConfig, machine: MachineConfig) -> SplitModel:
+    """The fleet's model split at its cuts (from the partition cache; split on first use), with
+    the machine's providers and threads; sessions are built later (`warm_suffixes`)."""
+    shape = tuple(cfg.input_shape) if cfg.input_shape else None
+    partition = load_partition(cfg.model, cfg.cuts.names or "auto", cfg.cuts.max_cut_tensors, shape)
+    return SplitModel(
+        partition,
+        providers=machine.providers,
+        threads=machine.threads or None,
+        lazy=True,
+    )
+
+
+def warm_suffixes(
+    model: SplitModel,
+    machine: MachineConfig,
+    *,
+    deployment: str,
+    model_name: str,
+    stop: threading.Event,
+) -> list[list[TensorSpec]] | None:
+    """Build and run every suffix once; the tensors crossing each cut, or None when `stop` was
+    set meanwhile."""
+    cut_specs = [model.cut_tensor_specs(k) for k in range(model.num_cuts)]
+    unbatched: dict[int, str] = {}
+    for k, specs in enumerate(cut_specs):
+        if stop.is_set():
+            return None
+        if machine.batching.enabled:
+            reason = model.enable_batching(k)
+            if reason is not None:
+                unbatched[k] = reason
+        zeros = {s.name: np.zeros(s.shape, dtype=s.dtype) for s in specs}
+        try:
+            model.run_suffix(k, zeros)
+        except Exception as exc:
+            raise UserError(
+                f"{model_name}: cannot run the suffix of cut {k} with providers "
+                f"{', '.join(machine.providers)}: {ort_reason(exc)}"
+            ) from None
+    if machine.batching.enabled:
+        _log_batching(deployment, machine, model.num_cuts, unbatched)
+    return cut_specs
+
+
+def _log_batching(
+    deployment: str, machine: MachineConfig, num_cuts: int, unbatched: dict[int, str]
+) -> None:
+    """Say which cuts take a batch, and why the others run one request at a time."""
+    batched = num_cuts - len(unbatched)
+    log.info(
+        "%s: batching: %d of %d cuts take a batch of up to %d",
+        deployment,
+        batched,
+        num_cuts,
+        machine.batching.max_batch,
+    )
+    for k, reason in unbatched.items():
+        log.warning("%s: batching: cut %d runs one request at a time: %s", deployment, k, reason)
