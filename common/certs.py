@@ -6,8 +6,12 @@ any host that runs the daemons. The layout is a contract (docs/security.md):
 
     DIR/ca.crt            the fleet CA's certificate (PEM), copied to every host
     DIR/ca.key            the CA's private key (0600): keep it off the hosts, it signs new certs
-    DIR/<host>.crt        a host's certificate, common name = its machine id (PEM)
+    DIR/<host>.crt        a host's certificate, common name = its machine id (PEM, 0644)
     DIR/<host>.key        its private key (0600)
+
+A folder DIR that does not exist yet is created 0700 (it holds private keys); one that exists
+keeps its mode (it may be the user's own folder). Modes are set explicitly, whatever the umask,
+so the start checks (`common.tls_preflight`) accept what `elasticfog certs` writes.
 
 Keys are ECDSA P-256 in PKCS#8 (what rustls, under Zenoh's TLS links, reads). A host certificate
 is for both ends of a link (server and client auth): peers accept connections and make them.
@@ -50,6 +54,10 @@ CA_DAYS_MARGIN = 1
 DEFAULT_IPS = ("127.0.0.1",)
 DEFAULT_DNS = ("localhost",)
 KEY_MODE = 0o600
+CERT_MODE = 0o644
+"""Certificates are public (every host has the CA's), but only their owner may change them."""
+DIR_MODE = 0o700
+"""A certificate folder created here: owner only, since it holds private keys."""
 CLOCK_SKEW_S = 300
 """Certificates start this long before now: hosts whose clocks differ a little still agree."""
 CA_COMMON_NAME_PREFIX = "elasticfog fleet CA"
@@ -155,18 +163,47 @@ def _now() -> dt.datetime:
     return dt.datetime.now(dt.timezone.utc)
 
 
+def make_cert_dir(directory: Path) -> None:
+    """Create the certificate folder 0700 (its parents as usual); an existing one is left as it
+    is. Only the owner may list it or add files: it holds private keys."""
+    directory = Path(directory)
+    if directory.is_dir():
+        return
+    try:
+        directory.parent.mkdir(parents=True, exist_ok=True)
+        directory.mkdir(mode=DIR_MODE)
+        os.chmod(directory, DIR_MODE)  # mkdir's mode went through the umask
+    except FileExistsError:
+        if not directory.is_dir():
+            raise CertError(
+                f"{directory}: cannot create the folder: a file is in the way"
+            ) from None
+    except OSError as exc:
+        raise CertError(f"{directory}: cannot create the folder: {exc.strerror or exc}") from None
+
+
+def _write(path: Path, data: bytes, mode: int) -> None:
+    """Write `data` with exactly `mode`: set on the open file before a byte is written, so an
+    existing file of a wider mode (O_CREAT keeps it) never holds the new content, and the umask
+    cannot narrow a certificate's mode either."""
+    make_cert_dir(path.parent)
+    try:
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, mode)
+        with os.fdopen(fd, "wb") as out:
+            os.fchmod(out.fileno(), mode)
+            out.write(data)
+    except OSError as exc:
+        raise CertError(f"{path}: cannot write: {exc.strerror or exc}") from None
+
+
 def _write_private(path: Path, data: bytes) -> None:
-    """Write a private key readable by its owner only (created 0600, never wider for a moment)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, KEY_MODE)
-    with os.fdopen(fd, "wb") as out:
-        out.write(data)
-    os.chmod(path, KEY_MODE)  # an existing file keeps its old mode through O_CREAT
+    """A private key: readable by its owner only (0600)."""
+    _write(path, data, KEY_MODE)
 
 
 def _write_public(path: Path, data: bytes) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_bytes(data)
+    """A certificate: readable by all, writable by its owner (0644)."""
+    _write(path, data, CERT_MODE)
 
 
 def _key_pem(key: ec.EllipticCurvePrivateKey) -> bytes:

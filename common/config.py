@@ -34,7 +34,11 @@ from pydantic import (
     model_validator,
 )
 
-from common.defaults import DEFAULT_CALIBRATION_FRAMES, DEFAULT_REGISTRY_PORT
+from common.defaults import (
+    DEFAULT_CALIBRATION_FRAMES,
+    DEFAULT_MAX_REQUEST_BYTES,
+    DEFAULT_REGISTRY_PORT,
+)
 from common.errors import UserError
 from common.keys import DEFAULT_FLEET, validate_id
 from common.wire.codec import DEFAULT_MAX_PAYLOAD_BYTES
@@ -45,6 +49,10 @@ ZOO_PREFIX = "zoo:"
 CLI_IDENTITY = "cli"
 """The views CLI's identity: the common name of its read-only certificate (`elasticfog certs`)."""
 MAX_ERRORS_SHOWN = 5
+MIN_REQUEST_BYTES = 1024
+"""Below this a registration or a telemetry record (a few hundred bytes) would not fit."""
+MAX_REQUEST_BYTES_LIMIT = 16 * 1024 * 1024
+"""The registry's requests are small: a limit beyond this protects nothing."""
 
 LatencyStat = Literal["median", "mean", "p95", "max", "stddev"]
 LATENCY_STATS: tuple[str, ...] = typing.get_args(LatencyStat)
@@ -130,6 +138,14 @@ class RegistryConfig(_Model):
     tls: TlsConfig | None = Field(
         default=None,
         description="The registry's TLS files (cert and key; ca and mtls default to zenoh.tls).",
+    )
+    max_request_bytes: int = Field(
+        default=DEFAULT_MAX_REQUEST_BYTES,
+        ge=MIN_REQUEST_BYTES,
+        le=MAX_REQUEST_BYTES_LIMIT,
+        description="Largest payload the registry reads (register, reroute, drain, RIB queries, "
+        "telemetry, probe reports), bytes; a bigger request gets a too_large error reply, a "
+        "bigger publication is dropped, both counted.",
     )
 
 

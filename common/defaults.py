@@ -9,3 +9,6 @@ from __future__ import annotations
 DEFAULT_REGISTRY_PORT = 7447
 # Frames the (cut, codec) pairs are measured on (fleet.yaml `fidelity.calibration_frames`).
 DEFAULT_CALIBRATION_FRAMES = 8
+# Largest request the registry reads (fleet.yaml `registry.max_request_bytes`): its requests,
+# telemetry and probe reports are a few hundred bytes, so anything near this is an attack or a bug.
+DEFAULT_MAX_REQUEST_BYTES = 64 * 1024

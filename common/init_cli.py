@@ -20,10 +20,11 @@ import typer
 
 from common.defaults import DEFAULT_REGISTRY_PORT
 from common.errors import UserError
+from common.fleet_tls import CERTS_DIR, ca_path, host_tls, write_certs
 from common.keys import DEFAULT_FLEET, validate_id
 
 FLEET_FILE = "fleet.yaml"
-CERTS_DIR = "certs"
+REGISTRY_ID = "registry"
 DEFAULT_MODEL = "zoo:resnet"
 DEFAULT_SERVICE = "vision"
 CLOUD_IDS = ("edge-1", "edge-2")
@@ -117,19 +118,19 @@ ROBOT_TEMPLATE = """\
     fps: 10
     # uplink_mbit: 2    # pace the uplink in the application (single-host emulation)
 {tls}"""
-HOST_TLS = "    tls: {{cert: {dir}/{id}.crt, key: {dir}/{id}.key}}\n"
+HOST_TLS = "    tls: {{cert: {cert}, key: {key}}}\n"
 ZENOH_TLS = """\
   # Mutual TLS on every link: each host shows its own certificate (common name = its id,
   # made by `elasticfog certs`) and accepts only certificates signed by this CA.
   tls:
-    ca: {dir}/ca.crt
+    ca: {ca}
     mtls: true
   # Each host may touch only its own keys (generated from this file, see docs/security.md).
   access_control: true
 
 # The views CLI (`elasticfog routes --config fleet.yaml`) uses this read-only certificate.
 cli:
-  tls: {{cert: {dir}/cli.crt, key: {dir}/cli.key}}
+  tls: {{cert: {cli_cert}, key: {cli_key}}}
 """
 
 
@@ -147,20 +148,21 @@ def render_fleet(
     robots: int = 1,
     tls: bool = False,
 ) -> str:
-    """The text of a single-host fleet.yaml (with `tls`: certificates expected in certs/)."""
+    """The text of a single-host fleet.yaml (with `tls`: the settings of
+    `common.fleet_tls.tls_settings`, certificates expected in certs/)."""
     proto = "tls" if tls else "tcp"
 
-    def host_tls(host: str) -> str:
-        return HOST_TLS.format(dir=CERTS_DIR, id=host) if tls else ""
+    def own_tls(host: str) -> str:
+        return HOST_TLS.format(**host_tls(host)) if tls else ""
 
     machines = [
         CLOUD_TEMPLATE.format(
-            id=cloud, proto=proto, fault=FAULT_LINE if i == 0 else "", tls=host_tls(cloud)
+            id=cloud, proto=proto, fault=FAULT_LINE if i == 0 else "", tls=own_tls(cloud)
         )
         for i, cloud in enumerate(CLOUD_IDS)
     ]
     robot_list = robot_ids(robots)
-    machines += [ROBOT_TEMPLATE.format(id=r, proto=proto, tls=host_tls(r)) for r in robot_list]
+    machines += [ROBOT_TEMPLATE.format(id=r, proto=proto, tls=own_tls(r)) for r in robot_list]
     return TEMPLATE.format(
         fleet=json.dumps(fleet),
         service=json.dumps(service),
@@ -169,11 +171,16 @@ def render_fleet(
         robot_lines="\n".join(
             f"#   elasticfog robot --config fleet.yaml --id {r} --frames 100" for r in robot_list
         ),
-        registry_tls="\n  " + host_tls("registry").strip() if tls else "",
+        registry_tls="\n  " + own_tls(REGISTRY_ID).strip() if tls else "",
         machines="".join(machines),
         robot_policy="".join(f"  {r}: robot\n" for r in robot_list),
-        zenoh_tls=ZENOH_TLS.format(dir=CERTS_DIR) if tls else "",
+        zenoh_tls=_zenoh_tls() if tls else "",
     )
+
+
+def _zenoh_tls() -> str:
+    cli = host_tls("cli")
+    return ZENOH_TLS.format(ca=ca_path(), cli_cert=cli["cert"], cli_key=cli["key"])
 
 
 def write_fleet(
@@ -215,10 +222,9 @@ def write_fleet(
     text = render_fleet(port=port, fleet=fleet, model=model, robots=robots, tls=tls)
     fleet_from_dict(yaml.safe_load(text), source=target)  # what we write must load
     if tls:
-        from common.certs import init_fleet_certs
-
-        hosts = ["registry", *CLOUD_IDS, *robot_ids(robots)]
-        init_fleet_certs(directory / CERTS_DIR, hosts, fleet=fleet, force=force)
+        write_certs(
+            directory, [REGISTRY_ID, *CLOUD_IDS, *robot_ids(robots)], fleet=fleet, force=force
+        )
     try:
         directory.mkdir(parents=True, exist_ok=True)
         target.write_text(text, encoding="utf-8")

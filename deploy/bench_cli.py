@@ -4,7 +4,9 @@ Each command parses its options and calls one experiment of `deploy/experiments`
 docs/experiments.md): it brings a testbed up, runs the real daemons inside its hosts, shapes the
 robot's uplink or CPU quota while the robot streams, prints a markdown table on stdout (or
 `--json`), writes PNG plots into docs/img/, and always removes the testbed again, also on Ctrl-C.
-Progress goes to stderr. `--quick` runs short.
+Progress goes to stderr. `--quick` runs short. `--tls` runs every fleet with mutual TLS and the
+access control on (certificates made per run with the hosts' testbed addresses; the JSON says
+`"tls": true`).
 
 `scale` is the exception: it runs on loopback without root (a registry and cloud daemons as
 subprocesses, emulated robots from a load generator; see docs/scale.md).
@@ -60,6 +62,13 @@ WORKDIR_OPTION = typer.Option(
 )
 NAME_OPTION = typer.Option(None, "--name", help="Testbed name (default: one of its own).")
 JSON_OPTION = typer.Option(False, "--json", help="Print plain JSON on stdout.")
+TLS_OPTION = typer.Option(
+    False,
+    "--tls",
+    help="Mutual TLS and access control on every link (as `elasticfog init --tls`; "
+    "certificates carry the testbed addresses).",
+)
+TLS_NOTE = "Every link: mutual TLS with access control (`--tls`)."
 
 
 def register(app: typer.Typer) -> None:
@@ -78,6 +87,7 @@ def _options(
     no_plots: bool,
     workdir: Path | None,
     name: str | None,
+    tls: bool = False,
 ) -> Any:
     """The experiment's options; bad ones are reported (one line, exit 2)."""
     from common.zoo import parse_shape
@@ -98,6 +108,7 @@ def _options(
             plots_dir=None if no_plots else plots_dir,
             name=name,
             log=lambda message: err.print(f"[dim]bench:[/dim] {message}", highlight=False),
+            tls=tls,
         )
         options.check()
     except UserError as exc:
@@ -128,9 +139,11 @@ def _run(
         for path in plot(result, options.plots_dir):
             err.print(f"plot: {path}", highlight=False)
     if as_json:
-        typer.echo(json.dumps(public(result)))
+        typer.echo(json.dumps({**public(result), "tls": options.tls}))
     else:
         typer.echo(render(result))
+        if options.tls:
+            typer.echo(f"\n{TLS_NOTE}")
 
 
 def _fail(exc: UserError) -> NoReturn:
@@ -174,6 +187,7 @@ def table1(
     no_plots: bool = NO_PLOTS_OPTION,
     workdir: Path | None = WORKDIR_OPTION,
     name: str | None = NAME_OPTION,
+    tls: bool = TLS_OPTION,
     as_json: bool = JSON_OPTION,
 ) -> None:
     """ElasticROS Table I: latency, robot CPU and energy per frame at each uplink cap."""
@@ -187,6 +201,7 @@ def table1(
         no_plots=no_plots,
         workdir=workdir,
         name=name,
+        tls=tls,
     )
     from deploy.experiments import table1 as t1
     from deploy.experiments.options import parse_floats
@@ -212,6 +227,7 @@ def glitch(
     no_plots: bool = NO_PLOTS_OPTION,
     workdir: Path | None = WORKDIR_OPTION,
     name: str | None = NAME_OPTION,
+    tls: bool = TLS_OPTION,
     as_json: bool = JSON_OPTION,
 ) -> None:
     """A bandwidth glitch while the robot streams: before / on / after, frames to settle."""
@@ -225,6 +241,7 @@ def glitch(
         no_plots=no_plots,
         workdir=workdir,
         name=name,
+        tls=tls,
     )
     from deploy.experiments import glitch as gl
     from deploy.experiments.options import parse_floats
@@ -255,6 +272,7 @@ def table2(
     no_plots: bool = NO_PLOTS_OPTION,
     workdir: Path | None = WORKDIR_OPTION,
     name: str | None = NAME_OPTION,
+    tls: bool = TLS_OPTION,
     as_json: bool = JSON_OPTION,
 ) -> None:
     """ElasticROS Table II: the glitches 10→3, 5→1 and 10→1 Mbit/s."""
@@ -268,6 +286,7 @@ def table2(
         no_plots=no_plots,
         workdir=workdir,
         name=name,
+        tls=tls,
     )
     from deploy.experiments import glitch as gl
 
@@ -296,6 +315,7 @@ def table3(
     no_plots: bool = NO_PLOTS_OPTION,
     workdir: Path | None = WORKDIR_OPTION,
     name: str | None = NAME_OPTION,
+    tls: bool = TLS_OPTION,
     as_json: bool = JSON_OPTION,
 ) -> None:
     """ElasticROS Table III: the robot's CPU quota drops to --robot-cpu, then recovers."""
@@ -309,6 +329,7 @@ def table3(
         no_plots=no_plots,
         workdir=workdir,
         name=name,
+        tls=tls,
     )
     from deploy.experiments import table3 as t3
 
@@ -326,6 +347,7 @@ def anycast(
     no_plots: bool = NO_PLOTS_OPTION,
     workdir: Path | None = WORKDIR_OPTION,
     name: str | None = NAME_OPTION,
+    tls: bool = TLS_OPTION,
     as_json: bool = JSON_OPTION,
 ) -> None:
     """FogROS2-LS Table I: deadline misses with 1-4 deployments when edge-1 is slowed."""
@@ -339,6 +361,7 @@ def anycast(
         no_plots=no_plots,
         workdir=workdir,
         name=name,
+        tls=tls,
     )
     from deploy.experiments import anycast as ac
 

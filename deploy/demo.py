@@ -15,6 +15,12 @@ SIGKILLs the deployment serving the robot when the telemetry reaches that frame;
 time is from the kill to the first frame answered by another deployment (both instants on this
 host's wall clock: the kill here, the frame's completion in its telemetry).
 
+`--tls` runs the fleet as `elasticfog init --tls` writes it (the same code path): a fleet CA and
+a certificate per host (registry, edge-1, edge-2, robot-1 and the read-only cli) in the temporary
+folder's certs/, every endpoint `tls/127.0.0.1:PORT` (nothing listens in plaintext), mutual TLS
+and the access control on; the summary says so (`"tls": true`). The demo's own session watches
+with the registry's certificate (`deploy.procs.observer_identity`).
+
 `--compare` runs the same script again with the `robot` and `cloud:jpeg80` policies (a fresh
 fleet each) and says, per phase, which was fastest and whether the demo's policy chose like it
 (`deploy.demo_summary.compare_verdict`). `--plot FILE.png` draws each frame's latency.
@@ -69,6 +75,8 @@ STARTUP_TIMEOUT_S = 60.0
 ROBOT_SLACK_S = 60.0
 """Beyond its frames, how long the robot may take (startup, profiling) before we give up."""
 INTERRUPTED_EXIT_CODE = 130
+SUMMARY_WIDTH_COLUMNS = 110
+"""Width of the summary tables when stdout is not a terminal (a log, a pipe): rich would take 80."""
 
 
 @dataclass
@@ -87,6 +95,8 @@ class DemoOptions:
     source: str = DEFAULT_CAMERA_SOURCE
     keep: bool = False
     workdir: Path | None = None
+    tls: bool = False
+    """Mutual TLS and access control on every link (`elasticfog init --tls`'s fleet)."""
 
     def resolve(self) -> DemoScript:
         """The script this run follows, with the command line's overrides; UserError naming the
@@ -253,7 +263,9 @@ def _run(
 
     started = time.monotonic()
     policy = options.policy or DEFAULT_POLICY
-    cfg_path = write_local_fleet(workdir, fleet=f"demo-{os.getpid()}", model=options.model)
+    cfg_path = write_local_fleet(
+        workdir, fleet=f"demo-{os.getpid()}", model=options.model, tls=options.tls
+    )
     cfg = load_fleet(cfg_path)
     with console.status(f"preparing {cfg.model} (split and verify; cached after the first run)"):
         prepare_model(cfg)
@@ -297,6 +309,7 @@ def _run(
     summary, result.reasons = summarize(records, script.frames, killer.failovers)
     result.summary = {
         "policy": policy,
+        "tls": cfg.tls,
         **summary,
         "phases": summarize_phases(records, script.phases),
         "wall_s": round(time.monotonic() - started, 1),
@@ -419,6 +432,12 @@ def demo(
     plot: Path | None = typer.Option(
         None, "--plot", help="Save per-frame latency by action, phases marked, to this PNG."
     ),
+    tls: bool = typer.Option(
+        False,
+        "--tls",
+        help="Mutual TLS and access control on every link (certificates made in the temporary "
+        "folder, as `elasticfog init --tls` does).",
+    ),
     keep: bool = typer.Option(False, "--keep", help="Keep the temporary folder (fleet, logs)."),
     as_json: bool = typer.Option(False, "--json", help="Print the summary as JSON on stdout."),
 ) -> None:
@@ -436,6 +455,7 @@ def demo(
         model=model,
         source=source,
         keep=keep,
+        tls=tls,
     )
     try:
         if plot is not None and plot.suffix.lower() != ".png":
@@ -470,15 +490,19 @@ def _print(result: DemoResult | CompareResult, *, as_json: bool) -> None:
     """The result on stdout: JSON, or the tables."""
     from deploy.demo_view import render_compare, render_run
 
+    console = Console()
+    if not console.is_terminal:
+        # Piped or logged: rich would assume 80 columns and squeeze the per-phase table.
+        console = Console(width=SUMMARY_WIDTH_COLUMNS)
     if isinstance(result, CompareResult):
         if as_json:
             typer.echo(json.dumps(result.to_json()))
         else:
-            render_compare(result.to_json(), Console())
+            render_compare(result.to_json(), console)
     elif as_json:
         typer.echo(json.dumps(result.summary))
     else:
-        render_run(result.summary, result.reasons, Console())
+        render_run(result.summary, result.reasons, console)
 
 
 def register(app: typer.Typer) -> None:

@@ -27,6 +27,7 @@ from robotd.emulation import Phase, robot_class
 ROLLING_FRAMES = 15
 """Frames in the live view's rolling latency."""
 LIVE_REFRESH_PER_S = 4
+TLS_TEXT = "TLS on: mutual TLS and access control on every link (tls/ endpoints only)"
 
 
 def link_text(uplink_mbit: float | None) -> str:
@@ -172,6 +173,8 @@ def render_run(summary: Mapping[str, Any], reasons: Mapping[str, int], console: 
         to = fo["to"] or "nobody (the robot finished every later frame itself)"
         took = f" in {fo['ms']:.0f} ms" if fo["ms"] is not None else ""
         table.add_row("failover", f"killed {fo['from']} at frame {fo['at_frame']} -> {to}{took}")
+    if summary.get("tls"):
+        table.add_row("links", TLS_TEXT)
     table.add_row("wall time", f"{summary['wall_s']:.1f} s")
     console.print(table)
     console.print(phase_table(summary["phases"]))
@@ -232,6 +235,8 @@ def render_compare(result: Mapping[str, Any], console: Console) -> None:
     )
     console.print(table)
     console.print(f"lost: {lost}; failover: {failover or 'none'}", highlight=False)
+    if runs and runs[0].get("tls"):
+        console.print(TLS_TEXT, highlight=False)
     console.print(f"wall time: {result['wall_s']:.1f} s", highlight=False)
 
 

@@ -16,7 +16,8 @@ daemons and stops them in reverse order of start on exit from its `with` block, 
 one escalates to SIGKILL), on SIGTERM to the owner (turned into the same path) and, as a last
 resort, at interpreter exit. `LocalFleet` puts the runtime's daemons on top of that: start them
 with the real CLI, wait until each is ready, and watch them as any other machine of the fleet
-would (tokens, probes, ctl, the registry's views, the robots' telemetry).
+would (tokens, probes, ctl, the registry's views, the robots' telemetry); in a TLS fleet the
+watching session listens on TLS only and shows the registry's certificate (`observer_identity`).
 """
 
 from __future__ import annotations
@@ -41,6 +42,8 @@ from common.errors import UserError
 
 if TYPE_CHECKING:
     import zenoh
+
+    from common.config import FleetConfig
 
 log = logging.getLogger(__name__)
 
@@ -482,10 +485,12 @@ def write_local_fleet(
     model: str | None = None,
     port: int | None = None,
     changes: dict[str, Any] | None = None,
+    tls: bool = False,
 ) -> Path:
     """`elasticfog init`'s single-host fleet.yaml with a free registry port and a fleet name of
     its own (two runs on one host never see each other's keys), `changes` merged in, checked
-    with `load_fleet`. Returns the file's path."""
+    with `load_fleet`. With `tls`, what `elasticfog init --tls` writes: certificates in
+    `directory/certs/`, mutual TLS and access control on every link. Returns the file's path."""
     import uuid
 
     import yaml
@@ -499,6 +504,7 @@ def write_local_fleet(
         fleet=fleet or f"local-{uuid.uuid4().hex[:8]}",
         model=model or DEFAULT_MODEL,
         force=True,
+        tls=tls,
     )
     if changes:
         data = yaml.safe_load(path.read_text(encoding="utf-8"))
@@ -596,6 +602,19 @@ class TelemetryTap:
             self._sub.undeclare()
 
 
+def link_protocol(cfg: FleetConfig) -> str:
+    """The Zenoh protocol of the fleet's links: `tls` in a TLS fleet (nothing listens in
+    plaintext), else `tcp`."""
+    return "tls" if cfg.tls else "tcp"
+
+
+def observer_identity(cfg: FleetConfig) -> str | None:
+    """Whose certificate a session that watches and drives a fleet shows (this module's, the
+    testbed's observer): in a TLS fleet the registry's, since it follows telemetry, reads the
+    views and sends ctl, which the access control lets only the registry do; else none."""
+    return cfg.registry.id if cfg.tls else None
+
+
 class LocalFleet:
     """The daemons of one fleet.yaml as subprocesses on this host, and a session to watch them.
 
@@ -664,7 +683,11 @@ class LocalFleet:
         if self._session is None:
             from common.session import open_session
 
-            self._session = open_session(self.cfg, listen=["tcp/127.0.0.1:0"])
+            self._session = open_session(
+                self.cfg,
+                identity=observer_identity(self.cfg),
+                listen=[f"{link_protocol(self.cfg)}/127.0.0.1:0"],
+            )
             self._tokens = TokenWatch(self._session, self.fleet)
         return self._session
 

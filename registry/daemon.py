@@ -42,8 +42,10 @@ nothing is ever routed to it. A deployment found serving a robot that the RIB ro
 put back in standby (anycast repair).
 
 Bad input to any queryable (garbage, an unknown schema version, a wrong message type, a malformed
-request) gets an `ErrorReply` naming the problem and one throttled warning; a bad publication is
-a throttled warning and dropped. The daemon keeps serving either way.
+request, a payload over `registry.max_request_bytes`) gets an `ErrorReply` naming the problem and
+one throttled warning; a bad publication is a throttled warning and dropped. Both are counted by
+input and error code (`registry.refusals`, logged at shutdown). The daemon keeps serving either
+way.
 """
 
 from __future__ import annotations
@@ -72,8 +74,9 @@ from common.wire.telemetry import ProbeReport, TelemetryRecord
 from registry.latency import LatencyBound
 from registry.measurements import Measurements
 from registry.prober import Probed, Prober
+from registry.refusals import Refusals
 from registry.registration import Registrar, RegistrationState, Role, fleet_model_digest
-from registry.replies import MAX_REQUEST_BYTES, answer, decode_query, error_payload, refusal
+from registry.replies import answer, check_size, decode_query, error_payload, refusal
 from registry.rib import MEMORY, DeploymentRow, Rib
 from registry.scheduler import (
     Decision,
@@ -168,6 +171,9 @@ class RegistryDaemon(Daemon):
         self.restore_grace_s = restore_grace_s
         self.profile_save_interval_s = profile_save_interval_s
         self.load_refresh_interval_s = load_refresh_interval_s
+        self.max_request_bytes = cfg.registry.max_request_bytes
+        # Error replies and dropped publications, by input and code (Zenoh threads count).
+        self.refusals = Refusals()
         # Set once the registry's token is declared: it serves from then on.
         self.ready = threading.Event()
         self.scheduler = Scheduler(self.bound, self.params)
@@ -223,7 +229,13 @@ class RegistryDaemon(Daemon):
             session = self.hold(open_session(cfg, identity=self.id), "zenoh session")
             where = f"the router at {cfg.registry.endpoint}"
         transport = ZenohTransport(session, fleet)
-        registrar = Registrar(fleet, rib, self.service, fleet_model_digest(cfg))
+        registrar = Registrar(
+            fleet,
+            rib,
+            self.service,
+            fleet_model_digest(cfg),
+            max_request_bytes=self.max_request_bytes,
+        )
         prober = Prober(transport, self.id, self._events.put, self.closing)
         self.on_release(prober.close, what="probe pool")
         # After the queryables are gone: what they queued gets a refusal instead of a timeout.
@@ -234,7 +246,15 @@ class RegistryDaemon(Daemon):
             transport=transport,
             switcher=Switcher(rib, transport, ctl_timeout_s=self.ctl_timeout_s, sender=self.id),
             registrar=registrar,
-            views=RibViews(fleet, rib, self.measurements, registrar, self.bound, cfg.deadline_s),
+            views=RibViews(
+                fleet,
+                rib,
+                self.measurements,
+                registrar,
+                self.bound,
+                cfg.deadline_s,
+                max_request_bytes=self.max_request_bytes,
+            ),
             prober=prober,
         )
         self._declare(session)
@@ -262,21 +282,28 @@ class RegistryDaemon(Daemon):
     def _declare(self, session: zenoh.Session) -> None:
         """The queryables and subscribers, each guarded and held."""
         fleet = self.fleet
-        queryables: list[tuple[str, Callable[[zenoh.Query], None], Callable[..., str]]] = [
-            (keys.rib_all(fleet), self._parts.views.answer, self._parts.views.reply_key),
+        # (input name for the refusal counts, key, handler, where an error reply goes)
+        queryables: list[tuple[str, str, Callable[[zenoh.Query], None], Callable[..., str]]] = [
+            ("rib", keys.rib_all(fleet), self._parts.views.answer, self._parts.views.reply_key),
             (
+                "register",
                 keys.reg_register(fleet),
                 self._parts.registrar.answer,
                 lambda _q: keys.reg_register(fleet),
             ),
-            (keys.reg_reroute(fleet), self._on_reroute, lambda _q: keys.reg_reroute(fleet)),
-            (keys.reg_drain(fleet), self._on_drain, lambda _q: keys.reg_drain(fleet)),
+            (
+                "reroute",
+                keys.reg_reroute(fleet),
+                self._on_reroute,
+                lambda _q: keys.reg_reroute(fleet),
+            ),
+            ("drain", keys.reg_drain(fleet), self._on_drain, lambda _q: keys.reg_drain(fleet)),
         ]
-        for key, handler, reply_key in queryables:
+        for name, key, handler, reply_key in queryables:
             callback = self.guarded(
                 handler,
                 what=f"a query on {key}",
-                on_error=functools.partial(self._answer_error, reply_key),
+                on_error=functools.partial(self._answer_error, name, reply_key),
                 drop_when_closing=True,
             )
             self.hold(session.declare_queryable(key, callback), f"queryable {key}")
@@ -320,6 +347,9 @@ class RegistryDaemon(Daemon):
         self.ready.clear()
         super().shutdown()
         self._started = None
+        refused = self.refusals.summary()
+        if refused:
+            log.info("registry %s refused (input, code, count): %s", self.id, refused)
         log.info("registry %s stopped", self.id)
 
     # -- callbacks (Zenoh threads: short, never a decision) --------------------------------------
@@ -348,11 +378,14 @@ class RegistryDaemon(Daemon):
         once a bad one is logged."""
         key = str(sample.key_expr)
         try:
-            message = kind.from_wire(sample.payload.to_bytes(), max_bytes=MAX_REQUEST_BYTES)
+            data = sample.payload.to_bytes()
+            check_size(data, self.max_request_bytes, what)
+            message = kind.from_wire(data, max_bytes=self.max_request_bytes)
             parts = keys.parse_key(key)
             if parts is None or parts.id != message.robot:
                 raise WireError(f"{what} of robot {message.robot!r} published on {key}")
         except WireError as exc:
+            self.refusals.count(what, exc.code)
             self._bad_input(f"{what} on {key}", str(exc))
             return None
         return message
@@ -363,17 +396,22 @@ class RegistryDaemon(Daemon):
         self.throttled.warning("ignored bad %s: %s", where, problem)
 
     def _on_reroute(self, query: zenoh.Query) -> None:
-        request = decode_query(query, msg.RerouteRequest)
+        request = decode_query(query, msg.RerouteRequest, max_bytes=self.max_request_bytes)
         self._events.put(_Request(request, query, keys.reg_reroute(self.fleet)))
 
     def _on_drain(self, query: zenoh.Query) -> None:
-        request = decode_query(query, msg.DrainRequest)
+        request = decode_query(query, msg.DrainRequest, max_bytes=self.max_request_bytes)
         self._events.put(_Request(request, query, keys.reg_drain(self.fleet)))
 
     def _answer_error(
-        self, reply_key: Callable[[zenoh.Query], str], query: zenoh.Query, exc: Exception
+        self,
+        name: str,
+        reply_key: Callable[[zenoh.Query], str],
+        query: zenoh.Query,
+        exc: Exception,
     ) -> None:
-        """Answer a query whose callback failed (`guarded` has logged why)."""
+        """Answer a query whose callback failed (`guarded` has logged why), and count it."""
+        self.refusals.count(name, exc.code if isinstance(exc, WireError) else ErrorCode.INTERNAL)
         answer(query, (reply_key(query), error_payload(exc)))
 
     # -- control loop ----------------------------------------------------------------------------

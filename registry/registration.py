@@ -26,6 +26,7 @@ import zenoh
 
 from common import keys
 from common.config import FleetConfig
+from common.defaults import DEFAULT_MAX_REQUEST_BYTES
 from common.models import file_digest
 from common.wire import registry as msg
 from registry.replies import answer, decode_query
@@ -76,13 +77,23 @@ def fleet_model_digest(cfg: FleetConfig) -> str | None:
 
 
 class Registrar:
-    """`Registrar(fleet, rib, service, fleet_digest)`: the registration table and its checks."""
+    """`Registrar(fleet, rib, service, fleet_digest)`: the registration table and its checks.
+    `max_request_bytes`: the largest `reg/register` request read (`registry.max_request_bytes`)."""
 
-    def __init__(self, fleet: str, rib: Rib, service: str, fleet_digest: str | None) -> None:
+    def __init__(
+        self,
+        fleet: str,
+        rib: Rib,
+        service: str,
+        fleet_digest: str | None,
+        *,
+        max_request_bytes: int = DEFAULT_MAX_REQUEST_BYTES,
+    ) -> None:
         self.fleet = fleet
         self.rib = rib
         self.service = service
         self.fleet_digest = fleet_digest
+        self.max_request_bytes = max_request_bytes
         self._lock = threading.Lock()
         self._table: dict[str, Registration] = {}
         self._seen: set[str] = set()  # deployments accepted in this run
@@ -188,7 +199,7 @@ class Registrar:
     def answer(self, query: zenoh.Query) -> None:
         """Serve `reg/register` on Zenoh's callback thread (a WireError for a bad request, which
         the caller answers)."""
-        request = decode_query(query, msg.RegisterRequest)
+        request = decode_query(query, msg.RegisterRequest, max_bytes=self.max_request_bytes)
         reason = self.register(request)
         route = None
         if reason is None and Role(request.role) is Role.ROBOT:

@@ -1,7 +1,8 @@
 """How the registry reads a query and answers it, for every queryable it declares.
 
-A request is decoded strictly (`decode_query`: 64 KiB at most, the expected message type only),
-so bad input raises a `WireError` naming the problem; the daemon's guarded callbacks answer it
+A request is decoded strictly (`decode_query`: at most `registry.max_request_bytes`, 64 KiB by
+default, checked on the length before unpacking; the expected message type only), so bad input
+raises a `WireError` naming the problem; the daemon's guarded callbacks answer it
 with `error_payload`, the matching `ErrorReply`. `answer` sends the replies and finalizes the
 query at once (a querier waits for the final reply), tolerating a querier that went away.
 """
@@ -15,23 +16,35 @@ import zenoh
 
 from common.session import zenoh_error_text
 from common.wire import ErrorCode, ErrorReply, Message, WireError, decode, error_reply
+from common.wire.errors import PayloadTooLarge
 
 log = logging.getLogger(__name__)
 
-# Requests to the registry, telemetry and probe reports are small; bigger ones are refused before
-# unpacking.
-MAX_REQUEST_BYTES = 64 * 1024
 INTERNAL_REASON = "internal error; see the registry log"
+LIMIT_FIELD = "registry.max_request_bytes"
 
 
-def decode_query(query: zenoh.Query, kind: type[Message], *, empty_ok: bool = False) -> Any:
+def check_size(data: bytes, max_bytes: int, what: str) -> None:
+    """PayloadTooLarge (`too_large`) naming the limit and the fleet field that sets it when
+    `data` is over `max_bytes`: checked on the length, before any unpacking."""
+    if len(data) > max_bytes:
+        raise PayloadTooLarge(
+            f"{what} of {len(data)} bytes exceeds the registry's limit of {max_bytes} bytes "
+            f"({LIMIT_FIELD})"
+        )
+
+
+def decode_query(
+    query: zenoh.Query, kind: type[Message], *, max_bytes: int, empty_ok: bool = False
+) -> Any:
     """The query's payload as a `kind` (an empty one as `kind()` when `empty_ok`); a
-    WireError naming the problem otherwise."""
+    WireError naming the problem otherwise (`too_large` over `max_bytes`)."""
     payload = query.payload
     data = payload.to_bytes() if payload is not None else b""
     if not data and empty_ok:
         return kind()
-    return decode(data, expect=kind, max_bytes=MAX_REQUEST_BYTES)
+    check_size(data, max_bytes, f"{kind.TYPE} request")
+    return decode(data, expect=kind, max_bytes=max_bytes)
 
 
 def refusal(reason: str) -> bytes:

@@ -27,6 +27,7 @@ from typing import Any
 import zenoh
 
 from common import keys
+from common.defaults import DEFAULT_MAX_REQUEST_BYTES
 from common.errors import UserError
 from common.wire import Message
 from common.wire import registry as msg
@@ -49,7 +50,8 @@ class RouteState(str, Enum):
 
 
 class RibViews:
-    """`RibViews(fleet, rib, measurements, registrar, bound, deadline_s).view("routes")`."""
+    """`RibViews(fleet, rib, measurements, registrar, bound, deadline_s).view("routes")`;
+    `max_request_bytes`: the largest `RibQuery` read (`registry.max_request_bytes`)."""
 
     def __init__(
         self,
@@ -59,6 +61,8 @@ class RibViews:
         registrar: Registrar,
         bound: LatencyBound,
         deadline_s: float,
+        *,
+        max_request_bytes: int = DEFAULT_MAX_REQUEST_BYTES,
     ) -> None:
         self.fleet = fleet
         self.rib = rib
@@ -66,6 +70,7 @@ class RibViews:
         self.registrar = registrar
         self.bound = bound
         self.deadline_s = deadline_s
+        self.max_request_bytes = max_request_bytes
 
     def answer(self, query: zenoh.Query) -> None:
         """Answer a query on `rib/*` (a WireError for a bad `RibQuery`, answered by the caller
@@ -78,7 +83,7 @@ class RibViews:
             )
             answer(query, (str(query.key_expr), refusal(reason)))
             return
-        request = decode_query(query, msg.RibQuery, empty_ok=True)
+        request = decode_query(query, msg.RibQuery, max_bytes=self.max_request_bytes, empty_ok=True)
         answer(query, *((keys.rib(self.fleet, v), self.view(v, request).to_wire()) for v in views))
 
     def reply_key(self, query: zenoh.Query) -> str:

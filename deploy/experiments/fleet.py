@@ -6,6 +6,13 @@ own host's address, so gossip tells the others where to reach it and data flows 
 deployment directly, over the links that `tc` shapes. Shared memory is off (it would bypass the
 links) and multicast scouting is off (`common.session` always turns it off): peers meet through
 the explicit registry endpoint only.
+
+With `tls` (`elasticfog bench ... --tls`) the fleet is secured as `elasticfog init --tls` secures
+one (`common.fleet_tls`): a fleet CA and a certificate per host in `certs/` beside the fleet
+file, each carrying its host's testbed address as an IP SAN (Zenoh checks it), every endpoint
+`tls/`, mutual TLS and the access control on. The observer on the `bench` host shows the
+registry's certificate (it reads the views and injects faults through ctl keys, which only the
+registry may query), so that certificate carries the bench host's address too.
 """
 
 from __future__ import annotations
@@ -18,6 +25,7 @@ from typing import Any
 import yaml
 
 from common.config import FleetConfig, fleet_from_dict
+from common.fleet_tls import tls_settings, write_certs
 from deploy.procs import merge_into
 from robotd.source_names import DEFAULT_CAMERA_SOURCE
 
@@ -26,6 +34,8 @@ from .defaults import DEFAULT_INPUT_SHAPE, DEFAULT_MODEL
 REGISTRY_HOST = "registry"
 ROBOT_HOST = "robot"
 ROBOT_ID = "robot-1"
+REGISTRY_ID = "registry"
+"""The registry's machine id (fleet.yaml's default): its certificate's common name."""
 OBSERVER_HOST = "bench"
 CLOUD_HOSTS = ("edge-1", "edge-2", "cloud-1", "cloud-2")
 SERVICE = "vision"
@@ -66,30 +76,33 @@ class FleetSpec:
     """Merged into the mapping last (nested mappings merge, other values replace)."""
 
 
-def endpoint(address: str, port: int) -> str:
-    """A Zenoh TCP endpoint."""
-    return f"tcp/{address}:{port}"
+def endpoint(address: str, port: int, *, tls: bool = False) -> str:
+    """A Zenoh endpoint: TCP, or TLS in a TLS fleet."""
+    return f"{'tls' if tls else 'tcp'}/{address}:{port}"
 
 
-def fleet_dict(spec: FleetSpec, addresses: Mapping[str, str], db: Path) -> dict[str, Any]:
-    """fleet.yaml's mapping for `spec` on a testbed whose hosts have `addresses`."""
+def fleet_dict(
+    spec: FleetSpec, addresses: Mapping[str, str], db: Path, *, tls: bool = False
+) -> dict[str, Any]:
+    """fleet.yaml's mapping for `spec` on a testbed whose hosts have `addresses`; with `tls`,
+    TLS endpoints and the certificates of `cert_ips` (written by `write_fleet`)."""
     missing = [h for h in (REGISTRY_HOST, ROBOT_HOST, *spec.clouds) if h not in addresses]
     if missing:
         raise ValueError(f"the testbed has no host {', '.join(missing)}")
     if spec.serving not in spec.clouds:
         raise ValueError(f"serving deployment {spec.serving} is not one of {list(spec.clouds)}")
-    registry = endpoint(addresses[REGISTRY_HOST], REGISTRY_PORT)
+    registry = endpoint(addresses[REGISTRY_HOST], REGISTRY_PORT, tls=tls)
     machines: dict[str, Any] = {}
     for cloud in spec.clouds:
         machines[cloud] = {
             "role": "cloud",
-            "listen": [endpoint(addresses[cloud], PEER_PORT)],
+            "listen": [endpoint(addresses[cloud], PEER_PORT, tls=tls)],
             "threads": spec.cloud_threads,
             "workers": spec.cloud_workers,
         }
     robot: dict[str, Any] = {
         "role": "robot",
-        "listen": [endpoint(addresses[ROBOT_HOST], PEER_PORT)],
+        "listen": [endpoint(addresses[ROBOT_HOST], PEER_PORT, tls=tls)],
         "threads": spec.robot_threads,
         "source": DEFAULT_CAMERA_SOURCE,
     }
@@ -117,7 +130,19 @@ def fleet_dict(spec: FleetSpec, addresses: Mapping[str, str], db: Path) -> dict[
     }
     if spec.input_shape is not None:
         data["input_shape"] = list(spec.input_shape)
+    if tls:
+        merge_into(data, tls_settings(REGISTRY_ID, machines))
     return merge_into(data, dict(spec.changes))
+
+
+def cert_ips(spec: FleetSpec, addresses: Mapping[str, str]) -> dict[str, list[str]]:
+    """Each host's testbed addresses, for its certificate's IP SANs: where it listens (the
+    registry's also where the observer, showing its certificate, listens)."""
+    ips = {REGISTRY_ID: [addresses[REGISTRY_HOST]], ROBOT_ID: [addresses[ROBOT_HOST]]}
+    if OBSERVER_HOST in addresses:
+        ips[REGISTRY_ID].append(addresses[OBSERVER_HOST])
+    ips.update({cloud: [addresses[cloud]] for cloud in spec.clouds})
+    return ips
 
 
 def write_robot_variant(config: Path, policy: str) -> tuple[Path, str]:
@@ -135,16 +160,22 @@ def write_robot_variant(config: Path, policy: str) -> tuple[Path, str]:
 
 
 def write_fleet(
-    spec: FleetSpec, addresses: Mapping[str, str], directory: Path
+    spec: FleetSpec, addresses: Mapping[str, str], directory: Path, *, tls: bool = False
 ) -> tuple[Path, FleetConfig]:
-    """Write `directory/<fleet>.yaml`, check it loads, return its path and the loaded config."""
+    """Write `directory/<fleet>.yaml`, check it loads, return its path and the loaded config.
+    With `tls`, a new CA and the hosts' certificates in `directory/certs/` first."""
     directory.mkdir(parents=True, exist_ok=True)
     path = directory / f"{spec.fleet}.yaml"
-    data = fleet_dict(spec, addresses, directory / f"{spec.fleet}.rib.sqlite")
+    data = fleet_dict(spec, addresses, directory / f"{spec.fleet}.rib.sqlite", tls=tls)
+    if tls:
+        ips = cert_ips(spec, addresses)
+        write_certs(directory, list(ips), fleet=spec.fleet, ips=ips, force=True)
     cfg = fleet_from_dict(data, source=path)  # a bad spec fails here, naming the field
     header = (
         "# Written by `elasticfog bench` for one run on the namespace testbed: every endpoint is\n"
         "# a testbed address; shared memory is off so that tc shaping applies.\n"
     )
+    if tls:
+        header += "# Mutual TLS and access control on every link; certificates in certs/.\n"
     path.write_text(header + yaml.safe_dump(data, sort_keys=False), encoding="utf-8")
     return path, cfg

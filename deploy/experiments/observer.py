@@ -17,7 +17,8 @@ talks to it with one JSON object per line:
 A failed request answers `{"id": N, "ok": false, "error": "one line"}`; the helper keeps running.
 It prints `{"event": "ready"}` once its session is open. End of input, `quit`, SIGINT or SIGTERM
 close the session and exit. Its traffic (liveliness, registry views, ctl) is small and crosses
-only the bench host's own link and the link of whoever it asks.
+only the bench host's own link and the link of whoever it asks. In a TLS fleet it shows the
+registry's certificate (`deploy.procs.observer_identity`), which carries the bench host's address.
 """
 
 from __future__ import annotations
@@ -31,7 +32,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from deploy.procs import LocalFleet, TokenWatch
+from deploy.procs import LocalFleet, TokenWatch, observer_identity
 
 
 class _NamespaceObserver(LocalFleet):
@@ -47,7 +48,9 @@ class _NamespaceObserver(LocalFleet):
         if self._session is None:
             from common.session import open_session
 
-            self._session = open_session(self.cfg, listen=self._listen)
+            self._session = open_session(
+                self.cfg, identity=observer_identity(self.cfg), listen=self._listen
+            )
             self._tokens = TokenWatch(self._session, self.fleet)
         return self._session
 

@@ -43,6 +43,8 @@ class BenchOptions:
     """Where PNG plots go; None: no plots."""
     name: str | None = None
     """Testbed name (prefix of its namespaces); None: one of its own."""
+    tls: bool = False
+    """Mutual TLS and access control on every link (`--tls`)."""
     log: Callable[[str], None] = lambda message: None
 
     def check(self) -> None:
@@ -103,7 +105,11 @@ def open_fleet(options: BenchOptions, hosts: Sequence[str] | None = None) -> Ite
     ok = False
     try:
         with TestbedFleet(
-            workdir, name=options.name, hosts=hosts or DEFAULT_HOSTS, log=options.log
+            workdir,
+            name=options.name,
+            hosts=hosts or DEFAULT_HOSTS,
+            log=options.log,
+            tls=options.tls,
         ) as tf:
             yield tf
         ok = True

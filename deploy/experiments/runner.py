@@ -18,6 +18,9 @@ waits for readiness (liveliness tokens, the registry's views) and injects faults
 started with `Testbed.popen`, so each runs inside its host's namespace and CPU cgroup, in its own
 process group, with its output in a log file (`deploy.procs.DaemonProc`).
 
+`TestbedFleet(workdir, tls=True)` runs every fleet with mutual TLS and the access control on
+(`deploy.experiments.fleet`: certificates with the hosts' testbed addresses, `tls/` endpoints).
+
 Cleanup always happens, in this order: the robot, the clouds and the registry get SIGINT then
 SIGKILL (`deploy.procs.ProcessSet`), the observer is told to quit, and `Testbed.down()` removes
 the namespaces (their veths and qdiscs go with them), the cgroups and any process still inside.
@@ -109,8 +112,8 @@ class ObserverClient:
         self._next_id = 0
         self._log: IO[bytes] | None = None
 
-    def start(self, timeout_s: float = STARTUP_TIMEOUT_S) -> None:
-        listen = endpoint(self.testbed.address(OBSERVER_HOST), OBSERVER_PORT)
+    def start(self, timeout_s: float = STARTUP_TIMEOUT_S, *, tls: bool = False) -> None:
+        listen = endpoint(self.testbed.address(OBSERVER_HOST), OBSERVER_PORT, tls=tls)
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
         self.log_path.parent.mkdir(parents=True, exist_ok=True)
         self._log = self.log_path.open("ab")
@@ -294,8 +297,11 @@ class TestbedFleet:
         hosts: Sequence[str] = DEFAULT_HOSTS,
         startup_timeout_s: float = STARTUP_TIMEOUT_S,
         log: Callable[[str], None] | None = None,
+        tls: bool = False,
     ) -> None:
         self.workdir = Path(workdir)
+        self.tls = tls
+        """Mutual TLS and access control on every link of every run."""
         self.testbed = Testbed(name or f"efb-{os.getpid() % 100000}", hosts=hosts)
         self.startup_timeout_s = startup_timeout_s
         self.log = log or (lambda message: None)
@@ -364,11 +370,13 @@ class TestbedFleet:
         the registry lists every cloud as alive."""
         self.stop_daemons()
         run_dir = self.workdir / spec.fleet
-        self.config, self.cfg = write_fleet(spec, self.testbed.addresses(), run_dir)
+        self.config, self.cfg = write_fleet(spec, self.testbed.addresses(), run_dir, tls=self.tls)
+        if self.tls:
+            self.log(f"{spec.fleet}: mutual TLS and access control on every link")
         if prepare:
             _prepare_model(self.cfg)
         self.observer = ObserverClient(self.testbed, self.config, run_dir / "observer.log")
-        self.observer.start(self.startup_timeout_s)
+        self.observer.start(self.startup_timeout_s, tls=self.tls)
         self.start_registry()
         self.start_clouds(list(spec.clouds), wait_registered=wait_registered)
         return self.cfg

@@ -32,6 +32,7 @@ STOP_WITHIN_S = 2.0
 """The daemons' promise: stopped this soon after SIGINT/SIGTERM."""
 DEMO_KEYS = {
     "policy",
+    "tls",
     "frames",
     "answered",
     "lost",

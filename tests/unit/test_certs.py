@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import datetime as dt
 import json
+import os
 import shutil
 import stat
 from pathlib import Path
@@ -16,6 +17,8 @@ from typer.testing import CliRunner
 from common import certs
 from common.certs import CertError, SanSpec, check_san, check_tls_files
 from common.cli import app
+from common.config import TlsConfig
+from common.tls_preflight import check_permissions
 
 HOSTS = ["registry", "edge-1", "edge-2", "robot-1"]
 runner = CliRunner()
@@ -43,6 +46,69 @@ def test_init_writes_the_contract_layout(fleet_dir: Path) -> None:
     assert names == sorted(expected)
     for key in fleet_dir.glob("*.key"):
         assert stat.S_IMODE(key.stat().st_mode) == 0o600, key
+
+
+def _mode(path: Path) -> int:
+    return stat.S_IMODE(path.stat().st_mode)
+
+
+@pytest.mark.parametrize("umask", [0o000, 0o022, 0o077])
+def test_init_and_add_write_the_folder_0700_certificates_0644_keys_0600(
+    tmp_path: Path, umask: int
+) -> None:
+    """Modes are exact whatever the umask: a permissive one must not widen them (another user
+    could swap a certificate or read a key), a strict one must not narrow a certificate."""
+    directory = tmp_path / "fleet" / "certs"
+    previous = os.umask(umask)
+    try:
+        result = runner.invoke(app, ["certs", "init", str(directory), "--hosts", "registry"])
+        assert result.exit_code == 0, result.output
+        result = runner.invoke(app, ["certs", "add", "robot-1", "--dir", str(directory)])
+        assert result.exit_code == 0, result.output
+    finally:
+        os.umask(previous)
+    assert _mode(directory) == 0o700
+    files = sorted(directory.iterdir())
+    assert [p.name for p in files if p.suffix == ".crt"] == [
+        "ca.crt",
+        "cli.crt",
+        "registry.crt",
+        "robot-1.crt",
+    ]
+    for path in files:
+        assert _mode(path) == (0o600 if path.suffix == ".key" else 0o644), path
+    # What certs writes passes the checks every daemon runs on its TLS files at start.
+    check_permissions(
+        TlsConfig(
+            ca=str(directory / "ca.crt"),
+            cert=str(directory / "robot-1.crt"),
+            key=str(directory / "robot-1.key"),
+        )
+    )
+
+
+def test_rotation_narrows_files_left_too_open_and_keeps_an_existing_folder(
+    tmp_path: Path,
+) -> None:
+    """`certs add --force` over files someone widened writes them back at 0644/0600 before the
+    new bytes go in; a folder that existed (the user's own) keeps its mode."""
+    tmp_path.chmod(0o750)
+    certs.init_fleet_certs(tmp_path, ["robot-1"])
+    assert _mode(tmp_path) == 0o750
+    crt, key = certs.cert_path(tmp_path, "robot-1"), certs.key_path(tmp_path, "robot-1")
+    crt.chmod(0o666)
+    key.chmod(0o644)
+    result = runner.invoke(app, ["certs", "add", "robot-1", "--dir", str(tmp_path), "--force"])
+    assert result.exit_code == 0, result.output
+    assert (_mode(crt), _mode(key)) == (0o644, 0o600)
+
+
+def test_a_file_in_the_way_of_the_folder_is_one_line(tmp_path: Path) -> None:
+    blocker = tmp_path / "certs"
+    blocker.write_text("not a folder")
+    with pytest.raises(CertError) as exc:
+        certs.init_fleet_certs(blocker, ["robot-1"])
+    _one_line(exc, blocker, "a file is in the way")
 
 
 def test_common_name_is_the_machine_id_and_sans_default_to_loopback(fleet_dir: Path) -> None:
