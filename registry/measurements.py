@@ -29,32 +29,18 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from common.wire.telemetry import ProbeReport, TelemetryRecord
+from common.wire.telemetry import FallbackReason, ProbeReport, TelemetryRecord
 from registry.latency import LatencyWindows, Source, WindowKey, WindowStats
 from registry.rib import Rib
 
-# Fallback reasons (telemetry `reason`) that mean the deployment did not answer in time, and
-# those that mean nobody serves the robot's key at all: both count as consecutive failures of the
-# route (only the first are latency samples).
-TIMEOUT_WORDS = ("timeout", "deadline", "no reply")
-NO_SERVER_WORDS = ("no_route", "no route")
+# Fallback reasons that count as consecutive failures of the route: the deployment did not answer
+# in time (also a latency sample), or nobody serves the robot's key at all (no sample).
+ROUTE_FAILURES = frozenset({FallbackReason.TIMEOUT, FallbackReason.NO_ROUTE})
 
 Route = tuple[str | None, int]
 """(deployment, epoch) of a robot's route; (None, 0) when it has none."""
 
 NO_ROUTE: Route = (None, 0)
-
-
-def is_timeout(reason: str | None) -> bool:
-    """Whether a fallback reason says the deployment did not answer in time."""
-    text = (reason or "").lower()
-    return any(word in text for word in TIMEOUT_WORDS)
-
-
-def is_unserved(reason: str | None) -> bool:
-    """Whether a fallback reason says nobody serves the robot's key."""
-    text = (reason or "").lower()
-    return any(word in text for word in NO_SERVER_WORDS)
 
 
 @dataclass(frozen=True)
@@ -142,12 +128,8 @@ class Measurements:
                 if rec.deployment == route:
                     self._timeouts.pop(robot, None)
                     self._reroute_asked.discard(robot)
-            elif (
-                rec.fallback
-                and route is not None
-                and (is_timeout(rec.reason) or is_unserved(rec.reason))
-            ):
-                if is_timeout(rec.reason):
+            elif rec.fallback and route is not None and rec.reason in ROUTE_FAILURES:
+                if rec.reason is FallbackReason.TIMEOUT:
                     # A timeout took at least the deadline: the window sees it as that.
                     finite = remote_s if math.isfinite(remote_s) else 0.0
                     sample_s = max(self.deadline_s, finite)

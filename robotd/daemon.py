@@ -23,7 +23,7 @@ Every Zenoh callback is `guarded`: bad input is one throttled line, never a trac
 A frame (DESIGN.md, "A frame's life"): grab → entropy → `policy.decide` → prefix (or the whole
 model for P) → encoded `InferRequest` → (emulated uplink) → `get` on the service key with the
 deadline → reply, or the robot runs the suffix itself with the reason (`robotd.offload`) →
-`policy.observe` → telemetry (`robotd.telemetry`: JSONL file, `tele/<robot>`, run summary). No
+`policy.observe` → telemetry (`robotd.telemetry_sink`: `tele/<robot>`, JSONL file, run summary). No
 frame is ever lost. A hedged decision also runs the local suffix speculatively (at once, or
 deferred by the policy while the reply is expected first) on a thread of the lowest CPU priority
 (`robotd.offload.LocalRunner`), so that on a robot short of CPU it does not slow the offload it
@@ -33,8 +33,11 @@ when the robot's result wins, the frame is served and the loop moves on while th
 the next frames' model runs go to the low-priority thread too.
 
 Beside the daemon: `robotd.registry_link.RegistryLink` (registration, the route and its epoch,
-reroute requests, the "registry unreachable" reports), `robotd.request_sender` (the request on the
-service key, through the emulated uplink), `robotd.frame` (a frame's accounting),
+reroute requests, the "registry unreachable" reports), `robotd.robot_model` (the split model
+loaded at startup, its camera input, cut positions, replies checked against its outputs),
+`robotd.service_match` (whether a deployment serves the service key), `robotd.request_sender`
+(the request on the service key, through the emulated uplink), `robotd.frame` (a frame's
+accounting), `robotd.telemetry_sink` (where each frame's record and each probe report go),
 `robotd.failure_runs` (runs of cloud failures, and when they call for a reroute),
 `robotd.robot_profile` (the startup profile and policy) and `robotd.emulation` (on one host: a
 robot `--robot-slowdown` times slower than the host, every robot-side model run stretched by a
@@ -44,7 +47,6 @@ file records each frame's phase).
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import threading
 import time
@@ -54,44 +56,31 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import zenoh
 
 from common import keys
 from common.config import FleetConfig
 from common.daemon import Daemon
 from common.errors import UserError
-from common.image_input import InputAdapter
 from common.membership import MemberChange, MembershipView
-from common.partition import load_partition, sample_feeds
 from common.session import open_session
 from common.split_runtime import SplitModel
-from common.wire.telemetry import ProbeReport, TelemetryRecord
 from common.wire.tensor_codecs import encode_tensor_as
 from robotd.emulation import Emulation, Phase, Slowdown, check_slowdown, robot_class, scaled_profile
 from robotd.entropy import frame_entropy
 from robotd.failure_runs import FailureRuns
 from robotd.frame import Frame, FrameResult
-from robotd.offload import (
-    FINISH_GRACE_S,
-    REASON_DECODE_ERROR,
-    STOP_POLL_S,
-    CallResult,
-    LocalRunner,
-)
+from robotd.offload import FINISH_GRACE_S, STOP_POLL_S, LocalRunner
 from robotd.pacing import FramePacer, TokenBucket
-from robotd.policies import PURE_ROBOT, Decision, FrameContext, Objective, Policy
+from robotd.policies import PURE_ROBOT, FrameContext, Objective, Policy
 from robotd.probes import PROBE_INTERVAL_S, CloudTime, Prober, probe_padding_bytes
-from robotd.registry_link import REGISTRY_RETRY_INITIAL_S, WAIT_SLICE_S, RegistryLink
+from robotd.registry_link import REGISTRY_RETRY_INITIAL_S, RegistryLink
 from robotd.request_sender import RequestSender
-from robotd.robot_profile import build_policy, measured_profile, robot_profile, warm_up
+from robotd.robot_model import RobotModel, open_split_model
+from robotd.robot_profile import build_policy, robot_profile, warm_up
+from robotd.service_match import ServiceMatch
 from robotd.sources import FrameSource, open_source
-from robotd.telemetry import (
-    SERVED_BY_CLOUD,
-    RemoteTimes,
-    RunSummary,
-    TelemetryFile,
-    jsonl_object,
-)
+from robotd.telemetry import SERVED_BY_CLOUD, RemoteTimes, RunSummary, TelemetryFile
+from robotd.telemetry_sink import TelemetrySink
 
 # `robot_profile` is imported from here by the benchmarks (it lived in this module).
 __all__ = ["FrameResult", "RobotDaemon", "RobotOptions", "robot_profile"]
@@ -177,23 +166,19 @@ class RobotDaemon(Daemon):
         self._on_result = on_result
         self._objective = Objective.parse(config.objective.model_dump())
         self._svc_key = keys.svc_infer(self.fleet, config.service, robot_id)
-        # Set by the service key's matching listener: a deployment serves this robot now.
-        self._served = threading.Event()
+        self._served = ServiceMatch()
         self._cloud_time = CloudTime()
         self._pending: Frame | None = None
         self._failures = FailureRuns(robot_id)
+        # Publications, file and summary of the frames; what they go to is made in startup.
+        self._sink = TelemetrySink(robot_id, self.summary)
         # Made in startup, released by the lifecycle.
         self.model: SplitModel
+        self._robot_model: RobotModel
         self.policy: Policy
         self._link: RegistryLink | None = None
-        self._adapter: InputAdapter
         self._source: FrameSource
-        self._session: zenoh.Session
-        self._tele_pub: zenoh.Publisher
-        self._probe_pub: zenoh.Publisher
-        self._telemetry: TelemetryFile | None = None
         self._requests: RequestSender
-        self._position: dict[int, int] = {}
         self._local: LocalRunner | None = None
         # Emulation (`robotd.emulation`): every robot-side model run goes through the slowdown;
         # phases switch it and the uplink at frame boundaries.
@@ -220,26 +205,9 @@ class RobotDaemon(Daemon):
     # -- lifecycle -------------------------------------------------------------------------
     def startup(self) -> None:
         cfg = self.config
-        shape = tuple(cfg.input_shape) if cfg.input_shape else None
-        partition = load_partition(
-            cfg.model, cfg.cuts.names or "auto", cfg.cuts.max_cut_tensors, shape
-        )
-        threads = self.machine.threads or None
-        self.model = self.hold(
-            SplitModel(partition, providers=self.machine.providers, threads=threads),
-            "model sessions",
-        )
-        specs = self.model.input_specs()
-        if len(specs) != 1:
-            names = ", ".join(s.name for s in specs)
-            raise UserError(
-                f"the robot feeds one camera frame; model {cfg.model} has inputs {names}"
-            )
-        self._input_name = specs[0].name
-        self._adapter = InputAdapter(specs[0])
-        self._position = {cut.index: k for k, cut in enumerate(partition.cuts)}
-        feeds = sample_feeds(specs)
-        warm_up(self.model, feeds)
+        self.model = self.hold(open_split_model(cfg, self.machine), "model sessions")
+        self._robot_model = robot_model = RobotModel(self.model, cfg.model)
+        warm_up(self.model, robot_model.sample_feeds)
         self._local = local = LocalRunner(f"local-run-{self.robot}")
         local.start()
         self.on_release(local.stop, what="local-run thread")
@@ -247,11 +215,8 @@ class RobotDaemon(Daemon):
             self.policy_spec,
             cfg,
             scaled_profile(
-                measured_profile(
-                    self.model,
-                    feeds,
-                    config=cfg,
-                    adapter=self._adapter,
+                robot_model.profile(
+                    cfg,
                     source_spec=self.source_spec,
                     seed=self.options.seed,
                     threads=self.machine.threads,
@@ -264,14 +229,14 @@ class RobotDaemon(Daemon):
         self._source = self.hold(
             open_source(
                 self.source_spec,
-                height=self._adapter.height,
-                width=self._adapter.width,
+                height=robot_model.adapter.height,
+                width=robot_model.adapter.width,
                 seed=self.options.seed,
             ),
             "frame source",
         )
         if self.options.telemetry is not None:
-            self._telemetry = self.hold(TelemetryFile(self.options.telemetry), "telemetry file")
+            self._sink.file = self.hold(TelemetryFile(self.options.telemetry), "telemetry file")
         self._open_zenoh()
         slowdown = self._slowdown.factor
         log.info(
@@ -296,7 +261,7 @@ class RobotDaemon(Daemon):
 
     def _open_zenoh(self) -> None:
         cfg = self.config
-        self._session = session = self.hold(open_session(cfg, machine=self.robot), "zenoh session")
+        session = self.hold(open_session(cfg, machine=self.robot), "zenoh session")
         self._requests = RequestSender(
             session,
             self._svc_key,
@@ -317,12 +282,7 @@ class RobotDaemon(Daemon):
             throttled=self.throttled,
             guard=self.guarded,
         )
-        self._tele_pub = self.hold(
-            session.declare_publisher(keys.tele(self.fleet, self.robot)), "telemetry publisher"
-        )
-        self._probe_pub = self.hold(
-            session.declare_publisher(keys.tele_probe(self.fleet, self.robot)), "probe publisher"
-        )
+        self._sink.declare(self, session, self.fleet)
         route_key = keys.route(self.fleet, self.robot)
         self.hold(
             session.declare_subscriber(
@@ -341,17 +301,7 @@ class RobotDaemon(Daemon):
         )
         # A querier on the service key only to be told when a deployment serves it (frames use
         # session.get: each has its own timeout).
-        querier = self.hold(session.declare_querier(self._svc_key), "service querier")
-        self.hold(
-            querier.declare_matching_listener(
-                self.guarded(self._on_matching, what="a matching status")
-            ),
-            "service matching listener",
-        )
-        status: Any = querier.matching_status  # a MatchingStatus (the stub says bool)
-        if bool(getattr(status, "matching", status)):
-            self._served.set()
-
+        self._served.declare(self, session, self._svc_key)
         padding = self.options.probe_padding_bytes
         if padding is None:
             padding = probe_padding_bytes([c.bytes for c in self.model.partition.cuts])
@@ -360,7 +310,7 @@ class RobotDaemon(Daemon):
             self.fleet,
             self.robot,
             max_padding_bytes=padding,
-            publish=self._publish_probe,
+            publish=self._sink.probe,
             alive_clouds=lambda: set(members.ids("cloud")),
             cloud_time=self._cloud_time,
             interval_s=self.options.probe_interval_s,
@@ -381,7 +331,7 @@ class RobotDaemon(Daemon):
             link.report_unreachable("", REGISTRY_RETRY_INITIAL_S)
         link.start(reported=not reachable)
         self.on_release(link.stop, what="registry watcher")
-        if reachable and not _wait_event(self._served, self.options.route_wait_s, self.should_exit):
+        if reachable and not self._served.wait(self.options.route_wait_s, self.should_exit):
             log.info(
                 "%s: no deployment serves %s yet; frames are finished on the robot until one does",
                 self.robot,
@@ -404,12 +354,6 @@ class RobotDaemon(Daemon):
     def _set_uplink(self, bucket: TokenBucket | None) -> None:
         """A phase's emulated uplink (None: requests are not paced)."""
         self._requests.uplink = bucket
-
-    def _on_matching(self, status: zenoh.MatchingStatus) -> None:
-        if status.matching:
-            self._served.set()
-        else:
-            self._served.clear()
 
     # -- the frame loop --------------------------------------------------------------------
     def main_loop(self) -> None:
@@ -436,7 +380,7 @@ class RobotDaemon(Daemon):
         where it is served; its cloud reply is settled later)."""
         started = time.perf_counter()
         cpu_started = time.process_time()
-        feeds = {self._input_name: self._adapter(frame)}
+        feeds = self._robot_model.feeds(frame)
         entropy = frame_entropy(frame)
         decision = self.policy.decide(FrameContext(index=n, entropy=entropy))
         epoch = self.link.epoch
@@ -448,7 +392,7 @@ class RobotDaemon(Daemon):
             f.cpu_s = time.process_time() - cpu_started
             self._emit(f)
             return
-        k = self._position_of(decision)
+        k = self._robot_model.position_of(decision, self.policy.name)
         cut = self.model.partition.cuts[k]
         t = time.perf_counter()
         sent = self._compute(lambda options: model.run_prefix(k, feeds, run_options=options))
@@ -461,7 +405,7 @@ class RobotDaemon(Daemon):
             self._hedged(f, k, sent)
             return
         finished = call.wait(self.should_exit)
-        f.result = self._checked(call.result(stopped=not finished))
+        f.result = self._robot_model.checked(call.result(stopped=not finished))
         if f.result.reply is not None:
             f.outputs = dict(f.result.reply.outputs)
             f.served_by = SERVED_BY_CLOUD
@@ -503,16 +447,6 @@ class RobotDaemon(Daemon):
         assert job.outputs is not None
         return job.outputs
 
-    def _position_of(self, decision: Decision) -> int:
-        try:
-            return self._position[int(decision.action)]
-        except (KeyError, ValueError):
-            known = ", ".join(str(i) for i in self._position)
-            raise UserError(
-                f"policy {self.policy.name} chose cut {decision.action!r}; this model has cuts "
-                f"{known}"
-            ) from None
-
     def _hedged(self, f: Frame, k: int, sent: dict[str, np.ndarray]) -> None:
         """Race the cloud against the local suffix and serve whichever result is first.
 
@@ -538,7 +472,7 @@ class RobotDaemon(Daemon):
         # The policy may defer the local run (`Decision.hedge_after_s`): a reply within that
         # time serves the frame without any local work competing with the offload.
         start_at = min(call.handed_at + f.decision.hedge_after_s, cloud_limit)
-        self._wait_until(wake, start_at, lambda: call.settled)
+        _wait_until(self.should_exit, wake, start_at, lambda: call.settled)
         if call.settled and self._served_by_reply(f):
             return
         model, feeds = self.model, f.feeds
@@ -548,7 +482,7 @@ class RobotDaemon(Daemon):
             ),
             wake,
         )
-        self._wait_until(wake, cloud_limit, lambda: job.done or call.settled)
+        _wait_until(self.should_exit, wake, cloud_limit, lambda: job.done or call.settled)
         if not job.done and call.settled and self._served_by_reply(f):
             job.cancel()
             return
@@ -587,7 +521,7 @@ class RobotDaemon(Daemon):
         call = f.call
         assert call is not None
         if call.settled or time.perf_counter() >= cloud_limit:
-            f.result = self._checked(call.result())
+            f.result = self._robot_model.checked(call.result())
             replied_at = f.result.replied_at
             if f.result.reply is not None and replied_at is not None and replied_at <= local_done:
                 self._serve_cloud(f)
@@ -600,21 +534,11 @@ class RobotDaemon(Daemon):
         self._settle_pending(block=True)  # at most one frame waits for its reply
         self._pending = f
 
-    def _wait_until(self, wake: threading.Event, until: float, done: Callable[[], bool]) -> None:
-        """Wait until `done()`, the perf_counter time `until` or a stop; `wake` is set by
-        whatever may make `done()` true."""
-        while True:  # bounded by `until` (or the stop flag)
-            wake.clear()
-            left = until - time.perf_counter()
-            if done() or left <= 0 or self.should_exit.is_set():
-                return
-            wake.wait(min(left, STOP_POLL_S))
-
     def _served_by_reply(self, f: Frame) -> bool:
         """The cloud call of hedged frame `f` has settled: serve and emit the frame with its
         reply if it brought one (True); else keep the result for later (False)."""
         assert f.call is not None
-        f.result = self._checked(f.call.result())
+        f.result = self._robot_model.checked(f.call.result())
         if f.result.reply is None:
             return False
         self._serve_cloud(f)
@@ -635,48 +559,19 @@ class RobotDaemon(Daemon):
             return
         finished = call.wait(self.should_exit)
         self._pending = None
-        f.result = self._checked(call.result(stopped=not finished))
+        f.result = self._robot_model.checked(call.result(stopped=not finished))
         self._emit(f)
-
-    def _checked(self, result: CallResult) -> CallResult:
-        """A reply whose outputs are not the model's is a decode error (the frame is then
-        finished on the robot)."""
-        reply = result.reply
-        if reply is None:
-            return result
-        missing = [n for n in self.model.output_names if n not in reply.outputs]
-        if missing:
-            return dataclasses.replace(
-                result,
-                reply=None,
-                reason=REASON_DECODE_ERROR,
-                detail=f"reply from {reply.deployment} lacks output(s) {', '.join(missing)}",
-            )
-        return result
 
     # -- after a frame ---------------------------------------------------------------------
     def _emit(self, f: Frame) -> None:
-        """Feed the policy, publish and record the frame."""
+        """Feed the policy, publish and record the frame, and act on a run of cloud failures."""
         res = f.result
         remote = RemoteTimes.of(res)
         compute_s = f.prefix_s + (f.local_s or 0.0)
         energy = self._objective.energy_j(f.latency_s, compute_s, remote.transfer_s)
         self.policy.observe(f.decision, f.outcome(self.deadline_s))
         record = f.record(self.robot, energy)
-        self._publish_telemetry(record)
-        if self._telemetry is not None:
-            detail = res.detail if res is not None and record.fallback else ""
-            self._telemetry.write(
-                jsonl_object(
-                    record,
-                    entropy=f.entropy,
-                    hedged=f.hedged,
-                    served_by=f.served_by,
-                    detail=detail,
-                    phase=self._emulation.phase_name(f.n),
-                )
-            )
-        self.summary.add(record, hedged=f.hedged, served_by=f.served_by)
+        self._sink.frame(f, record, phase=self._emulation.phase_name(f.n))
         self.frames_done += 1
         if res is not None and res.reply is not None:
             self._cloud_time.observe(remote.cloud_s)
@@ -687,25 +582,15 @@ class RobotDaemon(Daemon):
         if self._on_result is not None:
             self._on_result(FrameResult(f.n, f.feeds, f.outputs, record, f.served_by, f.hedged))
 
-    def _publish_telemetry(self, record: TelemetryRecord) -> None:
-        try:
-            self._tele_pub.put(record.to_wire())
-        except zenoh.ZError as exc:
-            log.debug("%s: telemetry of frame %d not published: %s", self.robot, record.frame, exc)
 
-    def _publish_probe(self, report: ProbeReport) -> None:
-        self._probe_pub.put(report.to_wire())
-
-
-def _wait_event(event: threading.Event, timeout_s: float, interrupt: threading.Event) -> bool:
-    """Wait for `event` at most `timeout_s`, cut short once `interrupt` is set (a signal handler
-    can only set the daemon's stop flag, so the wait looks at it every `WAIT_SLICE_S`); True if
-    `event` is set."""
-    end = time.monotonic() + timeout_s
-    while not interrupt.is_set():
-        left = min(WAIT_SLICE_S, end - time.monotonic())
-        if left <= 0:
-            break
-        if event.wait(left):
-            return True
-    return event.is_set()
+def _wait_until(
+    stop: threading.Event, wake: threading.Event, until: float, done: Callable[[], bool]
+) -> None:
+    """Wait until `done()`, the perf_counter time `until` or `stop`; `wake` is set by whatever
+    may make `done()` true."""
+    while True:  # bounded by `until` (or the stop flag)
+        wake.clear()
+        left = until - time.perf_counter()
+        if done() or left <= 0 or stop.is_set():
+            return
+        wake.wait(min(left, STOP_POLL_S))

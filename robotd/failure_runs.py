@@ -13,7 +13,8 @@ from __future__ import annotations
 
 import logging
 
-from robotd.offload import REASON_NO_ROUTE, REASON_TIMEOUT, CallResult
+from common.wire.telemetry import FallbackReason
+from robotd.offload import CallResult
 
 log = logging.getLogger("robotd")
 
@@ -21,7 +22,7 @@ log = logging.getLogger("robotd")
 REROUTE_AFTER_FAILURES = 3
 # A failure of the same reason is logged again after this many frames of it.
 LOG_FAILURE_EVERY = 100
-FAILOVER_REASONS = frozenset({REASON_TIMEOUT, REASON_NO_ROUTE})
+FAILOVER_REASONS = frozenset({FallbackReason.TIMEOUT, FallbackReason.NO_ROUTE})
 
 
 class FailureRuns:
@@ -29,10 +30,10 @@ class FailureRuns:
 
     def __init__(self, robot: str) -> None:
         self.robot = robot
-        self.reason: str | None = None
+        self.reason: FallbackReason | None = None
         self.streak = 0
 
-    def note(self, frame: int, result: CallResult) -> str | None:
+    def note(self, frame: int, result: CallResult) -> FallbackReason | None:
         """Count offloaded frame `frame`'s `result`; the reason to ask for a reroute, or None."""
         if result.answered:
             if self.reason is not None:
@@ -45,7 +46,7 @@ class FailureRuns:
                 )
             self.reason, self.streak = None, 0
             return None
-        reason = result.reason or "unknown"
+        reason = result.reason or FallbackReason.OTHER
         if reason != self.reason or self.streak % LOG_FAILURE_EVERY == 0:
             log.warning(
                 "%s: frame %d: cloud failed (%s: %s); finished on the robot",

@@ -5,7 +5,8 @@ with a `get` on the robot's service key, BEST_MATCHING target: exactly one deplo
 service, which declared the key complete) computes it. The reply is caught by a callback, which
 records its arrival time, so the frame loop can compute the local suffix meanwhile (hedging) and
 still know which path finished first. `result()` decodes the reply in the caller's thread and
-classifies every way the cloud can fail the frame:
+classifies every way the cloud can fail the frame (`common.wire.telemetry.FallbackReason`, whose
+wire values these are):
 
 | reason         | what happened                                                          |
 | -------------- | ---------------------------------------------------------------------- |
@@ -44,21 +45,7 @@ import zenoh
 
 from common.wire import ErrorCode, ErrorReply, WireError, decode
 from common.wire.cloud_to_robot import INFER_REPLIES, BusyReply, InferReply
-
-REASON_NO_ROUTE = "no_route"
-REASON_TIMEOUT = "timeout"
-REASON_BUSY = "busy"
-REASON_ERROR = "error"
-REASON_DECODE_ERROR = "decode_error"
-REASON_STOPPED = "stopped"
-REASONS = (
-    REASON_NO_ROUTE,
-    REASON_TIMEOUT,
-    REASON_BUSY,
-    REASON_ERROR,
-    REASON_DECODE_ERROR,
-    REASON_STOPPED,
-)
+from common.wire.telemetry import FallbackReason
 
 log = logging.getLogger("robotd")
 
@@ -86,7 +73,7 @@ class CallResult:
     """
 
     reply: InferReply | None
-    reason: str | None
+    reason: FallbackReason | None
     detail: str
     handed_at: float
     sent_at: float | None
@@ -261,7 +248,7 @@ class CloudCall:
         end = replied_at if replied_at is not None else finished_at
         assert end is not None
 
-        def fail(reason: str, detail: str, deployment: str | None = None) -> CallResult:
+        def fail(reason: FallbackReason, detail: str, deployment: str | None = None) -> CallResult:
             return CallResult(
                 reply=None,
                 reason=reason,
@@ -276,40 +263,44 @@ class CloudCall:
 
         if ok is None and err is None:
             if stopped and end < self.deadline_at:
-                return fail(REASON_STOPPED, "stopped while waiting for the cloud")
+                return fail(FallbackReason.STOPPED, "stopped while waiting for the cloud")
             if self._send_error is not None:
-                return fail(REASON_ERROR, f"could not send: {self._send_error}")
+                return fail(FallbackReason.ERROR, f"could not send: {self._send_error}")
             if self.sent_at is None:
                 return fail(
-                    REASON_TIMEOUT,
+                    FallbackReason.TIMEOUT,
                     f"the emulated uplink needs {self.delay_s:.3f} s for "
                     f"{len(self._payload)} bytes, past the {self.budget_s:.3f} s deadline",
                 )
             if end < self.deadline_at:
-                return fail(REASON_NO_ROUTE, "no deployment serves this robot's service key")
-            return fail(REASON_TIMEOUT, f"no reply within {self.budget_s:.3f} s")
+                return fail(
+                    FallbackReason.NO_ROUTE, "no deployment serves this robot's service key"
+                )
+            return fail(FallbackReason.TIMEOUT, f"no reply within {self.budget_s:.3f} s")
         if err is not None:
             return self._classify_error(err, fail)
         assert ok is not None
         try:
             message = decode(ok, expect=INFER_REPLIES, max_bytes=self._max_reply_bytes)
         except WireError as exc:
-            return fail(REASON_DECODE_ERROR, f"bad reply: {exc}")
+            return fail(FallbackReason.DECODE_ERROR, f"bad reply: {exc}")
         if isinstance(message, BusyReply):
             return fail(
-                REASON_BUSY,
+                FallbackReason.BUSY,
                 f"{message.deployment} busy ({message.queued} queued, capacity {message.capacity})",
                 message.deployment,
             )
         if isinstance(message, ErrorReply):
             reason = (
-                REASON_TIMEOUT if message.error_code is ErrorCode.DEADLINE_EXPIRED else REASON_ERROR
+                FallbackReason.TIMEOUT
+                if message.error_code is ErrorCode.DEADLINE_EXPIRED
+                else FallbackReason.ERROR
             )
             return fail(reason, f"{message.code}: {message.reason}")
         assert isinstance(message, InferReply)
         if message.frame != self.frame:
             return fail(
-                REASON_DECODE_ERROR,
+                FallbackReason.DECODE_ERROR,
                 f"reply for frame {message.frame}, expected {self.frame}",
                 message.deployment,
             )
@@ -332,13 +323,13 @@ class CloudCall:
         except UnicodeDecodeError:
             text = ""
         if text.strip() == ZENOH_TIMEOUT_TEXT:
-            return fail(REASON_TIMEOUT, f"no reply within {self.budget_s:.3f} s")
+            return fail(FallbackReason.TIMEOUT, f"no reply within {self.budget_s:.3f} s")
         try:
             message = decode(err, expect=ErrorReply, max_bytes=self._max_reply_bytes)
         except WireError:
             shown = text.strip()[:200] if text.strip().isprintable() else f"{len(err)} bytes"
-            return fail(REASON_ERROR, f"error reply: {shown}")
-        return fail(REASON_ERROR, f"{message.code}: {message.reason}")
+            return fail(FallbackReason.ERROR, f"error reply: {shown}")
+        return fail(FallbackReason.ERROR, f"{message.code}: {message.reason}")
 
 
 Outputs = dict[str, np.ndarray]

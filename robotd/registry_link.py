@@ -48,6 +48,7 @@ from common.wire.registry import (
     RerouteRequest,
     RouteChange,
 )
+from common.wire.telemetry import FallbackReason
 
 # The robot's log lines come from one logger, whichever of its modules writes them.
 log = logging.getLogger("robotd")
@@ -303,7 +304,7 @@ class RegistryLink:
         except zenoh.ZError as exc:
             log.debug("%s: registration not sent: %s", self.robot, exc)
 
-    def request_reroute(self, reason: str, consecutive: int) -> bool:
+    def request_reroute(self, reason: FallbackReason, consecutive: int) -> bool:
         """Ask the registry for another deployment after `consecutive` frames failed with
         `reason`; the answer is applied when it comes. False when not sent (no registry up,
         or the last request was less than `REROUTE_MIN_INTERVAL_S` ago)."""

@@ -7,9 +7,9 @@ suffix_local_s, latency_s, robot_cpu_s, energy_j, deployment, fallback, reason) 
 `EXTRA_FIELDS`: `at` (wall clock when the frame completed), `epoch` (the route epoch the robot
 knew), `entropy` (the frame's normalized grey-level entropy), `hedged` (the local suffix ran
 alongside the cloud), `served_by` (`cloud` or `robot`: which result the frame used), `detail`
-(why the cloud failed, for a person) and `phase` (the emulation phase the frame ran in,
-`robotd.emulation`; null without `--phases`). Lines are flushed as they are written, so a reader can
-follow the file while the robot runs.
+(why the cloud failed, for a person: the record's `detail`) and `phase` (the emulation phase the
+frame ran in, `robotd.emulation`; null without `--phases`). Lines are flushed as they are written,
+so a reader can follow the file while the robot runs.
 
 The record itself is built here too (`frame_record`), from what the frame loop measured and what
 came of the cloud call; `RemoteTimes` splits the call's round trip into the network's share and
@@ -79,7 +79,8 @@ def frame_record(
     """The telemetry record of a completed frame.
 
     `cut` None: the whole model ran on the robot (P). Otherwise `result` is what came of the
-    cloud call; an offloaded frame without a reply is a fallback, with the result's reason.
+    cloud call; an offloaded frame without a reply is a fallback, with the result's reason and
+    its detail.
     `local_s`: the robot's own suffix run, if one ran. `epoch`: the route epoch the robot held
     when the frame started; an answered frame reports its reply's instead.
     """
@@ -102,6 +103,7 @@ def frame_record(
         deployment=result.deployment if result is not None else None,
         fallback=fallback,
         reason=result.reason if fallback and result is not None else None,
+        detail=(result.detail or None) if fallback and result is not None else None,
         epoch=reply.epoch if reply is not None else epoch,
         at=time.time(),
     )
@@ -113,7 +115,6 @@ def jsonl_object(
     entropy: float,
     hedged: bool,
     served_by: str,
-    detail: str = "",
     phase: str | None = None,
 ) -> dict[str, Any]:
     """The JSONL object of one frame (contract fields first, then EXTRA_FIELDS)."""
@@ -124,7 +125,7 @@ def jsonl_object(
         entropy=round(entropy, ROUND_DIGITS),
         hedged=hedged,
         served_by=served_by,
-        detail=detail or None,
+        detail=record.detail or None,
         phase=phase,
     )
     return obj
@@ -185,7 +186,7 @@ class RunSummary:
             self.by_deployment[record.deployment] += 1
         if record.fallback:
             self.fallbacks += 1
-            self.reasons[record.reason or "unknown"] += 1
+            self.reasons[record.reason.value if record.reason is not None else "unknown"] += 1
         if hedged:
             self.hedged += 1
         if served_by == SERVED_BY_ROBOT:

@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 from typing import Any, ClassVar, Literal
 
 from common.wire.codec import Message, Struct, register
+from common.wire.telemetry import FallbackReason, fallback_reason
 
 # The runtime's protocol (key space + message semantics), distinct from the codec's schema
 # version: a registry refuses daemons speaking another protocol with a readable reason.
@@ -201,7 +202,8 @@ class FaultSpec(Struct):
 class ProbeReply(Message):
     """A deployment's profile: identity, protocol, what it serves, its state per robot, its load
     (requests queued or running) against its capacity (workers + queue slots), and the echo.
-    `epochs` is the epoch it holds per robot, `served` the frames it computed per robot."""
+    `epochs` is the epoch it holds per robot, `served` the frames it computed per robot,
+    `refused` the requests it refused since it started, by reason (`cloudd.refusals`)."""
 
     TYPE: ClassVar[str] = "probe_reply"
     deployment: str
@@ -217,6 +219,7 @@ class ProbeReply(Message):
     echo: bytes = b""
     epochs: dict[str, int] = field(default_factory=dict)
     served: dict[str, int] = field(default_factory=dict)
+    refused: dict[str, int] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self._check_ids("deployment", "service")
@@ -271,17 +274,22 @@ class CtlReply(Message):
 @register
 @dataclass(frozen=True, slots=True, kw_only=True)
 class RerouteRequest(Message):
-    """A robot asks for another deployment: `deployment` at `epoch` failed it (`reason`, with the
-    count of consecutive timeouts). The registry answers with a RouteChange or an ErrorReply."""
+    """A robot asks for another deployment: `deployment` at `epoch` failed it (`reason`, the
+    fallback reason of its failed frames, with the count of consecutive timeouts). The registry
+    answers with a RouteChange or an ErrorReply."""
 
     TYPE: ClassVar[str] = "reroute"
     robot: str
     deployment: str | None
     epoch: int
-    reason: str
+    reason: FallbackReason
     consecutive_timeouts: int = 0
 
     def __post_init__(self) -> None:
+        try:
+            object.__setattr__(self, "reason", fallback_reason(self.reason))
+        except ValueError as exc:
+            raise self._invalid("reason", str(exc)) from None
         self._check_ids("robot", "deployment")
         self._check_non_negative("epoch", "consecutive_timeouts")
 

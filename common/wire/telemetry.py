@@ -3,10 +3,18 @@ on `keys.tele_probe`.
 
 `TelemetryRecord.to_jsonl()` is the object the robot writes per frame with `--telemetry FILE.jsonl`
 (the fields in JSONL_FIELDS, in that order).
+
+Why an offloaded frame was finished on the robot is a closed vocabulary, `FallbackReason`, defined
+here once: the robot produces its members, the registry compares them, and nobody reads the words
+of a reason. The wire carries the member's string value (the same bytes as the strings older
+peers sent), and free text for a person travels apart, in `detail`. A value this version does not
+know (a newer robot's) decodes as `FallbackReason.OTHER`, so a registry keeps reading the
+records of a robot newer than itself, as it ignores their unknown fields.
 """
 
 from __future__ import annotations
 
+import enum
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
@@ -36,6 +44,37 @@ JSONL_FIELDS = (
     "fallback",
     "reason",
 )
+
+
+class FallbackReason(str, enum.Enum):
+    """Why the robot finished an offloaded frame itself (`TelemetryRecord.reason`)."""
+
+    NO_ROUTE = "no_route"  # no deployment serves the robot's service key
+    TIMEOUT = "timeout"  # no reply within the deadline (or the emulated uplink needed longer)
+    BUSY = "busy"  # the deployment's queue was full
+    ERROR = "error"  # an error reply, or a Zenoh error other than a timeout
+    DECODE_ERROR = "decode_error"  # a reply that is not a valid message, or not for this frame
+    STOPPED = "stopped"  # the robot was asked to stop while waiting
+    OTHER = "other"  # a reason this version does not know (sent by a newer robot)
+
+    def __str__(self) -> str:
+        # The wire value, in log lines and summaries, as the plain strings were before.
+        return self.value
+
+    @classmethod
+    def _missing_(cls, value: object) -> FallbackReason | None:
+        # Any other string is a newer peer's reason; a value of another type stays an error.
+        return cls.OTHER if isinstance(value, str) else None
+
+
+def fallback_reason(value: FallbackReason | str) -> FallbackReason:
+    """The member for `value` (a member, or its wire string; unknown strings are OTHER);
+    ValueError for a value of another type."""
+    if isinstance(value, FallbackReason):
+        return value
+    if not isinstance(value, str):
+        raise ValueError(f"expected a fallback reason string, got {type(value).__name__}")
+    return FallbackReason(value)
 
 
 def action_label(cut: int | None, codec: str = _RAW) -> str:
@@ -73,8 +112,9 @@ class TelemetryRecord(Message):
     share of the round trip (round trip minus `cloud_s`), `cloud_s` the deployment's queue and
     compute time, `suffix_local_s` the suffix run on the robot when it finished the frame itself,
     `latency_s` end to end. `fallback` is true when the robot finished the frame itself after
-    offloading (busy, error, timeout: `reason` says which); `deployment` answered (None if none).
-    `at` is the robot's wall clock when the frame completed."""
+    offloading (busy, error, timeout: `reason` says which, `detail` says it for a person);
+    `deployment` answered (None if none). `at` is the robot's wall clock when the frame
+    completed. A `reason` given as its string is read as the wire reads it."""
 
     TYPE: ClassVar[str] = "telemetry"
     robot: str
@@ -91,11 +131,17 @@ class TelemetryRecord(Message):
     energy_j: float
     deployment: str | None
     fallback: bool
-    reason: str | None
+    reason: FallbackReason | None
+    detail: str | None = None
     epoch: int = 0
     at: float = 0.0
 
     def __post_init__(self) -> None:
+        if self.reason is not None:
+            try:
+                object.__setattr__(self, "reason", fallback_reason(self.reason))
+            except ValueError as exc:
+                raise self._invalid("reason", str(exc)) from None
         self._check_ids("robot", "deployment")
         self._check_non_negative("frame", "bytes_up", "bytes_down", "epoch")
         try:
@@ -109,8 +155,10 @@ class TelemetryRecord(Message):
         return parse_action(self.action)
 
     def to_jsonl(self) -> dict[str, Any]:
-        """The `--telemetry` JSONL object (JSONL_FIELDS, in order)."""
-        return {name: getattr(self, name) for name in JSONL_FIELDS}
+        """The `--telemetry` JSONL object (JSONL_FIELDS, in order), plain JSON values."""
+        obj = {name: getattr(self, name) for name in JSONL_FIELDS}
+        obj["reason"] = None if self.reason is None else self.reason.value
+        return obj
 
 
 @register

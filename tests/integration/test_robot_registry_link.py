@@ -37,7 +37,7 @@ from common.wire.registry import (
     RerouteRequest,
     RouteChange,
 )
-from robotd.offload import REASON_TIMEOUT
+from common.wire.telemetry import FallbackReason
 from robotd.registry_link import RegistryLink
 from tests.integration.conftest import Router
 from tests.integration.test_robotd import fleet_config
@@ -279,17 +279,17 @@ def test_reroute_only_while_the_registry_is_up_at_most_once_per_interval(
     setup = linked(reroute_reply=route(9, "edge-2").to_wire())
     link, registry = setup.link, setup.registry
     link.apply_route(route(4))
-    assert not link.request_reroute(REASON_TIMEOUT, 3)  # no registry: nobody to ask
+    assert not link.request_reroute(FallbackReason.TIMEOUT, 3)  # no registry: nobody to ask
 
     registry.up()
     wait_reachable(link)
-    assert link.request_reroute(REASON_TIMEOUT, 3)
+    assert link.request_reroute(FallbackReason.TIMEOUT, 3)
     assert link.wait_for_epoch(9, WAIT_S), "the reroute's answer was not applied"
     assert link.route == ("edge-2", 9)
     asked = registry.reroutes[0]
     assert (asked.robot, asked.deployment, asked.epoch) == (ROBOT, "edge-1", 4)
-    assert (asked.reason, asked.consecutive_timeouts) == (REASON_TIMEOUT, 3)
-    assert not link.request_reroute(REASON_TIMEOUT, 4)  # within the interval
+    assert (asked.reason, asked.consecutive_timeouts) == (FallbackReason.TIMEOUT, 3)
+    assert not link.request_reroute(FallbackReason.TIMEOUT, 4)  # within the interval
     assert len(registry.reroutes) == 1
 
 
@@ -301,7 +301,7 @@ def test_a_reroute_the_registry_cannot_serve_leaves_the_route(
     setup.link.apply_route(route(4))
     setup.registry.up()
     wait_reachable(setup.link)
-    assert setup.link.request_reroute(REASON_TIMEOUT, 3)
+    assert setup.link.request_reroute(FallbackReason.TIMEOUT, 3)
     assert setup.registry.rerouted.wait(WAIT_S)
     # Absence cannot be waited for: give the refusal a moment to arrive and be ignored.
     assert not setup.link.wait_for_epoch(5, 0.3)

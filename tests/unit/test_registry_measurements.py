@@ -11,7 +11,8 @@ import threading
 
 import pytest
 
-from common.wire.telemetry import ProbeReport, TelemetryRecord
+from common.wire import decode
+from common.wire.telemetry import FallbackReason, ProbeReport, TelemetryRecord
 from registry.measurements import NO_ROUTE, Measurements
 from registry.rib import MEMORY, Rib
 
@@ -61,7 +62,8 @@ def frame(
     *,
     action: str = "cut:1",
     fallback: bool = False,
-    reason: str | None = None,
+    reason: FallbackReason | None = None,
+    detail: str | None = None,
 ) -> TelemetryRecord:
     return TelemetryRecord(
         robot=ROBOT,
@@ -79,6 +81,7 @@ def frame(
         deployment=deployment,
         fallback=fallback,
         reason=reason,
+        detail=detail,
     )
 
 
@@ -115,7 +118,7 @@ def test_a_frame_computed_on_the_robot_measures_no_deployment(f: Fixture) -> Non
 def test_consecutive_timeouts_count_the_deadline_and_ask_one_reroute(f: Fixture) -> None:
     f.m.set_route(ROBOT, "edge-1", 1)
     asked = [
-        f.m.record_telemetry(frame(None, 0.0, fallback=True, reason="timeout"), KEY)
+        f.m.record_telemetry(frame(None, 0.0, fallback=True, reason=FallbackReason.TIMEOUT), KEY)
         for _ in range(TIMEOUT_COUNT + 2)
     ]
     assert asked == [False, False, True, False, False], "asked once, at the count"
@@ -129,7 +132,13 @@ def test_a_frame_through_the_route_resets_the_failures_and_a_new_reroute_can_be_
     f: Fixture,
 ) -> None:
     f.m.set_route(ROBOT, "edge-1", 1)
-    timeout = frame(None, 0.0, fallback=True, reason="no reply within 500 ms")
+    timeout = frame(
+        None,
+        0.0,
+        fallback=True,
+        reason=FallbackReason.TIMEOUT,
+        detail="no reply within 500 ms",
+    )
     assert [f.m.record_telemetry(timeout, KEY) for _ in range(TIMEOUT_COUNT)][-1]
     f.m.record_telemetry(frame("edge-1"), KEY)
     assert f.m.for_scheduler(ROBOT, "edge-1").timeouts == 0
@@ -138,14 +147,59 @@ def test_a_frame_through_the_route_resets_the_failures_and_a_new_reroute_can_be_
 
 def test_nobody_serving_the_key_is_a_failure_but_no_latency_sample(f: Fixture) -> None:
     f.m.set_route(ROBOT, "edge-1", 1)
-    f.m.record_telemetry(frame(None, 0.0, fallback=True, reason="no_route"), KEY)
+    f.m.record_telemetry(frame(None, 0.0, fallback=True, reason=FallbackReason.NO_ROUTE), KEY)
     measures = f.m.for_scheduler(ROBOT, "edge-1")
     assert (measures.timeouts, measures.telemetry) == (1, None)
 
 
+def received(record: TelemetryRecord) -> TelemetryRecord:
+    """`record` as the registry gets it: encoded by the robot, decoded off the wire."""
+    return decode(record.to_wire(), expect=TelemetryRecord)
+
+
+def test_decoded_timeouts_count_as_failures_and_samples_by_their_member(f: Fixture) -> None:
+    """Regression: reasons were matched by their words ("timeout", "no reply"); the registry now
+    reads the decoded member, whatever the detail says."""
+    f.m.set_route(ROBOT, "edge-1", 1)
+    timeout = received(
+        frame(None, 0.0, fallback=True, reason=FallbackReason.TIMEOUT, detail="busy queue")
+    )
+    assert timeout.reason is FallbackReason.TIMEOUT
+    asked = [f.m.record_telemetry(timeout, KEY) for _ in range(TIMEOUT_COUNT)]
+    assert asked[-1], "the count of decoded timeouts asks for a reroute"
+    measures = f.m.for_scheduler(ROBOT, "edge-1")
+    assert measures.timeouts == TIMEOUT_COUNT
+    assert measures.telemetry is not None and measures.telemetry.median == DEADLINE_S
+
+
+def test_a_decoded_no_route_counts_as_a_failure_but_no_sample(f: Fixture) -> None:
+    f.m.set_route(ROBOT, "edge-1", 1)
+    unserved = received(frame(None, 0.0, fallback=True, reason=FallbackReason.NO_ROUTE))
+    assert unserved.reason is FallbackReason.NO_ROUTE
+    f.m.record_telemetry(unserved, KEY)
+    measures = f.m.for_scheduler(ROBOT, "edge-1")
+    assert (measures.timeouts, measures.telemetry) == (1, None)
+
+
+@pytest.mark.parametrize(
+    "reason", [FallbackReason.BUSY, FallbackReason.ERROR, FallbackReason.OTHER]
+)
+def test_a_decoded_reason_that_names_no_route_failure_counts_nothing(
+    f: Fixture, reason: FallbackReason
+) -> None:
+    """A detail that reads like a timeout does not make one (nobody matches words)."""
+    f.m.set_route(ROBOT, "edge-1", 1)
+    other = received(
+        frame(None, 0.0, fallback=True, reason=reason, detail="timeout: no reply within 0.2 s")
+    )
+    f.m.record_telemetry(other, KEY)
+    measures = f.m.for_scheduler(ROBOT, "edge-1")
+    assert (measures.timeouts, measures.telemetry) == (0, None)
+
+
 def test_a_busy_fallback_is_neither_a_failure_nor_a_sample(f: Fixture) -> None:
     f.m.set_route(ROBOT, "edge-1", 1)
-    f.m.record_telemetry(frame(None, 0.0, fallback=True, reason="busy"), KEY)
+    f.m.record_telemetry(frame(None, 0.0, fallback=True, reason=FallbackReason.BUSY), KEY)
     measures = f.m.for_scheduler(ROBOT, "edge-1")
     assert (measures.timeouts, measures.telemetry) == (0, None)
 
@@ -153,7 +207,7 @@ def test_a_busy_fallback_is_neither_a_failure_nor_a_sample(f: Fixture) -> None:
 def test_a_route_change_clears_the_new_deployments_window_and_the_failures(f: Fixture) -> None:
     f.m.set_route(ROBOT, "edge-1", 1)
     f.m.record_telemetry(frame("edge-2", 0.3), KEY)  # an earlier stay on edge-2
-    f.m.record_telemetry(frame(None, 0.0, fallback=True, reason="timeout"), KEY)
+    f.m.record_telemetry(frame(None, 0.0, fallback=True, reason=FallbackReason.TIMEOUT), KEY)
     f.m.set_route(ROBOT, "edge-2", 2)
     measures = f.m.for_scheduler(ROBOT, "edge-2")
     assert (measures.telemetry, measures.timeouts) == (None, 0)
@@ -240,7 +294,7 @@ def test_a_deployment_that_left_is_forgotten_and_not_saved_again(f: Fixture) -> 
 def test_a_robot_that_left_loses_its_windows_and_failures(f: Fixture) -> None:
     f.m.set_route(ROBOT, "edge-1", 1)
     f.m.record_telemetry(frame("edge-1"), KEY)
-    f.m.record_telemetry(frame(None, 0.0, fallback=True, reason="timeout"), KEY)
+    f.m.record_telemetry(frame(None, 0.0, fallback=True, reason=FallbackReason.TIMEOUT), KEY)
     f.m.forget_robot(ROBOT)
     measures = f.m.for_scheduler(ROBOT, "edge-1")
     assert (measures.telemetry, measures.timeouts, measures.profiles) == (None, 0, {})
@@ -250,7 +304,9 @@ def test_a_robot_that_left_loses_its_windows_and_failures(f: Fixture) -> None:
 def test_no_route_until_one_is_set(f: Fixture) -> None:
     assert f.m.route(ROBOT) == NO_ROUTE
     # Without a route a failure is nobody's: nothing counted, nothing asked.
-    assert not f.m.record_telemetry(frame(None, 0.0, fallback=True, reason="timeout"), KEY)
+    assert not f.m.record_telemetry(
+        frame(None, 0.0, fallback=True, reason=FallbackReason.TIMEOUT), KEY
+    )
     assert f.m.for_scheduler(ROBOT, None).timeouts == 0
 
 

@@ -12,9 +12,10 @@ import numpy as np
 import pytest
 
 from common.wire.cloud_to_robot import InferReply
+from common.wire.telemetry import FallbackReason
 from robotd.failure_runs import LOG_FAILURE_EVERY, REROUTE_AFTER_FAILURES, FailureRuns
 from robotd.frame import Frame
-from robotd.offload import REASON_BUSY, REASON_NO_ROUTE, REASON_TIMEOUT, CallResult
+from robotd.offload import CallResult
 from robotd.policies import PURE_ROBOT, Decision
 from robotd.telemetry import SERVED_BY_CLOUD, SERVED_BY_ROBOT, RemoteTimes
 
@@ -51,7 +52,9 @@ def answered(epoch: int = 4, queue_s: float = QUEUE_S, compute_s: float = COMPUT
     )
 
 
-def failed(reason: str, waited_s: float = DEADLINE_S, deployment: str | None = None) -> CallResult:
+def failed(
+    reason: FallbackReason, waited_s: float = DEADLINE_S, deployment: str | None = None
+) -> CallResult:
     return CallResult(
         reply=None,
         reason=reason,
@@ -95,7 +98,7 @@ def test_a_deployment_reporting_more_time_than_the_round_trip_leaves_no_negative
 
 
 def test_without_a_reply_the_whole_wait_counts_as_transfer() -> None:
-    assert RemoteTimes.of(failed(REASON_TIMEOUT)) == RemoteTimes(transfer_s=DEADLINE_S)
+    assert RemoteTimes.of(failed(FallbackReason.TIMEOUT)) == RemoteTimes(transfer_s=DEADLINE_S)
     assert RemoteTimes.of(None) == RemoteTimes(0.0, 0.0)
 
 
@@ -107,6 +110,7 @@ def test_an_answered_frame_records_the_reply_and_feeds_its_cost_to_the_policy() 
     record = f.record(ROBOT, energy_j=0.7)
     assert f.served_by == SERVED_BY_CLOUD and f.outputs.keys() == OUTPUTS.keys()
     assert record.action == "cut:2:jpeg80" and not record.fallback and record.reason is None
+    assert record.detail is None
     assert (record.deployment, record.epoch) == (DEPLOYMENT, 4)  # the reply's epoch
     assert (record.bytes_up, record.bytes_down) == (1000, 321)
     assert record.cloud_s == pytest.approx(QUEUE_S + COMPUTE_S)
@@ -118,10 +122,11 @@ def test_an_answered_frame_records_the_reply_and_feeds_its_cost_to_the_policy() 
 
 
 def test_a_frame_finished_on_the_robot_is_a_fallback_with_its_reason() -> None:
-    f = frame(1, failed(REASON_TIMEOUT), local_s=0.03)
+    f = frame(1, failed(FallbackReason.TIMEOUT), local_s=0.03)
     record = f.record(ROBOT, energy_j=0.1)
     assert f.served_by == SERVED_BY_ROBOT
-    assert record.fallback and record.reason == REASON_TIMEOUT and record.deployment is None
+    assert record.fallback and record.reason is FallbackReason.TIMEOUT and record.deployment is None
+    assert record.detail == "because timeout"  # the free text travels apart from the reason
     assert record.epoch == 2  # the route epoch the robot held
     assert record.transfer_s == pytest.approx(DEADLINE_S) and record.cloud_s == 0.0
     assert record.suffix_local_s == pytest.approx(0.03)
@@ -147,7 +152,7 @@ def test_a_run_of_failures_is_logged_at_its_start_and_end_only(
     caplog.set_level(logging.INFO, logger="robotd")
     runs = FailureRuns(ROBOT)
     for n in range(5):
-        assert runs.note(n, failed(REASON_BUSY, deployment=DEPLOYMENT)) is None
+        assert runs.note(n, failed(FallbackReason.BUSY, deployment=DEPLOYMENT)) is None
     assert runs.note(5, answered()) is None
     assert caplog.messages == [
         f"{ROBOT}: frame 0: cloud failed (busy: because busy); finished on the robot",
@@ -160,15 +165,15 @@ def test_a_long_run_is_logged_again_every_so_many_frames(caplog: pytest.LogCaptu
     caplog.set_level(logging.WARNING, logger="robotd")
     runs = FailureRuns(ROBOT)
     for n in range(LOG_FAILURE_EVERY + 1):
-        runs.note(n, failed(REASON_BUSY))
+        runs.note(n, failed(FallbackReason.BUSY))
     assert [m.split(":")[1].strip() for m in caplog.messages] == [
         "frame 0",
         f"frame {LOG_FAILURE_EVERY}",
     ]
 
 
-@pytest.mark.parametrize("reason", [REASON_TIMEOUT, REASON_NO_ROUTE])
-def test_consecutive_timeouts_or_missing_routes_call_for_a_reroute(reason: str) -> None:
+@pytest.mark.parametrize("reason", [FallbackReason.TIMEOUT, FallbackReason.NO_ROUTE])
+def test_consecutive_timeouts_or_missing_routes_call_for_a_reroute(reason: FallbackReason) -> None:
     runs = FailureRuns(ROBOT)
     asked = [runs.note(n, failed(reason)) for n in range(REROUTE_AFTER_FAILURES + 1)]
     assert asked == [None] * (REROUTE_AFTER_FAILURES - 1) + [reason, reason]
@@ -177,7 +182,7 @@ def test_consecutive_timeouts_or_missing_routes_call_for_a_reroute(reason: str) 
 
 def test_busy_or_mixed_failures_never_call_for_a_reroute() -> None:
     runs = FailureRuns(ROBOT)
-    assert all(runs.note(n, failed(REASON_BUSY)) is None for n in range(10))
+    assert all(runs.note(n, failed(FallbackReason.BUSY)) is None for n in range(10))
     # A new reason starts a new run: two timeouts after busy frames are not three in a row.
-    assert [runs.note(n, failed(REASON_TIMEOUT)) for n in range(2)] == [None, None]
-    assert runs.note(99, failed(REASON_NO_ROUTE)) is None
+    assert [runs.note(n, failed(FallbackReason.TIMEOUT)) for n in range(2)] == [None, None]
+    assert runs.note(99, failed(FallbackReason.NO_ROUTE)) is None
