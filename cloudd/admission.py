@@ -2,11 +2,15 @@
 
 Runs on Zenoh's callback thread, so it only decides and returns; suffixes run on the workers
 (`cloudd.batch_runner`). In order: a stalled deployment holds the query; a request that does not
-decode is answered with the codec's error; a drop (fault injection) holds it; one that does not
-fit this model (`cloudd.validate.check_request`) is answered with what is wrong; one that
-reaches a deployment no longer serving its robot (it crossed a switch) is answered NOT_SERVING
-and the robot finishes the frame itself; the rest is offered to the queue, which admits it or
-refuses it at once (answered "busy"). Bad input is one throttled WARNING line, never a traceback.
+decode (over the request limit included) is answered with the codec's error; one with a tensor
+over the deployment's limit (`cloudd.limits`) is answered `too_large`; a drop (fault injection)
+holds it; one whose body names another robot than its key (`wrong_robot`) or that does not fit
+this model (`cloudd.validate.check_request`) is answered with what is wrong; one that reaches a
+deployment no longer serving its robot (it crossed a switch) is answered NOT_SERVING and the
+robot finishes the frame itself; the rest is offered to the queue, which admits it or refuses it
+at once (answered "busy": every slot taken, or the robot at its in-flight limit). Every refusal
+but NOT_SERVING is counted by reason (`cloudd.refusals`); bad input is one throttled WARNING
+line, never a traceback.
 """
 
 from __future__ import annotations
@@ -18,9 +22,10 @@ from dataclasses import dataclass
 
 import zenoh
 
-from cloudd.batch_queue import FairQueue, Pending
-from cloudd.batch_stats import BatchStats
+from cloudd.batch_queue import FairQueue, Pending, Refusal
 from cloudd.faults import FaultInjector
+from cloudd.limits import CloudLimits
+from cloudd.refusals import RefusalReason, Refusals, check_refusal, decode_refusal
 from cloudd.replies import Replier, query_payload
 from cloudd.robot_book import RobotBook
 from cloudd.validate import check_request
@@ -31,6 +36,13 @@ from common.wire.cloud_to_robot import BusyReply
 from common.wire.robot_to_cloud import InferRequest
 
 log = logging.getLogger(__name__)
+
+BUSY_REASONS = {
+    Refusal.FULL: RefusalReason.QUEUE_FULL,
+    Refusal.ROBOT_LIMIT: RefusalReason.ROBOT_IN_FLIGHT,
+    Refusal.CLOSED: RefusalReason.STOPPING,
+}
+"""What each of the queue's refusals (all answered busy) is counted as."""
 
 
 @dataclass(frozen=True)
@@ -55,8 +67,8 @@ class Admission:
         book: RobotBook,
         faults: FaultInjector,
         replies: Replier,
-        stats: BatchStats,
-        max_payload_bytes: int,
+        limits: CloudLimits,
+        refusals: Refusals,
         throttled: ThrottledLog,
     ) -> None:
         self.deployment = deployment
@@ -66,8 +78,8 @@ class Admission:
         self._book = book
         self._faults = faults
         self._replies = replies
-        self._stats = stats
-        self._max_payload_bytes = max_payload_bytes
+        self._limits = limits
+        self._refusals = refusals
         self._throttled = throttled
 
     def on_query(self, robot: str, key: str, query: zenoh.Query) -> None:
@@ -80,27 +92,26 @@ class Admission:
         delay_s = fault.delay_ms / 1000.0
         try:
             request = InferRequest.from_wire(
-                query_payload(query), max_bytes=self._max_payload_bytes
+                query_payload(query), max_bytes=self._limits.request_bytes
             )
         except WireError as exc:
+            self._refusals.count(decode_refusal(exc))
             self._throttled.warning(
                 "%s: bad inference request for %s: %s", self.deployment, robot, exc.reason
             )
             self._replies.send(query, key, error_reply(exc), delay_s)
+            return
+        too_large = self._limits.tensor_refusal(request)
+        if too_large is not None:
+            reason = RefusalReason.TENSOR_TOO_LARGE
+            self._refuse(query, robot, key, request, too_large, reason, delay_s)
             return
         if self._faults.drop_now(fault):
             self._replies.hold(query)
             return
         error = check_request(request, robot=robot, digest=self._digest, cut_specs=self._cut_specs)
         if error is not None:
-            self._throttled.warning(
-                "%s: refused frame %d of %s: %s",
-                self.deployment,
-                request.frame,
-                robot,
-                error.reason,
-            )
-            self._replies.send(query, key, error.to_wire(), delay_s)
+            self._refuse(query, robot, key, request, error, check_refusal(error), delay_s)
             return
         if not self._book.serving(robot):
             # A request that crossed a switch: the robot finishes the frame itself.
@@ -119,7 +130,7 @@ class Admission:
         )
         refusal = self._queue.offer(item)
         if refusal is not None:
-            self._stats.refuse(refusal)
+            self._refusals.count(BUSY_REASONS[refusal])
             busy = BusyReply(
                 frame=request.frame,
                 deployment=self.deployment,
@@ -127,3 +138,21 @@ class Admission:
                 capacity=self._queue.capacity,
             )
             self._replies.send(query, key, busy.to_wire(), delay_s)
+
+    def _refuse(
+        self,
+        query: zenoh.Query,
+        robot: str,
+        key: str,
+        request: InferRequest,
+        error: ErrorReply,
+        reason: RefusalReason,
+        delay_s: float,
+    ) -> None:
+        """Answer a decoded request on `robot`'s key `key` with `error`, counted as `reason`,
+        with one warning line."""
+        self._refusals.count(reason)
+        self._throttled.warning(
+            "%s: refused frame %d of %s: %s", self.deployment, request.frame, robot, error.reason
+        )
+        self._replies.send(query, key, error.to_wire(), delay_s)

@@ -4,7 +4,9 @@
 standby follow the verdict of `cloudd.state` (through `RobotBook.decide`): a robot entering
 service has its service key declared before the ack, one leaving has it undeclared before the
 ack, since the registry relies on both having happened when it reads the ack. A key that cannot
-be declared undoes the verdict and is refused with the reason.
+be declared undoes the verdict and is refused with the reason. A request that does not decode
+(over the request limit, `cloudd.limits`, or malformed) gets the codec's error reply and is
+counted (`cloudd.refusals`).
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ from collections.abc import Callable
 import zenoh
 
 from cloudd.faults import FaultInjector, describe
+from cloudd.refusals import Refusals, decode_refusal
 from cloudd.replies import Replier, query_payload
 from cloudd.robot_book import RobotBook
 from cloudd.state import Verdict
@@ -39,7 +42,8 @@ class Controller:
         faults: FaultInjector,
         replies: Replier,
         declare_service: Callable[[str], None],
-        max_payload_bytes: int,
+        max_request_bytes: int,
+        refusals: Refusals,
         throttled: ThrottledLog,
     ) -> None:
         self.deployment = deployment
@@ -48,14 +52,16 @@ class Controller:
         self._faults = faults
         self._replies = replies
         self._declare_service = declare_service
-        self._max_payload_bytes = max_payload_bytes
+        self._max_request_bytes = max_request_bytes
+        self._refusals = refusals
         self._throttled = throttled
 
     def on_query(self, query: zenoh.Query) -> None:
         """The ctl queryable's callback: answered at once, in every fault state."""
         try:
-            request = CtlRequest.from_wire(query_payload(query), max_bytes=self._max_payload_bytes)
+            request = CtlRequest.from_wire(query_payload(query), max_bytes=self._max_request_bytes)
         except WireError as exc:
+            self._refusals.count(decode_refusal(exc))
             self._throttled.warning("%s: bad ctl request: %s", self.deployment, exc.reason)
             self._replies.send(query, self.key, error_reply(exc), 0.0)
             return

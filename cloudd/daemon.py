@@ -28,6 +28,12 @@ Every robot starts in standby: only a ctl `service(robot, epoch)` from the regis
 robot's anycast key `svc/<service>/<robot>/infer` (complete=True), and the ack is sent only after
 the declaration; `standby` undeclares it, then acks. The epoch rules are in `cloudd.state`.
 
+Limits (`cloudd.limits`, the machine's `limits` section): a request payload, a declared tensor
+size and a probe echo over the deployment's limit get a `too_large` error reply; a robot past its
+in-flight limit gets "busy"; a request whose body names another robot than its key gets
+`wrong_robot`. Every refusal is counted by reason (`cloudd.refusals`: `refusals`, the probe
+reply's `refused`), and the counts are logged at exit.
+
 Threads: Zenoh runs each queryable's callback on a thread of its own. Callbacks only decode,
 check and admit a request (`cloudd.admission`), then return; suffixes run on the workers
 (`cloudd.batch_runner`). A request the queue does not admit (every slot taken, or its robot at
@@ -60,7 +66,9 @@ from cloudd.batch_runner import BatchRunner
 from cloudd.batch_stats import BatchStats
 from cloudd.control import Controller
 from cloudd.faults import FaultInjector, describe
+from cloudd.limits import CloudLimits
 from cloudd.probe import ProbeResponder
+from cloudd.refusals import Refusals
 from cloudd.registry_link import DRAIN_TIMEOUT_S, RegistryLink
 from cloudd.replies import Replier
 from cloudd.robot_book import RobotBook
@@ -101,6 +109,7 @@ class CloudDaemon(Daemon):
 
     `fault` overrides the machine's configured fault injection at start; `drop_seed` seeds the
     drop decisions (tests). `ready` is set once the daemon serves (its token is declared).
+    `limits` are the machine's limits, `refusals` counts what they (and the rest) refused.
 
     The daemon keeps the lifecycle and wires its parts: `RobotBook` (per-robot state, counters,
     service keys), `Replier` (replies, delays, held queries), `Controller` (the ctl key),
@@ -132,6 +141,8 @@ class CloudDaemon(Daemon):
         self.registry_seen = self._registry.seen
         self._drain_on_exit = False
 
+        self.limits = CloudLimits.of(cfg, self.machine)
+        self.refusals = Refusals()
         self._book = RobotBook(cfg.robot_ids, closing=self.closing)
         self._replies = Replier(deployment, self.faults, self.throttled)
         self._probe = ProbeResponder(
@@ -140,7 +151,8 @@ class CloudDaemon(Daemon):
             profile=self.profile,
             faults=self.faults,
             replies=self._replies,
-            max_payload_bytes=cfg.max_payload_bytes,
+            limits=self.limits,
+            refusals=self.refusals,
             throttled=self.throttled,
         )
         self._controller = Controller(
@@ -150,7 +162,8 @@ class CloudDaemon(Daemon):
             faults=self.faults,
             replies=self._replies,
             declare_service=self._declare_service,
-            max_payload_bytes=cfg.max_payload_bytes,
+            max_request_bytes=self.limits.request_bytes,
+            refusals=self.refusals,
             throttled=self.throttled,
         )
         self._costs = BatchCosts()
@@ -205,6 +218,7 @@ class CloudDaemon(Daemon):
             echo=bytes(echo_bytes),
             epochs={robot: st.wire_epoch for robot, st in snapshot.items()},
             served=served,
+            refused=self.refusals.snapshot(),
         )
 
     def control(self, request: CtlRequest) -> CtlReply:
@@ -247,7 +261,7 @@ class CloudDaemon(Daemon):
         self.ready.set()
         log.info(
             "%s: ready: service %r, %d cuts warm, %d workers, %d slots, at most %d per robot, "
-            "%s, faults: %s",
+            "%s, %s, faults: %s",
             self.deployment,
             self.cfg.service,
             len(self._cut_specs),
@@ -259,6 +273,7 @@ class CloudDaemon(Daemon):
                 if self.machine.batching.enabled
                 else "batching off"
             ),
+            self.limits.describe(),
             describe(self.faults.get()),
         )
 
@@ -273,6 +288,7 @@ class CloudDaemon(Daemon):
         self.ready.clear()
         self._book.close()
         super().shutdown()
+        self.refusals.log_summary(self.deployment)
         log.info("%s: stopped", self.deployment)
 
     # -- startup steps ---------------------------------------------------------------------
@@ -291,6 +307,15 @@ class CloudDaemon(Daemon):
         if cut_specs is None:
             return
         self._cut_specs = cut_specs
+        oversized = self.limits.oversized_tensors(cut_specs)
+        if oversized:
+            log.warning(
+                "%s: %s over limits.max_tensor_bytes (%d bytes): requests for these cuts will "
+                "be refused",
+                self.deployment,
+                ", ".join(oversized),
+                self.limits.tensor_bytes,
+            )
         log.info(
             "%s: model %s (%s) loaded: %d cuts, %.1f MB of weights, in %.1f s",
             self.deployment,
@@ -317,8 +342,8 @@ class CloudDaemon(Daemon):
             book=self._book,
             faults=self.faults,
             replies=self._replies,
-            stats=self.batch_stats,
-            max_payload_bytes=self.cfg.max_payload_bytes,
+            limits=self.limits,
+            refusals=self.refusals,
             throttled=self.throttled,
         )
         runner = BatchRunner(

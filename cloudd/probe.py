@@ -3,7 +3,10 @@
 The registry compares deployments by their probe replies, so a probe is delayed like every
 inference reply (`delay_ms`) and a stalled deployment does not answer it; it is never dropped.
 An empty probe asks for the profile alone; a `ProbeRequest` carries padding up and asks for
-`echo_bytes` bytes back, so the prober can measure transfer both ways.
+`echo_bytes` bytes back, so the prober can measure transfer both ways. A probe over the
+request limit, or asking for more echo than the deployment's cap (`cloudd.limits`), gets a
+`too_large` error reply and is counted (`cloudd.refusals`): a probe cannot make the deployment
+send back an arbitrarily large payload.
 """
 
 from __future__ import annotations
@@ -13,6 +16,8 @@ from collections.abc import Callable
 import zenoh
 
 from cloudd.faults import FaultInjector
+from cloudd.limits import CloudLimits
+from cloudd.refusals import RefusalReason, Refusals, decode_refusal
 from cloudd.replies import Replier, query_payload
 from common.throttled_log import ThrottledLog
 from common.wire import WireError, error_reply
@@ -30,7 +35,8 @@ class ProbeResponder:
         profile: Callable[[int], ProbeReply],
         faults: FaultInjector,
         replies: Replier,
-        max_payload_bytes: int,
+        limits: CloudLimits,
+        refusals: Refusals,
         throttled: ThrottledLog,
     ) -> None:
         self.deployment = deployment
@@ -38,7 +44,8 @@ class ProbeResponder:
         self._profile = profile
         self._faults = faults
         self._replies = replies
-        self._max_payload_bytes = max_payload_bytes
+        self._limits = limits
+        self._refusals = refusals
         self._throttled = throttled
 
     def on_query(self, query: zenoh.Query) -> None:
@@ -47,15 +54,28 @@ class ProbeResponder:
         if fault.stall:
             self._replies.hold(query)
             return
+        delay_s = fault.delay_ms / 1000.0
         payload = query_payload(query)
         echo_bytes = 0
         if payload:  # an empty probe asks for the profile alone
             try:
-                request = ProbeRequest.from_wire(payload, max_bytes=self._max_payload_bytes)
+                request = ProbeRequest.from_wire(payload, max_bytes=self._limits.request_bytes)
             except WireError as exc:
+                self._refusals.count(decode_refusal(exc))
                 self._throttled.warning("%s: bad probe request: %s", self.deployment, exc.reason)
-                self._replies.send(query, self.key, error_reply(exc), fault.delay_ms / 1000.0)
+                self._replies.send(query, self.key, error_reply(exc), delay_s)
+                return
+            refusal = self._limits.echo_refusal(request)
+            if refusal is not None:
+                self._refusals.count(RefusalReason.ECHO_TOO_LARGE)
+                self._throttled.warning(
+                    "%s: bad probe request from %s: %s",
+                    self.deployment,
+                    request.sender,
+                    refusal.reason,
+                )
+                self._replies.send(query, self.key, refusal.to_wire(), delay_s)
                 return
             echo_bytes = request.echo_bytes
         reply = self._profile(echo_bytes)
-        self._replies.send(query, self.key, reply.to_wire(), fault.delay_ms / 1000.0)
+        self._replies.send(query, self.key, reply.to_wire(), delay_s)

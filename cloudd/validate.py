@@ -2,10 +2,12 @@
 
 The codec already refused what cannot be a request (garbage, unknown schema version, bad dtype
 names, shape/byte-count mismatch, oversize payload). What is left is whether a well-formed request
-fits *this* model: the robot it names, the model digest, the cut index, and the cut's tensors by
-name and declared dtype and shape (`SplitModel.cut_tensor_specs`). Each problem is an
-`ErrorReply` with a code and a one-line reason the robot can log; nothing here raises. The
-tensors' codecs are decoded later, on a worker (`decode_tensors`), into exactly those sizes.
+fits its key and *this* model: the robot it names (the ACL lets a robot query only its own
+service key; this makes the body agree with the key: `wrong_robot`), the model digest, the cut
+index, and the cut's tensors by name and declared dtype and shape (`SplitModel.cut_tensor_specs`).
+Each problem is an `ErrorReply` with a code and a one-line reason the robot can log; nothing here
+raises. The tensors' codecs are decoded later, on a worker (`decode_tensors`), into exactly
+those sizes.
 """
 
 from __future__ import annotations
@@ -50,7 +52,7 @@ def check_request(
     deployment can compute it. `cut_specs[k]` are the tensors crossing cut k."""
     if request.robot != robot:
         return ErrorReply.make(
-            ErrorCode.BAD_VALUE,
+            ErrorCode.WRONG_ROBOT,
             f"request names robot {request.robot!r} but came on the service key of {robot!r}",
         )
     if request.model_digest != digest:

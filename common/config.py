@@ -110,6 +110,11 @@ class CutsConfig(_Model):
         min_length=1,
         description="Restrict candidate cuts to those after these tensors; null: every cut found.",
     )
+    segments: bool = Field(
+        default=False,
+        description="Also build and verify the segment between every two cuts (segment "
+        "offload: the cloud runs the part between them; navigation option 3 needs it).",
+    )
 
 
 class RegistryConfig(_Model):
@@ -208,10 +213,41 @@ class BatchingConfig(_Model):
         return max(self.preferred_batch_sizes) if self.enabled else 1
 
 
+DEFAULT_MAX_TENSOR_BYTES = DEFAULT_MAX_PAYLOAD_BYTES
+"""A tensor bigger than this could not travel raw within the default payload limit."""
+DEFAULT_MAX_ECHO_BYTES = 64 * 1024
+"""Robots ask for 4 KiB of probe echo and the registry for none: more is a probe misused."""
+
+
+class CloudLimitsConfig(_Model):
+    """What one request may cost a cloud daemon (`cloudd.limits`); over a limit the request gets
+    a `too_large` error reply and is counted by reason (`CloudDaemon.refusals`). The in-flight
+    limit per robot is `batching.max_in_flight_per_robot`."""
+
+    max_request_bytes: int | None = Field(
+        default=None,
+        ge=MIN_REQUEST_BYTES,
+        description="Largest request payload this deployment reads on its service, probe and "
+        "ctl keys, bytes, refused before unpacking; null: the fleet's max_payload_bytes.",
+    )
+    max_tensor_bytes: int = Field(
+        default=DEFAULT_MAX_TENSOR_BYTES,
+        ge=1,
+        description="Largest decoded size a request's tensor may declare, bytes (dtype size x "
+        "elements), refused before anything is decoded.",
+    )
+    max_echo_bytes: int = Field(
+        default=DEFAULT_MAX_ECHO_BYTES,
+        ge=1,
+        description="Largest echo a probe may ask for, bytes: a probe cannot make this "
+        "deployment send back more.",
+    )
+
+
 # Fields that only mean something for one role: setting them on the other is an error.
-_CLOUD_ONLY = frozenset({"workers", "queue", "fault", "batching"})
-_ROBOT_ONLY = frozenset({"source", "fps", "uplink_mbit"})
-_SOURCE = re.compile(r"^(synthetic(:.*)?|photo([:,].*)?|video:.+|camera:\d+)$")
+_CLOUD_ONLY = frozenset({"workers", "queue", "fault", "batching", "limits"})
+_ROBOT_ONLY = frozenset({"source", "fps", "uplink_mbit", "max_in_flight"})
+_SOURCE = re.compile(r"^(synthetic(:.*)?|photo([:,].*)?|video:.+|camera:\d+|stereo:.+)$")
 
 
 class MachineConfig(_Model):
@@ -258,9 +294,16 @@ class MachineConfig(_Model):
         default_factory=BatchingConfig,
         description="Cloud: per-robot queues and in-flight limit, and dynamic batching.",
     )
+    limits: CloudLimitsConfig = Field(
+        default_factory=CloudLimitsConfig,
+        description="Cloud: largest request, tensor and probe echo it accepts.",
+    )
     source: str = Field(
         default="synthetic",
-        description="Robot: frame source: synthetic[:OPTIONS], video:PATH or camera:INDEX.",
+        description=(
+            "Robot: frame source: synthetic[:OPTIONS], photo[:NAME], video:PATH, camera:INDEX "
+            "or stereo:world|motorcycle|LEFT,RIGHT[,OPTIONS]."
+        ),
     )
     fps: float | None = Field(
         default=None,
@@ -271,6 +314,12 @@ class MachineConfig(_Model):
         default=None,
         gt=0,
         description="Robot: pace the uplink to this many Mbit/s in the application (emulation).",
+    )
+    max_in_flight: int = Field(
+        default=1,
+        ge=1,
+        description="Robot: offloaded frames in flight at once (pipelining); 1: each frame's "
+        "result is awaited before the next frame starts.",
     )
 
     @model_validator(mode="after")
@@ -284,7 +333,7 @@ class MachineConfig(_Model):
         if not _SOURCE.match(self.source):
             raise ValueError(
                 f"source: {self.source!r} is not a frame source; expected synthetic, "
-                "photo[:NAME], video:PATH or camera:INDEX"
+                "photo[:NAME], video:PATH, camera:INDEX or stereo:..."
             )
         return self
 

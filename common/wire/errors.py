@@ -37,6 +37,7 @@ class ErrorCode(str, enum.Enum):
     UNKNOWN_CUT = "unknown_cut"
     MODEL_DIGEST = "model_digest"
     NOT_SERVING = "not_serving"
+    WRONG_ROBOT = "wrong_robot"  # the body names another robot than the key it came on
     DEADLINE_EXPIRED = "deadline_expired"
     STALE_EPOCH = "stale_epoch"
     PROTOCOL_VERSION = "protocol_version"

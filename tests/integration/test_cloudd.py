@@ -378,7 +378,7 @@ def _bad_infer_cases(reference: SplitModel) -> list[tuple[str, bytes | None, Err
         (
             "another robot",
             dataclasses.replace(good, robot="robot-2").to_wire(),
-            ErrorCode.BAD_VALUE,
+            ErrorCode.WRONG_ROBOT,
             "'robot-2'",
         ),
         ("bad value", _raw_request(reference, frame=-1), ErrorCode.BAD_VALUE, "frame"),

@@ -3,7 +3,8 @@
 Three robots in service on one deployment: requests of one cut sent together run as one
 onnxruntime batch and each robot gets exactly its own result (the model's rows are 32 per
 request, so a mixed-up slice cannot pass); different cuts run apart; a request whose deadline
-cannot afford the queue delay runs at once; a robot past its in-flight limit gets `busy`.
+cannot afford the queue delay runs at once; a robot past its in-flight limit gets `busy`,
+counted by reason.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ import pytest
 import zenoh
 
 from cloudd.daemon import CloudDaemon
+from cloudd.refusals import RefusalReason
 from common import keys
 from common.config import fleet_from_dict
 from common.partition import load_partition, sample_feeds
@@ -164,7 +166,7 @@ def test_requests_of_one_cut_run_as_one_batch_and_each_robot_gets_its_own_result
     daemon: CloudDaemon, robots_in_service: zenoh.Session, reference: SplitModel
 ) -> None:
     assert daemon.model.batched(1), "the tiny model's suffixes take a batch axis"
-    before, _ = daemon.batch_stats.snapshot()
+    before = daemon.batch_stats.snapshot()
     pairs = [request(reference, robot, 1, seed=10 + i) for i, robot in enumerate(ROBOTS)]
     t0 = time.monotonic()
     replies = send_together(robots_in_service, daemon, [m for m, _ in pairs])
@@ -175,7 +177,7 @@ def test_requests_of_one_cut_run_as_one_batch_and_each_robot_gets_its_own_result
         for name, value in expected.items():
             err = float(np.max(np.abs(reply.outputs[name] - value)))
             assert err <= RESULT_ATOL, f"{message.robot} {name}: max abs error {err}"
-    after, _ = daemon.batch_stats.snapshot()
+    after = daemon.batch_stats.snapshot()
     assert after.get(3, 0) == before.get(3, 0) + 1, f"one batch of 3: {before} -> {after}"
     assert len({r.compute_s for r in replies if isinstance(r, InferReply)}) == 1, "one run"
     assert took_s < QUEUE_DELAY_MS / 1000, "a full batch leaves without waiting out the delay"
@@ -190,7 +192,7 @@ def test_different_cuts_run_apart_each_correct(
         assert isinstance(reply, InferReply), reply
         for name, value in expected.items():
             assert float(np.max(np.abs(reply.outputs[name] - value))) <= RESULT_ATOL
-    sizes, _ = daemon.batch_stats.snapshot()
+    sizes = daemon.batch_stats.snapshot()
     assert max(sizes) == 1, f"nothing batched across cuts: {sizes}"
 
 
@@ -220,3 +222,4 @@ def test_a_robot_past_its_in_flight_limit_is_answered_busy_at_once(
     assert kinds == ["BusyReply", "InferReply"], kinds
     busy = next(r for r in replies if isinstance(r, BusyReply))
     assert busy.deployment == "edge-1" and busy.capacity == 1 * len(ROBOTS) + 4
+    assert daemon.refusals.snapshot() == {RefusalReason.ROBOT_IN_FLIGHT.value: 1}

@@ -100,7 +100,7 @@ def test_a_request_that_fits_passes() -> None:
 @pytest.mark.parametrize(
     ("changes", "robot", "code", "needles"),
     [
-        ({}, "robot-2", ErrorCode.BAD_VALUE, ["'robot-1'", "'robot-2'"]),
+        ({}, "robot-2", ErrorCode.WRONG_ROBOT, ["'robot-1'", "'robot-2'"]),
         ({"model_digest": "cd" * 32}, "robot-1", ErrorCode.MODEL_DIGEST, ["cdcdcd", "ababab"]),
         ({"cut": 2}, "robot-1", ErrorCode.UNKNOWN_CUT, ["unknown cut 2", "0..1"]),
         (
