@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from common.codec_profile import Fidelity, profile_codecs
-from common.image_input import InputAdapter
+from common.image_input import ImageInputs
 from common.partition import load_partition, sample_feeds
 from common.split_runtime import SplitModel
 from common.zoo import parse_shape
@@ -47,8 +47,7 @@ def measure(model_spec: str, shape: tuple[int, ...], frames: int, seed: int) -> 
     partition = load_partition(model_spec, "auto", 2, shape)
     model = SplitModel(partition, threads=1)
     specs = model.input_specs()
-    adapter = InputAdapter(specs[0])
-    calib = calibration_frames("photo", adapter, frames, seed)
+    calib = calibration_frames("photo", ImageInputs(specs, model_spec), frames, seed)
     fidelity = Fidelity(lossy_features=True)
     codecs = profile_codecs(model, calib, fidelity)
     for entries in codecs.values():

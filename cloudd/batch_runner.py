@@ -6,7 +6,9 @@ finished the frame itself by now). Once the daemon is stopping, the batch is ans
 NOT_SERVING. Otherwise each request's tensors are decoded here, off Zenoh's callback thread (one
 that does not decode is answered with the codec's error), the suffix runs once for the whole
 batch, and each request gets an `InferReply` with its own outputs, its queueing and compute
-times and the robot's epoch. A request's slot is freed before its reply goes out, so a robot
+times and the robot's epoch. A segment request (`InferRequest.end_cut`: the part of the model
+between two cuts) runs on its own after the batch's suffixes, and its reply carries the end
+cut's tensors. A request's slot is freed before its reply goes out, so a robot
 that sends its next frame on the reply is not refused for a slot still held.
 """
 
@@ -101,12 +103,25 @@ class BatchRunner:
                 self._replies.send(
                     item.payload.query, item.payload.key, error_reply(exc), self._replies.delay_s()
                 )
-        if not ready:
-            return
+        # A segment request (`InferRequest.end_cut`) runs alone, after the batch's suffixes.
+        segments = [(i, t) for i, t in ready if i.payload.request.end_cut is not None]
+        ready = [(i, t) for i, t in ready if i.payload.request.end_cut is None]
+        if ready:
+            self._run_suffixes(batch.group, ready, started)
+        for item, tensors in segments:
+            self._run_segment(item, tensors)
+
+    def _run_suffixes(
+        self,
+        group: int,
+        ready: list[tuple[Pending[Job], dict[str, np.ndarray]]],
+        started: float,
+    ) -> None:
+        """Run the suffix of cut `group` once for all of `ready` and answer each."""
         try:
-            outputs = self._model.run_suffix_batch(batch.group, [tensors for _, tensors in ready])
+            outputs = self._model.run_suffix_batch(group, [tensors for _, tensors in ready])
         except Exception as exc:
-            reason = f"suffix of cut {batch.group} failed: {ort_reason(exc)}"
+            reason = f"suffix of cut {group} failed: {ort_reason(exc)}"
             log.warning(
                 "%s: a batch of %d (%s): %s",
                 self.deployment,
@@ -118,10 +133,40 @@ class BatchRunner:
                 self._answer_error(item, ErrorReply.make(ErrorCode.INTERNAL, reason))
             return
         compute_s = time.monotonic() - started
-        self._costs.record(batch.group, len(ready), compute_s)
+        self._costs.record(group, len(ready), compute_s)
         self._stats.ran(len(ready))
         for (item, _), result in zip(ready, outputs, strict=True):
             self._answer(item, result, queue_s=started - item.arrived, compute_s=compute_s)
+
+    def _run_segment(self, item: Pending[Job], tensors: dict[str, np.ndarray]) -> None:
+        """Run the segment a request names (its cut to its `end_cut`) and answer with the end
+        cut's tensors; a segment this split lacks is answered UNKNOWN_CUT (the robot finishes
+        the frame itself)."""
+        request = item.payload.request
+        start, end = request.cut, request.end_cut
+        assert end is not None
+        if not self._model.has_segment(start, end):
+            known = ", ".join(s.label for s in self._model.partition.segments) or "none"
+            self._answer_error(
+                item,
+                ErrorReply.make(
+                    ErrorCode.UNKNOWN_CUT,
+                    f"no segment from cut {start} to cut {end} here (segments: {known}; the "
+                    "fleet's cuts.segments builds them)",
+                ),
+            )
+            return
+        started = time.monotonic()
+        try:
+            outputs = self._model.run_segment(start, end, tensors)
+        except Exception as exc:
+            reason = f"segment {start}-{end} failed: {ort_reason(exc)}"
+            log.warning("%s: %s frame %d: %s", self.deployment, item.robot, request.frame, reason)
+            self._answer_error(item, ErrorReply.make(ErrorCode.INTERNAL, reason))
+            return
+        compute_s = time.monotonic() - started
+        self._stats.ran(1)
+        self._answer(item, outputs, queue_s=started - item.arrived, compute_s=compute_s)
 
     def _answer(
         self,

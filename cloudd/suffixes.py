@@ -2,7 +2,8 @@
 
 Every suffix shares one copy of the weights (`SplitModel`), so memory stays flat in the number of
 cuts. Warming runs each suffix once on zeros at startup: nothing is built on the frame path, and
-the first frame of each cut costs what later ones do. With `batching.enabled`, each suffix is
+the first frame of each cut costs what later ones do; so does each segment (the part between two
+cuts, for a split made with `cuts.segments`). With `batching.enabled`, each suffix is
 first given a batch axis and checked against one-item runs (`SplitModel.enable_batching`); a cut
 that cannot take a batch is named in the log and runs one request at a time. A suffix that cannot
 run with the machine's providers stops the daemon with a `UserError` naming the cut.
@@ -27,7 +28,13 @@ def open_split_model(cfg: FleetConfig, machine: MachineConfig) -> SplitModel:
     """The fleet's model split at its cuts (from the partition cache; split on first use), with
     the machine's providers and threads; sessions are built later (`warm_suffixes`)."""
     shape = tuple(cfg.input_shape) if cfg.input_shape else None
-    partition = load_partition(cfg.model, cfg.cuts.names or "auto", cfg.cuts.max_cut_tensors, shape)
+    partition = load_partition(
+        cfg.model,
+        cfg.cuts.names or "auto",
+        cfg.cuts.max_cut_tensors,
+        shape,
+        segments=cfg.cuts.segments,
+    )
     return SplitModel(
         partition,
         providers=machine.providers,
@@ -44,8 +51,8 @@ def warm_suffixes(
     model_name: str,
     stop: threading.Event,
 ) -> list[list[TensorSpec]] | None:
-    """Build and run every suffix once; the tensors crossing each cut, or None when `stop` was
-    set meanwhile."""
+    """Build and run every suffix and segment once; the tensors crossing each cut, or None when
+    `stop` was set meanwhile."""
     cut_specs = [model.cut_tensor_specs(k) for k in range(model.num_cuts)]
     unbatched: dict[int, str] = {}
     for k, specs in enumerate(cut_specs):
@@ -62,6 +69,17 @@ def warm_suffixes(
             raise UserError(
                 f"{model_name}: cannot run the suffix of cut {k} with providers "
                 f"{', '.join(machine.providers)}: {ort_reason(exc)}"
+            ) from None
+    for seg in model.partition.segments:
+        if stop.is_set():
+            return None
+        zeros = {s.name: np.zeros(s.shape, dtype=s.dtype) for s in cut_specs[seg.start]}
+        try:
+            model.run_segment(seg.start, seg.end, zeros)
+        except Exception as exc:
+            raise UserError(
+                f"{model_name}: cannot run the segment from cut {seg.start} to cut {seg.end} "
+                f"with providers {', '.join(machine.providers)}: {ort_reason(exc)}"
             ) from None
     if machine.batching.enabled:
         _log_batching(deployment, machine, model.num_cuts, unbatched)

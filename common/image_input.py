@@ -1,10 +1,16 @@
-"""A camera frame (uint8 BGR, OpenCV's layout) as a model's one image input.
+"""Camera frames (uint8 BGR, OpenCV's layout) as a model's image inputs.
 
-The robot feeds its source's frames through `InputAdapter`, and the codec profiler
-(`elasticfog model profile --codecs`) its calibration photographs, so both see the same input.
+`InputAdapter` turns one frame into one image input. `ImageInputs` holds one adapter per image
+input of a model and feeds them: a model with one input takes a mono frame (whatever the input's
+name), a model with several takes the named views of a stereo frame, matched by name (`left`,
+`right` for zoo:stereo). The robot feeds its source's frames through them, and the codec
+profiler (`elasticfog model profile --codecs`) its calibration photographs, so both see the same
+input.
 """
 
 from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
 
 import cv2
 import numpy as np
@@ -69,3 +75,71 @@ def _layout(shape: tuple[int, ...]) -> tuple[bool, int, int, int] | None:
     if shape[0] in CHANNELS:  # e.g. 3×3×3: take the ONNX convention, channels first
         return True, shape[0], shape[1], shape[2]
     return None
+
+
+class ImageInputs:
+    """One `InputAdapter` per image input of a model (all of one height and width: the views of
+    a camera pair); `feeds` turns a frame into the model's input.
+
+    A model with one input takes mono frames. A model with several takes stereo frames whose
+    views are named like its inputs: `check_views` says, at start, in one line, when a source's
+    views do not fit (a mono source on a stereo model, a stereo source on a mono one)."""
+
+    def __init__(self, specs: Sequence[TensorSpec], model: str = "the model") -> None:
+        if not specs:
+            raise UserError(f"model {model} has no input to feed")
+        self.model = model
+        self.adapters = {spec.name: InputAdapter(spec) for spec in specs}
+        first = next(iter(self.adapters.values()))
+        self.height, self.width = first.height, first.width
+        sizes = {f"{a.width}x{a.height}" for a in self.adapters.values()}
+        if len(sizes) > 1:
+            raise UserError(
+                f"model {model}'s image inputs {self._listed()} differ in size "
+                f"({', '.join(sorted(sizes))}); the views of a frame share one size"
+            )
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        """The model's image inputs, in the model's order."""
+        return tuple(self.adapters)
+
+    @property
+    def views(self) -> tuple[str, ...] | None:
+        """The views a frame must carry: None for a one-input model (a mono frame), else the
+        inputs' names."""
+        return None if len(self.adapters) == 1 else self.names
+
+    def check_views(self, views: Sequence[str] | None, source: str) -> None:
+        """UserError (one line) unless frames with these views (None: mono) feed the model."""
+        if views is None and self.views is None:
+            return
+        if views is None:
+            raise UserError(
+                f"source {source} gives one image a frame; model {self.model} takes "
+                f"{len(self.adapters)} image inputs ({self._listed()}): use a stereo source "
+                "(stereo:world, stereo:motorcycle, stereo:LEFT,RIGHT)"
+            )
+        if self.views is None:
+            raise UserError(
+                f"source {source} gives {len(views)} views a frame ({', '.join(views)}); "
+                f"model {self.model} takes one image input ({self._listed()}): use a mono source"
+            )
+        if sorted(views) != sorted(self.names):
+            raise UserError(
+                f"source {source} gives views {', '.join(views)}; model {self.model}'s image "
+                f"inputs are {self._listed()}: views are matched to inputs by name"
+            )
+
+    def feeds(self, frame: np.ndarray | Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """The model's input for one mono frame, or for the views of a stereo frame by name."""
+        if isinstance(frame, np.ndarray):
+            if self.views is not None:
+                self.check_views(None, "of this frame")
+            ((name, adapter),) = self.adapters.items()
+            return {name: adapter(frame)}
+        self.check_views(tuple(frame), "of this frame")
+        return {name: adapter(frame[name]) for name, adapter in self.adapters.items()}
+
+    def _listed(self) -> str:
+        return ", ".join(self.adapters)

@@ -1,8 +1,9 @@
 """onnxruntime sessions for a split model: the full model and every cut's prefix and suffix.
 
 The robot daemon and the cloud daemon both hold one :class:`SplitModel`. A model with K cuts needs
-2K+1 sessions; loaded naively each would hold its own copy of the weights. Here the weights are read
-once from the split's ``weights.bin`` into one buffer, and every session is handed the same
+2K+1 sessions (plus one per segment, for a split made with segments: the cloud runs the part
+between two cuts); loaded naively each would hold its own copy of the weights. Here the weights
+are read once from the split's ``weights.bin`` into one buffer, and every session is handed the same
 ``OrtValue`` per initializer through ``SessionOptions.add_initializer``, so resident weights stay
 near one copy whatever K is.
 
@@ -180,6 +181,7 @@ class SplitModel:
         self._full: ort.InferenceSession | None = None
         self._prefix: dict[int, ort.InferenceSession] = {}
         self._suffix: dict[int, ort.InferenceSession] = {}
+        self._segment: dict[tuple[int, int], ort.InferenceSession] = {}
         self._batch_rows: dict[int, int] = {}  # cut -> rows of one item, for batched suffixes
         if not lazy:
             self.build_all()
@@ -276,6 +278,37 @@ class SplitModel:
             raise ValueError(f"suffix of cut {k}: missing tensor(s) {', '.join(missing)}")
         return self._run(self._suffix_session(k), given, f"suffix of cut {k}", run_options)
 
+    def has_segment(self, start: int, end: int) -> bool:
+        """Whether the split has the segment from cut ``start`` to cut ``end``."""
+        return self.partition.has_segment(start, end)
+
+    def run_segment(
+        self,
+        start: int,
+        end: int,
+        tensors: Mapping[str, np.ndarray],
+        *,
+        run_options: ort.RunOptions | None = None,
+    ) -> dict[str, np.ndarray]:
+        """The cloud's part of a segment: cut ``start``'s tensors → cut ``end``'s, by name.
+
+        Tensors of cut ``end`` that also cross cut ``start`` (a skip over the whole segment) are
+        passed through as given, like model inputs through a prefix.
+        """
+        self.partition.segment(start, end)  # ValueError naming the segments there are
+        given = set(self.partition.cut(start).tensors)
+        missing = [t for t in given if t not in tensors]
+        if missing:
+            raise ValueError(
+                f"segment {start}-{end}: missing tensor(s) {', '.join(sorted(missing))}"
+            )
+        session = self._segment_session(start, end)
+        out = self._run(session, tensors, f"segment {start}-{end}", run_options)
+        for name in self.partition.cut(end).tensors:
+            if name in given:
+                out[name] = np.asarray(tensors[name])
+        return {name: out[name] for name in self.partition.cut(end).tensors}
+
     def enable_batching(self, k: int, *, check_items: int = BATCH_CHECK_ITEMS) -> str | None:
         """Serve cut ``k``'s suffix with a batch axis (see the module docstring), replacing its
         one-item session. Returns None when it does, else why it cannot (the suffix then keeps
@@ -367,12 +400,16 @@ class SplitModel:
             if cut.prefix is not None:
                 self._prefix_session(k)
             self._suffix_session(k)
+        for seg in self.partition.segments:
+            self._segment_session(seg.start, seg.end)
 
     def release(self, k: int) -> None:
-        """Drop cut ``k``'s sessions (they are rebuilt on next use)."""
+        """Drop cut ``k``'s sessions and its segments' (they are rebuilt on next use)."""
         with self._lock:
             self._prefix.pop(k, None)
             self._suffix.pop(k, None)
+            for pair in [p for p in self._segment if k in p]:
+                del self._segment[pair]
 
     def close(self) -> None:
         """Drop every session; the object can still be used and rebuilds them lazily."""
@@ -380,6 +417,7 @@ class SplitModel:
             self._full = None
             self._prefix.clear()
             self._suffix.clear()
+            self._segment.clear()
 
     def __enter__(self) -> SplitModel:
         return self
@@ -426,6 +464,14 @@ class SplitModel:
             if session is None:
                 assert cut.suffix is not None
                 session = self._suffix[k] = self._session(cut.suffix)
+            return session
+
+    def _segment_session(self, start: int, end: int) -> ort.InferenceSession:
+        path = self.partition.segment(start, end).path
+        with self._lock:
+            session = self._segment.get((start, end))
+            if session is None:
+                session = self._segment[(start, end)] = self._session(path)
             return session
 
     def _session(self, model: Path | onnx.ModelProto) -> ort.InferenceSession:

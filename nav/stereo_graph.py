@@ -48,6 +48,7 @@ import numpy as np
 import onnx
 from onnx import TensorProto, helper, numpy_helper
 
+from common.partition.named_cuts import NAMED_CUT_PREFIX
 from nav.camera import CameraModel
 from nav.curvature import CurvatureBins, ObstacleBand
 from nav.stereo_params import StereoParams
@@ -154,9 +155,12 @@ def build_model(
 
 
 def _metadata(pipeline: StereoPipeline) -> dict[str, str]:
-    """What a consumer of the outputs needs to read them (bin centres, camera)."""
+    """What a consumer of the outputs needs to read them (bin centres, camera), and the cut the
+    offloading options name (`common.partition.named_cuts`: option 2 runs up to the points on
+    the robot, option 3 runs the segment up to them in the cloud)."""
     cam, bins = pipeline.camera, pipeline.bins
     return {
+        f"{NAMED_CUT_PREFIX}points": Stage.POINTS.value,
         "nav.max_disparity": str(pipeline.params.max_disparity),
         "nav.bins.k_max_per_m": repr(bins.k_max_per_m),
         "nav.bins.count": str(bins.count),

@@ -15,7 +15,8 @@ from common.errors import UserError
 from common.zoo import ZooGraph
 
 # Bump when the graph changes for the same shape (cached exports are named by it).
-STEREO_FORMAT = 1
+# 2: the metadata names the `points` cut (elasticfog.cut.points) for the offloading options.
+STEREO_FORMAT = 2
 
 
 def build_stereo(shape: tuple[int, int, int]) -> Any:

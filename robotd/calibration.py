@@ -24,11 +24,12 @@ from typing import Any
 import numpy as np
 
 from common.codec_profile import Fidelity, profile_codecs
-from common.image_input import InputAdapter
+from common.image_input import ImageInputs
 from common.models import cache_dir, read_cached_json, write_cached_json
 from common.split_runtime import SplitModel
 from robotd.policies import RAW_CODEC, fixed_action
-from robotd.sources import open_source
+from robotd.sources import open_source_for
+from robotd.stereo_frame import StereoFrame
 
 log = logging.getLogger(__name__)
 
@@ -46,18 +47,20 @@ def required_codecs(policy_spec: str, lowest_cut: int) -> dict[int, list[str]]:
 
 
 def calibration_frames(
-    source: str, adapter: InputAdapter, count: int, seed: int
+    source: str, inputs: ImageInputs, count: int, seed: int
 ) -> list[dict[str, np.ndarray]]:
     """`count` model feeds from a fresh instance of `source` (every CALIBRATION_STRIDE-th
-    frame, except for a camera, whose frames are taken as they come)."""
+    frame, except for a camera, whose frames are taken as they come); a stereo source's views
+    feed the model's inputs of their names."""
     stride = 1 if source.startswith("camera:") else CALIBRATION_STRIDE
-    name = adapter.spec.name
     frames = []
-    with open_source(source, height=adapter.height, width=adapter.width, seed=seed) as src:
+    with open_source_for(source, inputs, seed=seed) as src:
         for i in range(count * stride):
             frame = src.read()
             if i % stride == 0:
-                frames.append({name: adapter(frame)})
+                frames.append(
+                    inputs.feeds(frame.views if isinstance(frame, StereoFrame) else frame)
+                )
     return frames
 
 

@@ -24,13 +24,16 @@ A frame (DESIGN.md, "A frame's life"): grab → entropy → `policy.decide` → 
 model for P) → encoded `InferRequest` → (emulated uplink) → `get` on the service key with the
 deadline → reply, or the robot runs the suffix itself with the reason (`robotd.offload`) →
 `policy.observe` → telemetry (`robotd.telemetry_sink`: `tele/<robot>`, JSONL file, run summary). No
-frame is ever lost. A hedged decision also runs the local suffix speculatively (at once, or
+frame is ever lost. With `max_in_flight` N > 1 an offloaded frame is not awaited: up to N are in
+flight at once (`robotd.pipeline`: the loop sends frame k while k-1... are computed), each with
+its own deadline and local finish, and results are applied in frame order (an older one is stale:
+dropped and counted). A hedged decision also runs the local suffix speculatively (at once, or
 deferred by the policy while the reply is expected first) on a thread of the lowest CPU priority
 (`robotd.offload.LocalRunner`), so that on a robot short of CPU it does not slow the offload it
 hedges, and serves whichever result is ready first. A cloud reply first cancels the local run;
 when the robot's result wins, the frame is served and the loop moves on while the cloud's reply
 (at most one such frame in flight) is awaited up to its deadline, to feed the learner; meanwhile
-the next frames' model runs go to the low-priority thread too.
+the next frames' model runs go to the low-priority thread too (`robotd.model_runs`).
 
 Beside the daemon: `robotd.registry_link.RegistryLink` (registration, the route and its epoch,
 reroute requests, the "registry unreachable" reports), `robotd.robot_model` (the split model
@@ -65,12 +68,21 @@ from common.membership import MemberChange, MembershipView
 from common.session import open_session
 from common.split_runtime import SplitModel
 from common.wire.tensor_codecs import encode_tensor_as
-from robotd.emulation import Emulation, Phase, Slowdown, check_slowdown, robot_class, scaled_profile
+from robotd.emulation import (
+    Emulation,
+    Phase,
+    Slowdown,
+    check_slowdown,
+    emulation_note,
+    scaled_profile,
+)
 from robotd.entropy import frame_entropy
 from robotd.failure_runs import FailureRuns
 from robotd.frame import Frame, FrameResult
+from robotd.model_runs import ModelRuns
 from robotd.offload import FINISH_GRACE_S, STOP_POLL_S, LocalRunner
 from robotd.pacing import FramePacer, TokenBucket
+from robotd.pipeline import FramePipeline, InFlight, ResultOrder
 from robotd.policies import PURE_ROBOT, FrameContext, Objective, Policy
 from robotd.probes import PROBE_INTERVAL_S, CloudTime, Prober, probe_padding_bytes
 from robotd.registry_link import REGISTRY_RETRY_INITIAL_S, RegistryLink
@@ -78,7 +90,8 @@ from robotd.request_sender import RequestSender
 from robotd.robot_model import RobotModel, open_split_model
 from robotd.robot_profile import build_policy, robot_profile, warm_up
 from robotd.service_match import ServiceMatch
-from robotd.sources import FrameSource, open_source
+from robotd.sources import FrameSource
+from robotd.stereo_frame import CameraFrame, first_view
 from robotd.telemetry import SERVED_BY_CLOUD, RemoteTimes, RunSummary, TelemetryFile
 from robotd.telemetry_sink import TelemetrySink
 
@@ -91,6 +104,9 @@ log = logging.getLogger("robotd")
 # the first frames are not finished locally only because the session was still meeting peers.
 REGISTRY_WAIT_S = 2.0
 ROUTE_WAIT_S = 3.0
+
+# What finishing an offloaded frame in flight needs: the frame, its cut position, the tensors sent.
+Offload = tuple[Frame, int, dict[str, np.ndarray]]
 
 
 @dataclass
@@ -110,6 +126,7 @@ class RobotOptions:
     route_wait_s: float = ROUTE_WAIT_S
     robot_slowdown: float = 1.0
     phases: tuple[Phase, ...] = ()
+    max_in_flight: int | None = None
 
     @property
     def initial_slowdown(self) -> float:
@@ -128,6 +145,8 @@ class RobotOptions:
             raise UserError(f"--uplink-mbit must be a positive number, got {self.uplink_mbit}")
         if self.probe_interval_s <= 0:
             raise UserError(f"probe interval must be > 0 s, got {self.probe_interval_s}")
+        if self.max_in_flight is not None and self.max_in_flight < 1:
+            raise UserError(f"--max-in-flight must be at least 1, got {self.max_in_flight}")
         check_slowdown(self.robot_slowdown)
 
 
@@ -170,6 +189,12 @@ class RobotDaemon(Daemon):
         self._cloud_time = CloudTime()
         self._pending: Frame | None = None
         self._failures = FailureRuns(robot_id)
+        # Offloaded frames in flight (`robotd.pipeline`); results applied in frame order.
+        self.max_in_flight = self.options.max_in_flight or self.machine.max_in_flight
+        self._order = ResultOrder()
+        self._pipeline = FramePipeline[Offload](
+            self.max_in_flight, self._finish_offload, self.should_exit
+        )
         # Publications, file and summary of the frames; what they go to is made in startup.
         self._sink = TelemetrySink(robot_id, self.summary)
         # Made in startup, released by the lifecycle.
@@ -180,6 +205,7 @@ class RobotDaemon(Daemon):
         self._source: FrameSource
         self._requests: RequestSender
         self._local: LocalRunner | None = None
+        self._runs: ModelRuns
         # Emulation (`robotd.emulation`): every robot-side model run goes through the slowdown;
         # phases switch it and the uplink at frame boundaries.
         self._slowdown = Slowdown(self.options.initial_slowdown, stop=self.should_exit)
@@ -211,6 +237,7 @@ class RobotDaemon(Daemon):
         self._local = local = LocalRunner(f"local-run-{self.robot}")
         local.start()
         self.on_release(local.stop, what="local-run thread")
+        self._runs = ModelRuns(self._slowdown, local)
         self.policy = self._policy_override or build_policy(
             self.policy_spec,
             cfg,
@@ -227,18 +254,12 @@ class RobotDaemon(Daemon):
             self._objective,
         )
         self._source = self.hold(
-            open_source(
-                self.source_spec,
-                height=robot_model.adapter.height,
-                width=robot_model.adapter.width,
-                seed=self.options.seed,
-            ),
+            robot_model.open_source(self.source_spec, seed=self.options.seed),
             "frame source",
         )
         if self.options.telemetry is not None:
             self._sink.file = self.hold(TelemetryFile(self.options.telemetry), "telemetry file")
         self._open_zenoh()
-        slowdown = self._slowdown.factor
         log.info(
             "%s: model %s (%d cuts, digest %s), policy %s, source %s, deadline %.3f s, "
             "registry %s%s%s",
@@ -250,12 +271,9 @@ class RobotDaemon(Daemon):
             self._source.description,
             self.deadline_s,
             cfg.registry.endpoint,
-            f", uplink paced to {self.uplink_mbit:g} Mbit/s (emulation)"
-            if self._requests.uplink and not self.options.phases
-            else "",
-            f", robot {slowdown:g}× slower than this host (emulation: {robot_class(slowdown)})"
-            if slowdown != 1.0 and not self.options.phases
-            else "",
+            f", {self.max_in_flight} frames in flight" if self.max_in_flight > 1 else "",
+            # Phases describe themselves as they start.
+            "" if self.options.phases else emulation_note(self.uplink_mbit, self._slowdown.factor),
         )
         self._wait_for_fleet()
 
@@ -344,6 +362,7 @@ class RobotDaemon(Daemon):
         pending = self._pending
         if pending is not None and pending.call is not None:
             pending.call.cancel()
+        self._pipeline.cancel()  # frames in flight after a loop that failed
         super().shutdown()
 
     # -- callbacks -------------------------------------------------------------------------
@@ -363,25 +382,27 @@ class RobotDaemon(Daemon):
         n = 0
         # Bounded by --frames, or by the stop flag (signals) otherwise.
         while limit is None or n < limit:
-            if not pacer.wait(self.should_exit):
+            # The wait for the next frame's start also finishes frames in flight that settle.
+            if not self._pipeline.idle(pacer.delay()):
                 break
             self._settle_pending(block=False)
             self._emulation.enter(n)
             frame = self._source.read()
             self.run_frame(n, frame)
             n += 1
+        self._pipeline.drain()
         self._settle_pending(block=True)
         self.summary.ended_at = time.perf_counter()
         if self.should_exit.is_set() and limit is not None and n < limit:
             log.info("%s: stopped after %d of %d frames", self.robot, n, limit)
 
-    def run_frame(self, n: int, frame: np.ndarray) -> None:
-        """Run one frame to completion (or, hedged with the robot's result first, to the point
-        where it is served; its cloud reply is settled later)."""
+    def run_frame(self, n: int, frame: CameraFrame) -> None:
+        """Run one frame to completion, or hand it to the pipeline (`robotd.pipeline`), or (hedged,
+        the robot's result first) to where it is served; its cloud reply is settled later."""
         started = time.perf_counter()
         cpu_started = time.process_time()
         feeds = self._robot_model.feeds(frame)
-        entropy = frame_entropy(frame)
+        entropy = frame_entropy(first_view(frame))
         decision = self.policy.decide(FrameContext(index=n, entropy=entropy))
         epoch = self.link.epoch
         f = Frame(n, decision, entropy, feeds, started, cpu_started, epoch)
@@ -399,53 +420,47 @@ class RobotDaemon(Daemon):
         # Encoding is the robot's part of the action: it counts in its prefix time.
         encoded = {name: encode_tensor_as(a, decision.codec) for name, a in sent.items()}
         f.prefix_s = time.perf_counter() - t
-        f.call = call = self._requests.send(n, cut.index, encoded, epoch, background=decision.hedge)
+        # In flight beside other frames, the request is handed to Zenoh from a thread of its own.
+        background = decision.hedge or self.max_in_flight > 1
+        f.call = call = self._requests.send(
+            n, cut.index, encoded, epoch, background=background, end=decision.end
+        )
         f.bytes_up = call.bytes_up
         if decision.hedge:
             self._hedged(f, k, sent)
             return
+        self._pipeline.submit(InFlight(n, call, (f, k, sent)))
+
+    def _finish_offload(self, item: InFlight[Offload]) -> None:
+        """Finish an offloaded frame at its reply, or on the robot (a failure, the deadline)."""
+        f, k, sent = item.work
+        call, feeds, model = f.call, f.feeds, self.model
+        assert call is not None
         finished = call.wait(self.should_exit)
-        f.result = self._robot_model.checked(call.result(stopped=not finished))
+        end = f.decision.end
+        f.result = self._robot_model.checked(call.result(stopped=not finished), end)
         if f.result.reply is not None:
             f.outputs = dict(f.result.reply.outputs)
             f.served_by = SERVED_BY_CLOUD
+            if end is not None:  # a segment: the robot runs the tail from the reply's tensors
+                t, reply = time.perf_counter(), f.outputs
+                f.outputs = self._compute(
+                    lambda options: model.run_suffix(end, reply, run_options=options)
+                )
+                f.prefix_s += time.perf_counter() - t  # the robot's own part of the action
         else:
             t = time.perf_counter()
             f.outputs = self._compute(
                 lambda options: model.run_suffix(k, sent, feeds, run_options=options)
             )
             f.local_s = time.perf_counter() - t
-        f.latency_s = time.perf_counter() - started
-        f.cpu_s = time.process_time() - cpu_started
+        f.latency_s = time.perf_counter() - f.started
+        f.cpu_s = time.process_time() - f.cpu_started
         self._emit(f)
 
     def _compute(self, run: Callable[[Any], Mapping[str, np.ndarray]]) -> dict[str, np.ndarray]:
-        """Run robot-side model work (`run` gets onnxruntime run options) and wait for it.
-
-        While a hedged frame's reply is still on its way (`_pending`), the work goes to the
-        low-priority thread: on a robot short of CPU, receiving that reply then goes first, and
-        the learner sees the link, not the robot's later frames. Otherwise it runs here, at the
-        loop's own priority (on the testbed's 0.02-core robot, P frames on the low-priority
-        thread took a median 0.50 s against 0.40 s here: Zenoh's and the prober's threads
-        went first). A pending reply of a sample taken while P was best
-        (`Decision.local_expected`) does not get that precedence: it only has to show whether
-        offloading got cheaper, and a reply delayed by the robot's own frame errs towards P,
-        the choice in force; the robot's frames do not pay for the sample."""
-        pending = self._pending
-        if (
-            pending is None
-            or pending.call is None
-            or pending.call.settled
-            or pending.decision.local_expected
-        ):
-            return dict(self._slowdown.run(run, None))
-        assert self._local is not None
-        job = self._local.submit(self._slowdown.stretched(run))
-        job.wait()  # as long as the run takes, as if computed in this thread
-        if job.error is not None:
-            raise job.error
-        assert job.outputs is not None
-        return job.outputs
+        """Run robot-side model work and wait for it (where it runs: `robotd.model_runs`)."""
+        return self._runs.run(run, self._pending)
 
     def _hedged(self, f: Frame, k: int, sent: dict[str, np.ndarray]) -> None:
         """Race the cloud against the local suffix and serve whichever result is first.
@@ -529,8 +544,9 @@ class RobotDaemon(Daemon):
                 f.serve_local(outputs, local_done)
                 self._emit(f)
             return
-        # The robot's result is first: the frame is served now, its cloud reply comes later.
+        # The robot's result is first: the frame is served (applied) now, its reply comes later.
         f.serve_local(outputs, local_done)
+        f.stale = not self._order.admit(f.n)
         self._settle_pending(block=True)  # at most one frame waits for its reply
         self._pending = f
 
@@ -570,6 +586,8 @@ class RobotDaemon(Daemon):
         compute_s = f.prefix_s + (f.local_s or 0.0)
         energy = self._objective.energy_j(f.latency_s, compute_s, remote.transfer_s)
         self.policy.observe(f.decision, f.outcome(self.deadline_s))
+        if f.stale is None:  # applied now, unless a newer frame's result was
+            f.stale = not self._order.admit(f.n)
         record = f.record(self.robot, energy)
         self._sink.frame(f, record, phase=self._emulation.phase_name(f.n))
         self.frames_done += 1
@@ -579,7 +597,7 @@ class RobotDaemon(Daemon):
             reroute = self._failures.note(f.n, res)
             if reroute is not None:
                 self.link.request_reroute(reroute, self._failures.streak)
-        if self._on_result is not None:
+        if self._on_result is not None and not f.stale:
             self._on_result(FrameResult(f.n, f.feeds, f.outputs, record, f.served_by, f.hedged))
 
 

@@ -82,6 +82,15 @@ def robot_class(factor: float) -> str:
     return ROBOT_CLASSES[-1][1]
 
 
+def emulation_note(uplink_mbit: float | None, slowdown: float) -> str:
+    """What the robot's startup line says of a fixed emulation ("" without one)."""
+    uplink = f", uplink paced to {uplink_mbit:g} Mbit/s (emulation)" if uplink_mbit else ""
+    if slowdown == 1.0:
+        return uplink
+    robot = f"robot {slowdown:g}× slower than this host (emulation: {robot_class(slowdown)})"
+    return f"{uplink}, {robot}"
+
+
 def check_slowdown(factor: float, what: str = "--robot-slowdown") -> float:
     """`factor` if it is a slowdown the robot can emulate, else UserError naming `what`."""
     if not (math.isfinite(factor) and 1.0 <= factor <= MAX_SLOWDOWN):

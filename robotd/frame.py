@@ -53,6 +53,9 @@ class Frame:
     served_by: str = SERVED_BY_ROBOT
     latency_s: float = 0.0
     cpu_s: float = 0.0
+    # Whether the frame's result was dropped (a newer frame's was applied first,
+    # `robotd.pipeline.ResultOrder`); None until it is applied or dropped.
+    stale: bool | None = None
 
     @property
     def offloaded(self) -> bool:
@@ -101,6 +104,7 @@ class Frame:
             self.n,
             cut=int(self.decision.action) if self.offloaded else None,
             codec=self.decision.codec,
+            end=self.decision.end,
             result=self.result,
             bytes_up=self.bytes_up,
             prefix_s=self.prefix_s,
@@ -109,4 +113,5 @@ class Frame:
             cpu_s=self.cpu_s,
             energy_j=energy_j,
             epoch=self.epoch,
+            stale=bool(self.stale),
         )

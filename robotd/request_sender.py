@@ -1,11 +1,12 @@
 """Sends a frame's cut tensors on the robot's anycast service key, through the emulated uplink.
 
 `RequestSender.send` builds the frame's `InferRequest` (model digest, cut, encoded tensors,
-deadline, route epoch) and starts a `robotd.offload.CloudCall` with it. With `--uplink-mbit` the
-request first waits its bytes' time in a token bucket (`robotd.pacing.TokenBucket`): a request
-that cannot get through before its deadline is never sent (it would only queue ahead of the next
-frames; the call still times out at the deadline, so the policy learns what that cut costs), and
-one that can is sent with the deadline budget left after the emulated link.
+deadline, route epoch, and for a segment the end cut) and starts a `robotd.offload.CloudCall`
+with it. With `--uplink-mbit` the request first waits its bytes' time in a token bucket
+(`robotd.pacing.TokenBucket`): a request that cannot get through before its deadline is never
+sent (it would only queue ahead of the next frames; the call still times out at the deadline, so
+the policy learns what that cut costs), and one that can is sent with the deadline budget left
+after the emulated link.
 """
 
 from __future__ import annotations
@@ -52,9 +53,11 @@ class RequestSender:
         epoch: int,
         *,
         background: bool = False,
+        end: int | None = None,
     ) -> CloudCall:
         """Send frame `frame`'s tensors after cut index `cut`; the call is under way on return
-        (`background`: handed to Zenoh from a thread of its own, see `CloudCall.start`)."""
+        (`background`: handed to Zenoh from a thread of its own, see `CloudCall.start`). `end`:
+        the cloud runs only the segment up to that cut and replies with its tensors."""
         request = InferRequest(
             robot=self._robot,
             frame=frame,
@@ -64,6 +67,7 @@ class RequestSender:
             deadline_s=self._deadline_s,
             sent_at=time.time(),
             epoch=epoch,
+            end_cut=end,
         )
         payload = request.to_wire()
         delay = 0.0

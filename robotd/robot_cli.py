@@ -37,7 +37,8 @@ def robot_command(
         None,
         "--source",
         help="synthetic[:key=F,every=N], photo[:NAME][,motion=M] (real photographs through a "
-        "moving camera), video:PATH or camera:N; default: the machine's.",
+        "moving camera), video:PATH, camera:N, or a stereo pair for a two-image model: "
+        "stereo:world, stereo:motorcycle, stereo:LEFT,RIGHT; default: the machine's.",
     ),
     frames: int | None = typer.Option(
         None, "--frames", help="Stop after this many frames (default: run until Ctrl-C)."
@@ -71,6 +72,12 @@ def robot_command(
         help="YAML file of emulation phases (frames, uplink_mbit, slowdown) switched while the "
         "robot runs.",
     ),
+    max_in_flight: int | None = typer.Option(
+        None,
+        "--max-in-flight",
+        metavar="N",
+        help="Offloaded frames in flight at once (pipelining); default: the machine's (1).",
+    ),
     seed: int = typer.Option(0, "--seed", help="Seed of the synthetic and photo frame sources."),
     json_out: bool = typer.Option(False, "--json", help="Print the summary as JSON on stdout."),
     log_level: str = typer.Option(
@@ -103,6 +110,7 @@ def robot_command(
                 seed=seed,
                 robot_slowdown=robot_slowdown,
                 phases=loaded,
+                max_in_flight=max_in_flight,
             )
             daemon = RobotDaemon(cfg, robot_id, options)
             code = daemon.run()

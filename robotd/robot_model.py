@@ -2,8 +2,9 @@
 
 `open_split_model` loads the fleet's model at startup: its partition at the configured cuts, as
 one set of shared-weight onnxruntime sessions for this machine (the caller hands it to the
-lifecycle, which closes it). `RobotModel` is what the loop needs around those sessions: the one
-camera input (the adapter that turns a frame into the model's input), the startup profile the
+lifecycle, which closes it). `RobotModel` is what the loop needs around those sessions: the
+camera inputs (`common.image_input.ImageInputs`: one image, or the views of a stereo pair matched
+by name, and the source opened for them), the startup profile the
 policies start from (`robotd.robot_profile`), the position of each cut index in the partition,
 and the check of a cloud reply against the model's outputs (a reply that
 lacks one is a decode error: the robot finishes the frame itself).
@@ -18,36 +19,38 @@ import numpy as np
 
 from common.config import FleetConfig, MachineConfig
 from common.errors import UserError
-from common.image_input import InputAdapter
+from common.image_input import ImageInputs
 from common.partition import load_partition, sample_feeds
 from common.split_runtime import SplitModel
 from common.wire.telemetry import FallbackReason
 from robotd.offload import CallResult
 from robotd.policies import Decision
 from robotd.robot_profile import measured_profile
+from robotd.sources import FrameSource, open_source_for
+from robotd.stereo_frame import CameraFrame, StereoFrame
 
 
 def open_split_model(config: FleetConfig, machine: MachineConfig) -> SplitModel:
     """The fleet's model, partitioned at its cuts, as sessions on `machine`'s providers."""
     shape = tuple(config.input_shape) if config.input_shape else None
     partition = load_partition(
-        config.model, config.cuts.names or "auto", config.cuts.max_cut_tensors, shape
+        config.model,
+        config.cuts.names or "auto",
+        config.cuts.max_cut_tensors,
+        shape,
+        segments=config.cuts.segments,
     )
     return SplitModel(partition, providers=machine.providers, threads=machine.threads or None)
 
 
 class RobotModel:
-    """`RobotModel(model, name)`: UserError unless `model` (called `name` in messages) takes
-    one input, the camera frame."""
+    """`RobotModel(model, name)`: UserError unless every input of `model` (called `name` in
+    messages) is an image the robot can feed: one camera frame, or the views of a stereo one."""
 
     def __init__(self, model: SplitModel, name: str) -> None:
         specs = model.input_specs()
-        if len(specs) != 1:
-            names = ", ".join(s.name for s in specs)
-            raise UserError(f"the robot feeds one camera frame; model {name} has inputs {names}")
         self.model = model
-        self.input_name = specs[0].name
-        self.adapter = InputAdapter(specs[0])
+        self.inputs = ImageInputs(specs, name)
         # Input of the model's shape and type, for the warm-up and the startup profile.
         self.sample_feeds = sample_feeds(specs)
         self._position = {cut.index: k for k, cut in enumerate(model.partition.cuts)}
@@ -60,16 +63,21 @@ class RobotModel:
             self.model,
             self.sample_feeds,
             config=config,
-            adapter=self.adapter,
+            inputs=self.inputs,
             source_spec=source_spec,
             seed=seed,
             threads=threads,
             policy_spec=policy_spec,
         )
 
-    def feeds(self, frame: np.ndarray) -> dict[str, np.ndarray]:
-        """The model's input for camera frame `frame`."""
-        return {self.input_name: self.adapter(frame)}
+    def open_source(self, spec: str, *, seed: int) -> FrameSource:
+        """The frame source `spec` at the model's input size; a one-line UserError when its
+        views do not match the model's image inputs."""
+        return open_source_for(spec, self.inputs, seed=seed)
+
+    def feeds(self, frame: CameraFrame) -> dict[str, np.ndarray]:
+        """The model's input for camera frame `frame` (an image, or a stereo frame's views)."""
+        return self.inputs.feeds(frame.views if isinstance(frame, StereoFrame) else frame)
 
     def position_of(self, decision: Decision, policy: str) -> int:
         """The partition position of the cut `decision` chose; a UserError naming `policy` and
@@ -82,13 +90,14 @@ class RobotModel:
                 f"policy {policy} chose cut {decision.action!r}; this model has cuts {known}"
             ) from None
 
-    def checked(self, result: CallResult) -> CallResult:
-        """`result`, or a decode error when its reply lacks an output of the model (the frame is
-        then finished on the robot)."""
+    def checked(self, result: CallResult, end: int | None = None) -> CallResult:
+        """`result`, or a decode error when its reply lacks an output of the model (or, for a
+        segment up to cut `end`, a tensor of that cut): the frame is then finished on the robot."""
         reply = result.reply
         if reply is None:
             return result
-        missing = [n for n in self.model.output_names if n not in reply.outputs]
+        names = self.model.output_names if end is None else self.model.partition.cut(end).tensors
+        missing = [n for n in names if n not in reply.outputs]
         if not missing:
             return result
         return dataclasses.replace(

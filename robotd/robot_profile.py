@@ -17,11 +17,13 @@ import numpy as np
 from common.codec_profile import fidelity_of
 from common.config import FleetConfig
 from common.errors import UserError
-from common.image_input import InputAdapter
+from common.image_input import ImageInputs
+from common.partition.named_cuts import named_cuts
 from common.profiler import median_ms
 from common.split_runtime import SplitModel
 from robotd.calibration import calibration_frames, codec_table, required_codecs
 from robotd.policies import Objective, Policy, make_policy
+from robotd.policies.nav_options import NAMED_CUTS_KEY, SEGMENTS_KEY
 
 # Whole-model runs timed at startup for the robot-side profile (after the profiler's warm-up).
 PROFILE_RUNS = 3
@@ -39,7 +41,9 @@ def robot_profile(
     median time measured here, split between each cut's prefix and suffix by their FLOPs (the
     policies then learn the robot's real speed online). A cut without FLOP counts is split by
     its position. `codecs` (`robotd.calibration.codec_table`) gives each cut its measured
-    codec entries; those marked `action` become the policy's (cut, codec) actions."""
+    codec entries; those marked `action` become the policy's (cut, codec) actions. The cuts the
+    model names in its metadata and the split's segments are listed too (the navigation
+    options need them)."""
     full_ms = max(median_ms(lambda: model.run_full(feeds), runs), MIN_PROFILE_MS)
     cuts = model.partition.cuts
     rows = []
@@ -55,7 +59,15 @@ def robot_profile(
         if codecs is not None and cut.index in codecs:
             row["codecs"] = [e for e in codecs[cut.index] if e.get("action")]
         rows.append(row)
-    return {"digest": model.digest, "full_ms": full_ms, "cuts": rows}
+    part = model.partition
+    return {
+        "digest": model.digest,
+        "full_ms": full_ms,
+        "cuts": rows,
+        # Where the navigation options fall (`robotd.policies.nav_options`).
+        NAMED_CUTS_KEY: named_cuts(part),
+        SEGMENTS_KEY: [[seg.start, seg.end] for seg in part.segments],
+    }
 
 
 def warm_up(model: SplitModel, feeds: dict[str, np.ndarray]) -> None:
@@ -71,7 +83,7 @@ def measured_profile(
     feeds: dict[str, np.ndarray],
     *,
     config: FleetConfig,
-    adapter: InputAdapter,
+    inputs: ImageInputs,
     source_spec: str,
     seed: int,
     threads: int,
@@ -82,7 +94,7 @@ def measured_profile(
     lowest = min(cut.index for cut in model.partition.cuts)
     codecs = codec_table(
         model,
-        lambda: calibration_frames(source_spec, adapter, fidelity.calibration_frames, seed),
+        lambda: calibration_frames(source_spec, inputs, fidelity.calibration_frames, seed),
         fidelity_of(fidelity),
         required_codecs(policy_spec, lowest),
         {

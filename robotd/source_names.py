@@ -1,4 +1,5 @@
-"""The names in a `--source` spec (synthetic, photo, video:PATH, camera:N) and the default one.
+"""The names in a `--source` spec (synthetic, photo, video:PATH, camera:N, stereo:...) and the
+default one.
 
 They live apart from robotd.sources (cv2, numpy, the partitioner) so that an option's default can
 name a source without importing them: `elasticfog --help` must stay fast.
@@ -13,3 +14,7 @@ PHOTO = "photo"
 DEFAULT_CAMERA_SOURCE = PHOTO
 VIDEO_PREFIX = "video:"
 CAMERA_PREFIX = "camera:"
+STEREO_PREFIX = "stereo:"
+# `stereo:world`: pairs rendered in nav's world; `stereo:motorcycle`: Middlebury's real pair.
+STEREO_WORLD = "world"
+STEREO_MOTORCYCLE = "motorcycle"

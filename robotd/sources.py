@@ -1,6 +1,6 @@
 """Frame sources of the robot daemon.
 
-A source yields uint8 BGR frames (H×W×3, OpenCV's layout) one at a time:
+A source yields uint8 BGR frames (H×W×3, OpenCV's layout) one at a time, or stereo frames:
 
 - `synthetic[:key=F][,every=N]`: seeded frames with controllable entropy. Key frames are
   textured (noise, gradients and blocks: normalized grey-level entropy near 1); the others are
@@ -18,6 +18,8 @@ A source yields uint8 BGR frames (H×W×3, OpenCV's layout) one at a time:
 - `video:PATH`: a video file read with OpenCV, looped at its end (a file stands in for a camera,
   so `--frames N` is honoured whatever the file's length).
 - `camera:N`: the camera with index N through OpenCV.
+- `stereo:...`: a stereo pair a frame (`robotd.stereo_sources`: a rendered world, the Motorcycle
+  pair, two image files); its frames are `robotd.stereo_frame.StereoFrame`s of named views.
 
 A source that cannot be opened is a `UserError` naming it. `common.image_input.InputAdapter` turns
 a frame into the model's input; the photographs themselves are `common.photos`.
@@ -36,8 +38,10 @@ import cv2
 import numpy as np
 
 from common.errors import UserError
+from common.image_input import ImageInputs
 from common.photos import PHOTOS, photo_bgr
-from robotd.source_names import CAMERA_PREFIX, PHOTO, SYNTHETIC, VIDEO_PREFIX
+from robotd.source_names import CAMERA_PREFIX, PHOTO, STEREO_PREFIX, SYNTHETIC, VIDEO_PREFIX
+from robotd.stereo_frame import CameraFrame
 
 DEFAULT_KEY_FRACTION = 0.25
 # Flat frames: one grey level, moving slowly, with noise of this amplitude (grey levels): a few
@@ -73,12 +77,15 @@ class SourceError(UserError):
 
 
 class FrameSource(abc.ABC):
-    """Yields uint8 BGR frames (H×W×3); `close()` releases the device or file."""
+    """Yields uint8 BGR frames (H×W×3), or stereo frames of named views; `close()` releases the
+    device or file."""
 
     description: str = "source"
+    views: tuple[str, ...] | None = None
+    """The names of a stereo source's views (`robotd.stereo_frame`); None: one image a frame."""
 
     @abc.abstractmethod
-    def read(self) -> np.ndarray:
+    def read(self) -> CameraFrame:
         """The next frame; SourceError when none can be read."""
 
     def close(self) -> None:  # noqa: B027 - sources without resources need nothing
@@ -184,7 +191,7 @@ class PhotoSource(FrameSource):
             self.motion = CameraMotion(motion)
         except ValueError:
             raise SourceError(
-                f"photo source: motion must be one of {_motion_names()}, got {motion!r}"
+                f"photo source: motion must be one of {motion_names()}, got {motion!r}"
             ) from None
         if not 0.0 <= speed <= MAX_PHOTO_SPEED or not math.isfinite(speed):
             raise SourceError(
@@ -201,7 +208,7 @@ class PhotoSource(FrameSource):
         else:
             self.names = [name]
         self._photos = [self._fit(photo_bgr(n)) for n in self.names]
-        self._scene: tuple[int, _CameraPath] | None = None
+        self._scene: tuple[int, CameraPath] | None = None
         shown = name or "all photos"
         self.description = (
             f"photo {shown} {width}x{height} (seed {seed}, motion={self.motion.value}, "
@@ -228,37 +235,45 @@ class PhotoSource(FrameSource):
             # One independent stream per scene (a child of the seed's), so any frame can be made
             # without drawing those before it.
             stream = np.random.SeedSequence(self.seed, spawn_key=(scene,))
-            self._scene = (scene, _CameraPath(np.random.default_rng(stream)))
+            self._scene = (scene, CameraPath(np.random.default_rng(stream)))
         path = self._scene[1]
         photo = self._photos[scene % len(self._photos)]
         t = (n - scene * PHOTO_SCENE_FRAMES) * self.speed  # frames since the scene began
         matrix = path.view(t, self.motion, photo.shape[0], photo.shape[1], self.height, self.width)
-        return cv2.warpAffine(
-            photo,
-            matrix,
-            (self.width, self.height),
-            flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-            # Shake and rotation may reach a pixel or two past the photograph's edge: mirror it
-            # rather than show black corners.
-            borderMode=cv2.BORDER_REFLECT_101,
-        )
+        return warp_view(photo, matrix, self.height, self.width)
 
     def _fit(self, photo: np.ndarray) -> np.ndarray:
-        """The photograph scaled down (area interpolation, once) so that the view at zoom 1 maps
-        about one photo pixel to one frame pixel: warping then never shrinks by much, so it
-        needs no anti-aliasing. Photographs smaller than that are kept and magnified."""
-        view_w = (
-            PHOTO_BASE_VIEW * _fit_rect(photo.shape[0], photo.shape[1], self.height, self.width)[1]
-        )
-        factor = self.width / view_w
-        if factor >= 1.0:
-            return photo
-        size = (max(1, round(photo.shape[1] * factor)), max(1, round(photo.shape[0] * factor)))
-        return cv2.resize(photo, size, interpolation=cv2.INTER_AREA)
+        return fit_photo(photo, self.height, self.width)
 
 
-class _CameraPath:
-    """The virtual camera's movement during one scene, drawn from `rng`."""
+def fit_photo(photo: np.ndarray, height: int, width: int) -> np.ndarray:
+    """The photograph scaled down (area interpolation, once) so that a `height`×`width` view at
+    zoom 1 maps about one photo pixel to one frame pixel: warping then never shrinks by much, so
+    it needs no anti-aliasing. Photographs smaller than that are kept and magnified."""
+    view_w = PHOTO_BASE_VIEW * fit_rect(photo.shape[0], photo.shape[1], height, width)[1]
+    factor = width / view_w
+    if factor >= 1.0:
+        return photo
+    size = (max(1, round(photo.shape[1] * factor)), max(1, round(photo.shape[0] * factor)))
+    return cv2.resize(photo, size, interpolation=cv2.INTER_AREA)
+
+
+def warp_view(photo: np.ndarray, matrix: np.ndarray, height: int, width: int) -> np.ndarray:
+    """The `height`×`width` view of `photo` through `matrix` (`CameraPath.view`)."""
+    return cv2.warpAffine(
+        photo,
+        matrix,
+        (width, height),
+        flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+        # Shake and rotation may reach a pixel or two past the photograph's edge: mirror it
+        # rather than show black corners.
+        borderMode=cv2.BORDER_REFLECT_101,
+    )
+
+
+class CameraPath:
+    """The virtual camera's movement during one scene, drawn from `rng` (the `photo` source's,
+    and the stereo pair source's, which moves both views alike)."""
 
     def __init__(self, rng: np.random.Generator) -> None:
         def periods(base: tuple[float, ...]) -> list[float]:
@@ -285,7 +300,7 @@ class _CameraPath:
         if mixed or motion is CameraMotion.ZOOM:
             wave = 0.5 - 0.5 * math.cos(2 * math.pi * t / self.zoom_period + self.zoom_phase)
             zoom += (PHOTO_ZOOM_MAX - 1.0) * wave
-        rect_h, rect_w = _fit_rect(photo_h, photo_w, height, width)
+        rect_h, rect_w = fit_rect(photo_h, photo_w, height, width)
         view_h, view_w = PHOTO_BASE_VIEW * rect_h / zoom, PHOTO_BASE_VIEW * rect_w / zoom
         aim = [float(v) for v in self.still]
         if mixed or motion is CameraMotion.PAN:
@@ -327,7 +342,7 @@ class _CameraPath:
         )
 
 
-def _fit_rect(photo_h: int, photo_w: int, height: int, width: int) -> tuple[float, float]:
+def fit_rect(photo_h: int, photo_w: int, height: int, width: int) -> tuple[float, float]:
     """(h, w) of the largest rectangle of the frame's aspect that fits in the photograph."""
     aspect = width / height
     if photo_w / photo_h > aspect:
@@ -335,7 +350,7 @@ def _fit_rect(photo_h: int, photo_w: int, height: int, width: int) -> tuple[floa
     return photo_w / aspect, float(photo_w)
 
 
-def _motion_names() -> str:
+def motion_names() -> str:
     return ", ".join(m.value for m in CameraMotion)
 
 
@@ -443,7 +458,7 @@ def parse_photo_options(spec: str) -> dict[str, Any]:
         if name == "motion":
             if value not in {m.value for m in CameraMotion}:
                 raise SourceError(
-                    f"source {spec!r}: motion={value!r} is not one of {_motion_names()}"
+                    f"source {spec!r}: motion={value!r} is not one of {motion_names()}"
                 )
             options["motion"] = CameraMotion(value)
         elif name == "speed":
@@ -457,9 +472,15 @@ def parse_photo_options(spec: str) -> dict[str, Any]:
 
 
 def open_source(spec: str, *, height: int, width: int, seed: int = 0) -> FrameSource:
-    """Open the source named by `spec` (synthetic[:OPTIONS], photo[:NAME][,OPTIONS], video:PATH
-    or camera:N); synthetic and photo frames are made `height`×`width` (the model's input size)."""
+    """Open the source named by `spec` (synthetic[:OPTIONS], photo[:NAME][,OPTIONS], video:PATH,
+    camera:N or stereo:...); synthetic, photo and stereo frames are made `height`×`width` (the
+    model's input size)."""
     spec = spec.strip()
+    if spec.startswith(STEREO_PREFIX):
+        # Imported here: it needs nav's world and renderer, which mono sources do not.
+        from robotd.stereo_sources import open_stereo_source
+
+        return open_stereo_source(spec, height=height, width=width, seed=seed)
     if spec == SYNTHETIC or spec.startswith(SYNTHETIC + ":"):
         return SyntheticSource(height, width, seed=seed, **parse_synthetic_options(spec))
     if spec == PHOTO or spec.startswith((PHOTO + ":", PHOTO + ",")):
@@ -473,8 +494,22 @@ def open_source(spec: str, *, height: int, width: int, seed: int = 0) -> FrameSo
         return CameraSource(int(text))
     raise SourceError(
         f"unknown frame source {spec!r}; expected synthetic[:key=F,every=N], "
-        "photo[:NAME][,motion=pan|zoom|shake|mixed][,speed=F], video:PATH or camera:INDEX"
+        "photo[:NAME][,motion=pan|zoom|shake|mixed][,speed=F], video:PATH, camera:INDEX, "
+        "stereo:world[,speed=F], stereo:motorcycle[,OPTIONS] or stereo:LEFT,RIGHT[,OPTIONS]"
     )
+
+
+def open_source_for(spec: str, inputs: ImageInputs, *, seed: int = 0) -> FrameSource:
+    """`open_source` at the size of the model's image inputs; a one-line UserError (and the
+    source closed) when its frames do not feed them: a mono source on a model with several
+    image inputs, a stereo source on a one-input model, views not named like the inputs."""
+    source = open_source(spec, height=inputs.height, width=inputs.width, seed=seed)
+    try:
+        inputs.check_views(source.views, spec.strip())
+    except UserError:
+        source.close()
+        raise
+    return source
 
 
 def _as_bgr(frame: np.ndarray) -> np.ndarray:

@@ -7,9 +7,10 @@ suffix_local_s, latency_s, robot_cpu_s, energy_j, deployment, fallback, reason) 
 `EXTRA_FIELDS`: `at` (wall clock when the frame completed), `epoch` (the route epoch the robot
 knew), `entropy` (the frame's normalized grey-level entropy), `hedged` (the local suffix ran
 alongside the cloud), `served_by` (`cloud` or `robot`: which result the frame used), `detail`
-(why the cloud failed, for a person: the record's `detail`) and `phase` (the emulation phase the
-frame ran in, `robotd.emulation`; null without `--phases`). Lines are flushed as they are written,
-so a reader can follow the file while the robot runs.
+(why the cloud failed, for a person: the record's `detail`), `phase` (the emulation phase the
+frame ran in, `robotd.emulation`; null without `--phases`) and `stale` (the frame's result was
+dropped, not applied: a newer frame's had been, `robotd.pipeline`). Lines are flushed as they
+are written, so a reader can follow the file while the robot runs.
 
 The record itself is built here too (`frame_record`), from what the frame loop measured and what
 came of the cloud call; `RemoteTimes` splits the call's round trip into the network's share and
@@ -34,7 +35,7 @@ from common.wire.telemetry import JSONL_FIELDS, TelemetryRecord, action_label, p
 if TYPE_CHECKING:  # only read here; importing it would load onnxruntime and zenoh
     from robotd.offload import CallResult
 
-EXTRA_FIELDS = ("at", "epoch", "entropy", "hedged", "served_by", "detail", "phase")
+EXTRA_FIELDS = ("at", "epoch", "entropy", "hedged", "served_by", "detail", "phase", "stale")
 SERVED_BY_CLOUD = "cloud"
 SERVED_BY_ROBOT = "robot"
 P95 = 95.0
@@ -75,14 +76,18 @@ def frame_record(
     cpu_s: float,
     energy_j: float,
     epoch: int,
+    stale: bool = False,
+    end: int | None = None,
 ) -> TelemetryRecord:
     """The telemetry record of a completed frame.
 
     `cut` None: the whole model ran on the robot (P). Otherwise `result` is what came of the
     cloud call; an offloaded frame without a reply is a fallback, with the result's reason and
     its detail.
+    `end`: the segment's end cut (the action is `cut:<k>-<end>`), for a segment offload.
     `local_s`: the robot's own suffix run, if one ran. `epoch`: the route epoch the robot held
-    when the frame started; an answered frame reports its reply's instead.
+    when the frame started; an answered frame reports its reply's instead. `stale`: its result
+    was dropped, a newer frame's having been applied.
     """
     reply = result.reply if result is not None else None
     fallback = cut is not None and reply is None
@@ -90,7 +95,7 @@ def frame_record(
     return TelemetryRecord(
         robot=robot,
         frame=frame,
-        action=action_label(cut, codec),
+        action=action_label(cut, codec, end),
         bytes_up=bytes_up,
         bytes_down=result.bytes_down if result is not None else 0,
         prefix_s=prefix_s,
@@ -106,6 +111,7 @@ def frame_record(
         detail=(result.detail or None) if fallback and result is not None else None,
         epoch=reply.epoch if reply is not None else epoch,
         at=time.time(),
+        stale=stale,
     )
 
 
@@ -127,6 +133,7 @@ def jsonl_object(
         served_by=served_by,
         detail=record.detail or None,
         phase=phase,
+        stale=record.stale,
     )
     return obj
 
@@ -171,6 +178,7 @@ class RunSummary:
         self.fallbacks = 0
         self.hedged = 0
         self.served_by_robot = 0
+        self.stale_dropped = 0
         self.reasons: Counter[str] = Counter()
         self.by_deployment: Counter[str] = Counter()
         self.actions: Counter[str] = Counter()
@@ -191,12 +199,14 @@ class RunSummary:
             self.hedged += 1
         if served_by == SERVED_BY_ROBOT:
             self.served_by_robot += 1
+        if record.stale:
+            self.stale_dropped += 1
         if math.isfinite(record.latency_s):
             self.latencies.append(record.latency_s)
 
     def to_json(self) -> dict[str, Any]:
         """`{robot, frames, answered, fallbacks, fallback_reasons, by_deployment, actions, hedged,
-        served_by_robot, mean_latency_s, p95_latency_s, fps}`."""
+        served_by_robot, stale_dropped, mean_latency_s, p95_latency_s, fps}`."""
         lat = np.asarray(self.latencies, dtype=np.float64)
         mean = float(lat.mean()) if lat.size else None
         p95 = float(np.percentile(lat, P95)) if lat.size else None
@@ -216,6 +226,7 @@ class RunSummary:
             "actions": dict(sorted(self.actions.items(), key=lambda kv: _action_key(kv[0]))),
             "hedged": self.hedged,
             "served_by_robot": self.served_by_robot,
+            "stale_dropped": self.stale_dropped,
             "mean_latency_s": _round(mean),
             "p95_latency_s": _round(p95),
             "fps": _round(fps),
@@ -237,6 +248,7 @@ class RunSummary:
             f"  answered by the cloud: {s['answered']} ({deployments})",
             f"  finished on the robot after offloading: {s['fallbacks']} ({reasons})",
             f"  hedged: {s['hedged']}, served by the robot's own result: {s['served_by_robot']}",
+            f"  stale results dropped (a newer frame's applied first): {s['stale_dropped']}",
             f"  actions: {actions}",
             f"  latency: mean {ms(s['mean_latency_s'])}, p95 {ms(s['p95_latency_s'])}",
         ]

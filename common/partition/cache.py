@@ -33,6 +33,8 @@ def entry_dir(
     verify: bool,
     atol: float,
     prune: bool,
+    *,
+    segments: bool = False,
 ) -> Path:
     """Where the split of ``ref`` with these options is kept (whether or not it exists yet)."""
     key_src = json.dumps(
@@ -49,6 +51,8 @@ def entry_dir(
             # 2: only initializers no optimization rewrites in place are shared, and verified
             # against onnxruntime's own run; splits cached before are made and checked again.
             "sharing": 2,
+            # Only when on, so that the entries of splits without segments keep their names.
+            **({"segments": True} if segments else {}),
         },
         sort_keys=True,
     )

@@ -3,7 +3,8 @@
 ``manifest.json`` is the contract with the CLI's ``--json`` readers and with splits cached on
 users' disks: its fields, ``MANIFEST_FORMAT`` and the file names below do not change without a
 new format number. A directory holds ``manifest.json``, ``full.onnx``, ``weights.bin`` and
-``cutNNN.prefix.onnx`` / ``cutNNN.suffix.onnx``.
+``cutNNN.prefix.onnx`` / ``cutNNN.suffix.onnx``; a split made with segments also holds
+``cutAAA-BBB.segment.onnx`` (listed under ``segments``, a field older readers ignore).
 """
 
 from __future__ import annotations
@@ -67,6 +68,28 @@ class Cut:
     reason: str = ""
 
 
+@dataclass
+class Segment:
+    """The part of the model between cut ``start`` and cut ``end`` (``start < end``): cut
+    ``start``'s tensors in, cut ``end``'s out. The cloud runs it; the robot runs the prefix of
+    ``start`` before and the suffix of ``end`` after (segment offload)."""
+
+    start: int
+    end: int
+    path: Path
+    verified: bool
+    max_abs_err: float | None
+
+    @property
+    def label(self) -> str:
+        return f"{self.start}-{self.end}"
+
+
+def segment_file_name(start: int, end: int) -> str:
+    """The file name of the segment from cut ``start`` to cut ``end`` in a split directory."""
+    return f"cut{start:03d}-{end:03d}.segment.onnx"
+
+
 def excluded_cut(tensors: Sequence[str], reason: str) -> Cut:
     """A cut left out of the split, with the reason (listed under ``excluded``)."""
     return Cut(-1, list(tensors), 0, None, None, False, None, reason=reason)
@@ -85,6 +108,7 @@ class Partition:
     cuts: list[Cut]
     excluded: list[Cut] = field(default_factory=list)
     options: dict[str, Any] = field(default_factory=dict)
+    segments: list[Segment] = field(default_factory=list)
 
     @property
     def full(self) -> Path:
@@ -103,11 +127,24 @@ class Partition:
     def cut_specs(self, index: int) -> list[TensorSpec]:
         return [self.specs[name] for name in self.cut(index).tensors]
 
+    def segment(self, start: int, end: int) -> Segment:
+        """The segment from cut ``start`` to cut ``end``; ValueError naming those there are."""
+        for seg in self.segments:
+            if (seg.start, seg.end) == (start, end):
+                return seg
+        known = ", ".join(s.label for s in self.segments) or "none (split without segments)"
+        raise ValueError(f"no segment from cut {start} to cut {end}; this split has {known}")
+
+    def has_segment(self, start: int, end: int) -> bool:
+        return any((s.start, s.end) == (start, end) for s in self.segments)
+
     def files(self) -> list[Path]:
-        """Every model file the split needs: the full model, its weights, each cut's models."""
+        """Every model file the split needs: the full model, its weights, each cut's models
+        and each segment."""
         paths = [self.full, self.weights]
         for cut in self.cuts:
             paths += [p for p in (cut.prefix, cut.suffix) if p is not None]
+        paths += [seg.path for seg in self.segments]
         return paths
 
     def manifest(self) -> dict[str, Any]:
@@ -116,7 +153,7 @@ class Partition:
         def rel(p: Path | None) -> str | None:
             return None if p is None else p.relative_to(self.dir).as_posix()
 
-        return {
+        data: dict[str, Any] = {
             "format": MANIFEST_FORMAT,
             "model": self.model,
             "digest": self.digest,
@@ -142,6 +179,18 @@ class Partition:
             "weights": WEIGHTS_NAME,
             "options": dict(self.options),
         }
+        if self.segments:  # absent otherwise: manifests of splits without segments unchanged
+            data["segments"] = [
+                {
+                    "start": s.start,
+                    "end": s.end,
+                    "path": rel(s.path),
+                    "verified": s.verified,
+                    "max_abs_err": s.max_abs_err,
+                }
+                for s in self.segments
+            ]
+        return data
 
     def write_manifest(self) -> None:
         """Write ``manifest.json`` whole or not at all (a temporary file renamed into place)."""
@@ -179,6 +228,16 @@ class Partition:
                 excluded_cut([str(t) for t in c["tensors"]], str(c["reason"]))
                 for c in data.get("excluded", [])
             ]
+            segments = [
+                Segment(
+                    start=int(s["start"]),
+                    end=int(s["end"]),
+                    path=directory / s["path"],
+                    verified=bool(s["verified"]),
+                    max_abs_err=None if s["max_abs_err"] is None else float(s["max_abs_err"]),
+                )
+                for s in data.get("segments", [])
+            ]
             return cls(
                 dir=directory,
                 model=str(data["model"]),
@@ -189,6 +248,7 @@ class Partition:
                 cuts=cuts,
                 excluded=excluded,
                 options=dict(data.get("options", {})),
+                segments=segments,
             )
         except FileNotFoundError:
             raise UserError(f"no split model in {directory} (missing {MANIFEST_NAME})") from None

@@ -3,8 +3,9 @@
 In the manner of ``onnx.utils.Extractor``: load and check the model, fix its input shapes, probe
 every tensor's dtype and shape, collect the candidate cuts, write the weights once and the
 sub-models (checked with ``onnx.checker``), verify them with the runtime the caller gives, then
-number the usable cuts and write the manifest. The stages themselves live in the modules named
-for them; this class orders them and owns the output directory.
+number the usable cuts; with ``segments``, write and verify the segment between every two of
+them (``common.partition.segments``); write the manifest. The stages themselves live in the
+modules named for them; this class orders them and owns the output directory.
 """
 
 from __future__ import annotations
@@ -34,8 +35,9 @@ from common.partition.manifest import (
 )
 from common.partition.options import InputShape, check_max_cut_tensors, cuts_option
 from common.partition.probe import probe_specs
+from common.partition.segments import SegmentWriter
 from common.partition.sharing import shareable_initializers
-from common.partition.verify import RunnerFactory, sample_feeds, verify_cuts
+from common.partition.verify import RunnerFactory, sample_feeds, verify_cuts, verify_segments
 from common.partition.weights import WeightStore, save_graph, with_external
 
 
@@ -43,7 +45,7 @@ class Partitioner:
     """One split: the stages from loading the model to the manifest, one private step each.
 
     ``runner`` builds the runtime that verification runs the cuts with; it is only called when
-    ``verify`` is true.
+    ``verify`` is true. ``segments`` also writes the segment between every two usable cuts.
     """
 
     def __init__(
@@ -58,8 +60,10 @@ class Partitioner:
         prune: bool = True,
         *,
         runner: RunnerFactory,
+        segments: bool = False,
     ) -> None:
         self.ref = ref
+        self.segments = segments
         self.prune = prune
         self.cuts = cuts_option(cuts)
         check_max_cut_tensors(max_cut_tensors)
@@ -93,7 +97,11 @@ class Partitioner:
         usable = [c for c in candidates if not c.reason]
         if self.verify:
             self._verify(out_dir, graph, specs, usable, feeds)
-        return self._finish(out_dir, graph, specs, candidates)
+        part = self._finish(out_dir, graph, specs, candidates)
+        if self.segments:
+            self._segments(part, builder, feeds)
+        part.write_manifest()
+        return part
 
     # -- stages --
 
@@ -107,7 +115,7 @@ class Partitioner:
         except OSError as exc:
             raise UserError(f"cannot create {out_dir}: {exc.strerror}") from None
         # Files of an earlier split in the same directory would be stale; remove only ours.
-        for pattern in ("cand*.onnx", "cut*.prefix.onnx", "cut*.suffix.onnx"):
+        for pattern in ("cand*.onnx", "cut*.prefix.onnx", "cut*.suffix.onnx", "cut*.segment.onnx"):
             for old in out_dir.glob(pattern):
                 old.unlink()
         for name in (MANIFEST_NAME, FULL_NAME, WEIGHTS_NAME):
@@ -153,6 +161,32 @@ class Partitioner:
             cand.max_abs_err = check.max_abs_err
             cand.reason = check.failure
 
+    def _segments(
+        self, part: Partition, builder: SubModelBuilder, feeds: dict[str, np.ndarray]
+    ) -> None:
+        """Write the segment between every two cuts of ``part``, verify them, keep the good ones;
+        the others are listed under ``excluded`` with the reason."""
+        writer = SegmentWriter(builder, part.dir)
+        part.segments = writer.write_all(part.cuts)
+        part.excluded.extend(writer.excluded)
+        if not self.verify or not part.segments:
+            return
+        checks = verify_segments(part, feeds, self.runner, atol=self.atol, threads=self.threads)
+        kept = []
+        for seg, check in zip(part.segments, checks, strict=True):
+            if check.failure:
+                seg.path.unlink(missing_ok=True)
+                part.excluded.append(
+                    excluded_cut(
+                        part.cuts[seg.end].tensors,
+                        f"segment from cut {seg.start} to cut {seg.end}: {check.failure}",
+                    )
+                )
+                continue
+            seg.verified, seg.max_abs_err = True, check.max_abs_err
+            kept.append(seg)
+        part.segments = kept
+
     def _finish(
         self,
         out_dir: Path,
@@ -160,7 +194,7 @@ class Partitioner:
         specs: Mapping[str, TensorSpec | None],
         candidates: list[Candidate],
     ) -> Partition:
-        """Number usable cuts 0..K-1, rename their files, drop the others, write the manifest."""
+        """Number usable cuts 0..K-1, rename their files, drop the others."""
         usable: list[Candidate] = []
         for cand in candidates:
             if cand.reason:
@@ -175,9 +209,7 @@ class Partitioner:
             assert cand.suffix is not None
             cand.suffix = cand.suffix.rename(out_dir / f"cut{k:03d}.suffix.onnx")
             usable.append(cand)
-        part = self._partition(out_dir, graph, specs, usable, verified=self.verify)
-        part.write_manifest()
-        return part
+        return self._partition(out_dir, graph, specs, usable, verified=self.verify)
 
     def _partition(
         self,
@@ -225,5 +257,7 @@ class Partitioner:
                 "verify": self.verify,
                 "atol": self.atol,
                 "prune": self.prune,
+                # Only when on: the options of splits without segments stay as they were.
+                **({"segments": True} if self.segments else {}),
             },
         )

@@ -38,6 +38,7 @@ def split_model(
     threads: int | None = None,
     prune: bool = True,
     runner: RunnerFactory | None = None,
+    segments: bool = False,
 ) -> Partition:
     """Split a model at every candidate cut (or the given ones) and write the split directory.
 
@@ -49,17 +50,20 @@ def split_model(
     Cuts that fail checking or verification are listed in ``Partition.excluded`` with the reason.
     Without ``out_dir`` the split is written to the cache (as :func:`load_partition` would).
     ``runner`` builds the runtime verification runs the cuts with (default: ``SplitModel``).
+    ``segments`` also writes and verifies the segment between every two cuts (segment offload:
+    the cloud runs the part between them), listed in ``Partition.segments``.
     """
     if out_dir is None:
         return load_partition(
             spec_or_path, cuts, max_cut_tensors, input_shape, verify, atol=atol,
-            threads=threads, prune=prune, refresh=True, runner=runner,
+            threads=threads, prune=prune, refresh=True, runner=runner, segments=segments,
         )  # fmt: skip
     ref = _resolve(spec_or_path, input_shape)
     runner = runner or _split_runtime
     partitioner = Partitioner(
-        ref, cuts, max_cut_tensors, input_shape, verify, atol, threads, prune, runner=runner
-    )
+        ref, cuts, max_cut_tensors, input_shape, verify, atol, threads, prune,
+        runner=runner, segments=segments,
+    )  # fmt: skip
     return partitioner.run(Path(out_dir))
 
 
@@ -75,6 +79,7 @@ def load_partition(
     prune: bool = True,
     refresh: bool = False,
     runner: RunnerFactory | None = None,
+    segments: bool = False,
 ) -> Partition:
     """The split of a model, from the cache if it was split before with the same options.
 
@@ -84,15 +89,18 @@ def load_partition(
     parsed_cuts = cuts_option(cuts)
     check_max_cut_tensors(max_cut_tensors)
     ref = _resolve(spec_or_path, input_shape)
-    final = entry_dir(ref, parsed_cuts, max_cut_tensors, input_shape, verify, atol, prune)
+    final = entry_dir(
+        ref, parsed_cuts, max_cut_tensors, input_shape, verify, atol, prune, segments=segments
+    )
     if not refresh:
         cached = read_entry(final)
         if cached is not None:
             return cached
     runner = runner or _split_runtime
     partitioner = Partitioner(
-        ref, parsed_cuts, max_cut_tensors, input_shape, verify, atol, threads, prune, runner=runner
-    )
+        ref, parsed_cuts, max_cut_tensors, input_shape, verify, atol, threads, prune,
+        runner=runner, segments=segments,
+    )  # fmt: skip
     return write_entry(final, partitioner.run)
 
 

@@ -3,7 +3,8 @@
 The reference is the full model run by onnxruntime on its own (weights read from the file). The
 runtime that serves the cuts, with its weights shared between sessions, is given by the caller
 (a :data:`RunnerFactory`): it must first agree with the reference on the full model, then every
-cut is compared with it. This module does not know that runtime, only the calls it answers.
+cut is compared with it, then every segment (prefix, segment, suffix of its end). This module
+does not know that runtime, only the calls it answers.
 """
 
 from __future__ import annotations
@@ -34,6 +35,10 @@ class CutRunner(Protocol):
     def run_prefix(self, k: int, feeds: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]: ...
 
     def run_suffix(self, k: int, tensors: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]: ...
+
+    def run_segment(
+        self, start: int, end: int, tensors: Mapping[str, np.ndarray]
+    ) -> dict[str, np.ndarray]: ...
 
     def release(self, k: int) -> None: ...
 
@@ -81,13 +86,7 @@ def verify_cuts(
     UserError if the shared-weight runtime does not reproduce onnxruntime's own run of the full
     model (nothing it computes could be trusted); otherwise one check per cut, in order.
     """
-    try:
-        session = _own_weights_session(part.full, threads)
-        names = [o.name for o in session.get_outputs()]
-        reference = dict(zip(names, session.run(names, dict(feeds)), strict=True))
-    except Exception as exc:
-        raise UserError(f"onnxruntime cannot run {part.model}: {ort_reason(exc)}") from None
-    del session  # its copy of the weights
+    reference = _reference(part, feeds, threads)
     runtime = runner(part, threads)
     try:
         _, failure = compare(reference, runtime.run_full(feeds), atol)
@@ -101,6 +100,54 @@ def verify_cuts(
             f"between sessions: {failure}"
         )
     return [_check_cut(part, k, runtime, feeds, reference, atol) for k in range(len(part.cuts))]
+
+
+def verify_segments(
+    part: Partition,
+    feeds: Mapping[str, np.ndarray],
+    runner: RunnerFactory,
+    *,
+    atol: float,
+    threads: int | None,
+) -> list[CutCheck]:
+    """Run prefix, segment, then the suffix of the segment's end for every segment of ``part``
+    and compare with the full model; one check per segment, in order. The cuts themselves were
+    verified first (``verify_cuts``), so a failure here is the segment's."""
+    reference = _reference(part, feeds, threads)
+    runtime = runner(part, threads)
+    checks: list[CutCheck] = []
+    for seg in part.segments:
+        check = CutCheck()
+        try:
+            sent = runtime.run_prefix(seg.start, feeds)
+            middle = runtime.run_segment(seg.start, seg.end, sent)
+            for expected in part.cut_specs(seg.end):
+                got = middle[expected.name]
+                if tuple(got.shape) != expected.shape:
+                    raise CutError(f"segment output {expected.name!r} has shape {got.shape}")
+            # No original feeds here either: the robot's tail runs from the reply alone.
+            result = runtime.run_suffix(seg.end, middle)
+            check.max_abs_err, failure = compare(reference, result, atol)
+            if failure:
+                check.failure = f"verification failed: {failure}"
+        except CutError as exc:
+            check.failure = f"verification failed: {exc}"
+        except Exception as exc:
+            check.failure = f"onnxruntime failed on this segment: {ort_reason(exc)}"
+        checks.append(check)
+    return checks
+
+
+def _reference(
+    part: Partition, feeds: Mapping[str, np.ndarray], threads: int | None
+) -> dict[str, np.ndarray]:
+    """The full model's outputs, run by onnxruntime on its own (weights read from the file)."""
+    try:
+        session = _own_weights_session(part.full, threads)
+        names = [o.name for o in session.get_outputs()]
+        return dict(zip(names, session.run(names, dict(feeds)), strict=True))
+    except Exception as exc:
+        raise UserError(f"onnxruntime cannot run {part.model}: {ort_reason(exc)}") from None
 
 
 def _check_cut(

@@ -18,7 +18,8 @@ from common.wire.codec import ErrorReply, Message, register
 @register
 @dataclass(frozen=True, slots=True, kw_only=True)
 class InferReply(Message):
-    """The suffix's outputs by name, with the deployment's own timings: `queue_s` waiting for a
+    """The suffix's outputs by name (for a segment request, `InferRequest.end_cut`'s tensors,
+    lossless), with the deployment's own timings: `queue_s` waiting for a
     worker, `compute_s` running the suffix (so the robot can split latency into transfer and
     compute). `epoch` is the deployment's epoch for this robot's service state."""
 

@@ -25,6 +25,10 @@ class InferRequest(Message):
     than its budget is not computed: the robot has already finished the frame itself).
     `sent_at` is the robot's wall clock at sending, carried for telemetry only. `epoch` is the
     route epoch the robot believes in (0 before it heard of any route).
+
+    `end_cut` (segment offload): run only the segment from `cut` to cut `end_cut` and reply with
+    `end_cut`'s tensors by name (lossless; the robot runs the rest). Absent or nil: to the
+    model's outputs, as a deployment that does not know the field does anyway.
     """
 
     TYPE: ClassVar[str] = "infer_request"
@@ -36,10 +40,15 @@ class InferRequest(Message):
     deadline_s: float
     sent_at: float
     epoch: int = 0
+    end_cut: int | None = None
 
     def __post_init__(self) -> None:
         self._check_ids("robot")
         self._check_non_negative("frame", "cut", "epoch")
+        if self.end_cut is not None and not self.end_cut > self.cut:
+            raise self._invalid(
+                "end_cut", f"must be after the cut ({self.cut}), got {self.end_cut}"
+            )
         self._check_finite("deadline_s", "sent_at")
         self._check_positive("deadline_s")
         if not self.model_digest:

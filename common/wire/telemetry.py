@@ -22,7 +22,8 @@ from common.wire.codec import Message, register
 
 # The action label of "pure robot" (run the whole model locally); offloading at cut k is
 # action_label(k) ("cut:k"), or action_label(k, codec) ("cut:k:jpeg80") when its tensors cross in
-# a codec other than raw.
+# a codec other than raw; a segment from cut k to cut e (the cloud stops at e, the robot runs the
+# rest) is "cut:k-e" or "cut:k-e:<codec>".
 ACTION_ROBOT = "P"
 _CUT_PREFIX = "cut:"
 _RAW = "raw"
@@ -77,26 +78,43 @@ def fallback_reason(value: FallbackReason | str) -> FallbackReason:
     return FallbackReason(value)
 
 
-def action_label(cut: int | None, codec: str = _RAW) -> str:
+def action_label(cut: int | None, codec: str = _RAW, end: int | None = None) -> str:
     """ "P" for pure robot (cut None), "cut:<k>" for offloading after cut k with raw tensors,
-    "cut:<k>:<codec>" with another codec."""
+    "cut:<k>:<codec>" with another codec; "cut:<k>-<e>[:<codec>]" for the segment from cut k to
+    cut e."""
     if cut is None:
         return ACTION_ROBOT
     if cut < 0:
         raise ValueError(f"cut index must be >= 0, got {cut}")
-    return f"{_CUT_PREFIX}{cut}" if codec == _RAW else f"{_CUT_PREFIX}{cut}:{codec}"
+    if end is not None and end <= cut:
+        raise ValueError(f"a segment ends after its cut ({cut}), got {end}")
+    where = f"{cut}" if end is None else f"{cut}-{end}"
+    return f"{_CUT_PREFIX}{where}" if codec == _RAW else f"{_CUT_PREFIX}{where}:{codec}"
 
 
 def parse_action_codec(label: str) -> tuple[int | None, str]:
-    """(cut index or None for "P", codec) of an action label; ValueError for anything else."""
+    """(cut index or None for "P", codec) of an action label (a segment's: its first cut);
+    ValueError for anything else."""
+    return parse_action_segment(label)[::2]
+
+
+def parse_action_segment(label: str) -> tuple[int | None, int | None, str]:
+    """(cut index or None for "P", the segment's end cut or None, codec) of an action label;
+    ValueError for anything else."""
     if label == ACTION_ROBOT:
-        return None, _RAW
+        return None, None, _RAW
     if label.startswith(_CUT_PREFIX):
-        cut, sep, codec = label[len(_CUT_PREFIX) :].partition(":")
-        if cut.isdigit() and (codec or not sep):
-            return int(cut), codec or _RAW
+        where, sep, codec = label[len(_CUT_PREFIX) :].partition(":")
+        cut, dash, end = where.partition("-")
+        if (
+            cut.isdigit()
+            and (not dash or (end.isdigit() and int(end) > int(cut)))
+            and (codec or not sep)
+        ):
+            return int(cut), int(end) if dash else None, codec or _RAW
     raise ValueError(
-        f"not an action label: {label!r} (expected 'P', 'cut:<k>' or 'cut:<k>:<codec>')"
+        f"not an action label: {label!r} (expected 'P', 'cut:<k>', 'cut:<k>:<codec>' or "
+        "'cut:<k>-<e>[:<codec>]')"
     )
 
 
@@ -114,7 +132,9 @@ class TelemetryRecord(Message):
     `latency_s` end to end. `fallback` is true when the robot finished the frame itself after
     offloading (busy, error, timeout: `reason` says which, `detail` says it for a person);
     `deployment` answered (None if none). `at` is the robot's wall clock when the frame
-    completed. A `reason` given as its string is read as the wire reads it."""
+    completed. `stale`: the frame's result was not applied, a newer frame's had been (a robot
+    with frames in flight, `max_in_flight`). A `reason` given as its string is read as the wire
+    reads it."""
 
     TYPE: ClassVar[str] = "telemetry"
     robot: str
@@ -135,6 +155,7 @@ class TelemetryRecord(Message):
     detail: str | None = None
     epoch: int = 0
     at: float = 0.0
+    stale: bool = False
 
     def __post_init__(self) -> None:
         if self.reason is not None:

@@ -32,6 +32,7 @@ from robotd.policies.base import (
 )
 from robotd.policies.baselines import FixedPolicy, NeurosurgeonPolicy, OraclePolicy
 from robotd.policies.elastic import ElasticPolicy, elastic_params_for_ans
+from robotd.policies.nav_options import OptionParams, option_policy, parse_option_spec
 from robotd.policies.objective import Objective, PowerModel
 from robotd.policies.params import (
     AnsParams,
@@ -74,12 +75,16 @@ REAL_TIME_POLICIES = (
     "static:K",
     "static:K:CODEC",
 )
+# Not in REAL_TIME_POLICIES: it builds only on a model that names its `points` cut (zoo:stereo).
+NAV_POLICIES = ("option:N",)
 SIM_ONLY_POLICIES = ("oracle",)
 
 
 def policy_names() -> tuple[str, ...]:
     """Every accepted policy spec (`static:K` stands for any cut index K, `CODEC` for any codec
-    name the profile offers at that cut, e.g. `cloud:jpeg80`)."""
+    name the profile offers at that cut, e.g. `cloud:jpeg80`). The navigation options
+    (`NAV_POLICIES`: `option:N`, or `static` with `params: {option: N}`) are accepted too, on a
+    model that names its `points` cut."""
     return REAL_TIME_POLICIES + SIM_ONLY_POLICIES
 
 
@@ -102,6 +107,8 @@ def fixed_action(spec: str) -> FixedAction | None:
             raise UserError(f"policy {spec!r}: cloud: needs a codec, e.g. cloud:jpeg80")
         return FixedAction(None, rest or RAW_CODEC)
     if kind == "static":
+        if not sep:
+            return None  # `static` with `params: {option: N}`: a navigation option
         cut, _, codec = rest.partition(":")
         if not cut.isdigit():
             raise UserError(
@@ -121,6 +128,10 @@ def params_model(spec: str) -> type[BaseModel]:
     }
     if name in models:
         return models[name]
+    if name == "static":
+        return OptionParams
+    if parse_option_spec(name) is not None:
+        return NoParams
     if name in ("robot", "oracle") or fixed_action(name) is not None:
         return NoParams
     raise UserError(f"unknown policy {spec!r}; expected one of {', '.join(policy_names())}")
@@ -176,6 +187,12 @@ def make_policy(
         return ElasticPolicy(cuts, elastic_params_for_ans(ans), goal, name)
     if name == "neurosurgeon":
         return NeurosurgeonPolicy(cuts, parse_params(NeurosurgeonParams, params, name), goal)
+    if name == "static":
+        return option_policy(parse_params(OptionParams, params, name).option, profile, name)
+    option = parse_option_spec(name)
+    if option is not None:
+        parse_params(NoParams, params, name)
+        return option_policy(option, profile, name)
     fixed = fixed_action(name)
     if name in ("robot", "oracle") or fixed is not None:
         parse_params(NoParams, params, name)

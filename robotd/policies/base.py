@@ -9,7 +9,10 @@ needs the simulator's ground truth in `FrameContext.expected_costs`).
 An action is a cut index (an `int`: run the prefix up to that cut, send the cut tensors) with the
 codec its tensors cross in (`Decision.codec`: `raw`, `fp16`, `int8`, `int8+zstd`, `raw+zstd`,
 `jpeg<Q>`, `png`; see `common.wire.tensor_codecs`), or `PURE_ROBOT` (`"P"`: run the whole model on
-the robot). Cut 0 sends the model's input (the camera image for image-input models).
+the robot). Cut 0 sends the model's input (the camera image for image-input models). An action
+may also name an end cut (`Decision.end`, segment offload): the cloud runs only the part between
+the two cuts and the robot runs the rest from the reply (the nav options of
+`robotd.policies.nav_options`).
 """
 
 from __future__ import annotations
@@ -40,12 +43,14 @@ FloatArray = npt.NDArray[np.float64]
 RAW_CODEC: Final = "raw"
 
 
-def action_label(action: Action, codec: str = RAW_CODEC) -> str:
+def action_label(action: Action, codec: str = RAW_CODEC, end: int | None = None) -> str:
     """The action as a string key, as used in JSON and tables: `"P"`, the cut index for a raw
-    crossing (`"3"`), or cut and codec (`"0:jpeg80"`)."""
-    if action == PURE_ROBOT or codec == RAW_CODEC:
+    crossing (`"3"`), cut and codec (`"0:jpeg80"`); a segment's cuts joined by `-` (`"0-4"`,
+    `"0-4:jpeg80"`)."""
+    if action == PURE_ROBOT:
         return str(action)
-    return f"{action}:{codec}"
+    where = str(action) if end is None else f"{action}-{end}"
+    return where if codec == RAW_CODEC else f"{where}:{codec}"
 
 
 @dataclass(frozen=True, slots=True)
@@ -76,7 +81,10 @@ class Decision:
     low-priority work that the offload's threads would starve. `forced` marks a forced-sampling
     frame and `updating` a frame inside a parameter-update period (both for telemetry).
     `predicted_cost` is the policy's estimate for the chosen action, in objective units (seconds
-    for the default latency objective), or None when it has none.
+    for the default latency objective), or None when it has none. `end` (segment offload): the
+    cloud stops at this cut and replies with its tensors, the robot runs the suffix from there;
+    None: the cloud runs to the model's outputs. A segment is not hedged (its local run would be
+    the whole suffix from `action`, racing a reply that still needs the robot's tail).
     """
 
     action: Action
@@ -87,6 +95,15 @@ class Decision:
     hedge_after_s: float = 0.0
     codec: str = RAW_CODEC
     local_expected: bool = False
+    end: int | None = None
+
+    def __post_init__(self) -> None:
+        if self.end is None:
+            return
+        if self.action == PURE_ROBOT or not self.end > int(self.action):
+            raise ValueError(f"a segment ends after its cut, got cut {self.action}, end {self.end}")
+        if self.hedge:
+            raise ValueError("a segment action is not hedged")
 
     @property
     def offloads(self) -> bool:
@@ -95,8 +112,8 @@ class Decision:
 
     @property
     def label(self) -> str:
-        """`action_label` of this decision's action and codec."""
-        return action_label(self.action, self.codec)
+        """`action_label` of this decision's action, codec and end."""
+        return action_label(self.action, self.codec, self.end)
 
 
 @dataclass(frozen=True, slots=True)
@@ -182,7 +199,10 @@ class CutTable:
     Times are seconds on the profiling host: `prefix_s` the robot's part of an action (prefix
     and encode), `suffix_s` the suffix (what the robot runs when it finishes a frame itself,
     from the tensors it still holds), `cloud_s` the cloud's part (decode and suffix); `bytes` is
-    what crosses (the median over calibration frames for content-dependent codecs).
+    what crosses (the median over calibration frames for content-dependent codecs). `ends`
+    (empty: none) is each action's end cut, None but for segments (`with_segment`): those
+    are fixed actions, which the learning policies' per-(cut, codec) lookups (`positions`)
+    leave out.
     """
 
     indices: tuple[int, ...]
@@ -193,6 +213,13 @@ class CutTable:
     cloud_s: FloatArray
     full_s: float
     output_bytes: int
+    ends: tuple[int | None, ...] = ()
+
+    def __post_init__(self) -> None:
+        if not self.ends:
+            object.__setattr__(self, "ends", (None,) * len(self.indices))
+        if len(self.ends) != len(self.indices):
+            raise ValueError(f"{len(self.ends)} end cuts for {len(self.indices)} actions")
 
     @classmethod
     def from_profile(
@@ -251,24 +278,45 @@ class CutTable:
     @property
     def labels(self) -> tuple[str, ...]:
         """`action_label` of every action in the policy order (offloading actions, then P)."""
-        cuts = (action_label(k, c) for k, c in zip(self.indices, self.codecs, strict=True))
-        return (*cuts, PURE_ROBOT)
+        rows = zip(self.indices, self.codecs, self.ends, strict=True)
+        return (*(action_label(k, c, e) for k, c, e in rows), PURE_ROBOT)
 
-    def position(self, action: Action, codec: str = RAW_CODEC) -> int:
+    def position(self, action: Action, codec: str = RAW_CODEC, end: int | None = None) -> int:
         """Column of an action in the policy order (P is last)."""
         if action == PURE_ROBOT:
             return self.size
-        key = (int(action), codec)
-        for j, row in enumerate(zip(self.indices, self.codecs, strict=True)):
+        key = (int(action), codec, end)
+        for j, row in enumerate(zip(self.indices, self.codecs, self.ends, strict=True)):
             if row == key:
                 return j
         valid = ", ".join(self.labels[:-1])
-        what = f"cut {action}" if codec == RAW_CODEC else f"cut {action} with codec {codec}"
+        what = f"cut {action}" if end is None else f"the segment from cut {action} to cut {end}"
+        what += "" if codec == RAW_CODEC else f" with codec {codec}"
         raise UserError(f"{what} is not in the profile (actions: {valid})")
 
     def positions(self) -> dict[tuple[int, str], int]:
-        """Column of every offloading action by (cut, codec), for per-frame lookups."""
-        return {row: j for j, row in enumerate(zip(self.indices, self.codecs, strict=True))}
+        """Column of every offloading action by (cut, codec), for per-frame lookups (segments
+        left out)."""
+        rows = zip(self.indices, self.codecs, self.ends, strict=True)
+        return {(k, c): j for j, (k, c, e) in enumerate(rows) if e is None}
+
+    def with_segment(self, start: int, end: int, codec: str = RAW_CODEC) -> CutTable:
+        """This table with the segment from cut `start` to cut `end` (crossing in `codec`) as
+        one more action: the robot runs `start`'s prefix and `end`'s suffix (the tail), the
+        cloud the part between; a failed request is finished from `start` as for that cut."""
+        first = self.position(start, codec)
+        last = self.position(end)
+        return CutTable(
+            indices=(*self.indices, start),
+            codecs=(*self.codecs, codec),
+            bytes=np.append(self.bytes, self.bytes[first]),
+            prefix_s=np.append(self.prefix_s, self.prefix_s[first] + self.suffix_s[last]),
+            suffix_s=np.append(self.suffix_s, self.suffix_s[first]),
+            cloud_s=np.append(self.cloud_s, max(0.0, self.cloud_s[first] - self.cloud_s[last])),
+            full_s=self.full_s,
+            output_bytes=self.output_bytes,
+            ends=(*self.ends, end),
+        )
 
     def action_at(self, position: int) -> Action:
         """The cut (or P) of the action in column `position`."""
@@ -315,13 +363,19 @@ class CutTable:
             cloud_s=self.cloud_s[cols],
             full_s=self.full_s,
             output_bytes=self.output_bytes,
+            ends=tuple(self.ends[j] for j in cols),
         )
 
     def decision_at(self, position: int, **fields: Any) -> Decision:
-        """A decision for the action in column `position` (its cut and codec)."""
+        """A decision for the action in column `position` (its cut, codec and end)."""
         if position == self.size:
             return Decision(PURE_ROBOT, **fields)
-        return Decision(self.indices[position], codec=self.codecs[position], **fields)
+        return Decision(
+            self.indices[position],
+            codec=self.codecs[position],
+            end=self.ends[position],
+            **fields,
+        )
 
 
 class Policy(abc.ABC):

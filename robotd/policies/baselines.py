@@ -10,6 +10,9 @@
   recent transfers, cloud speed from the server-reported compute time — and the argmin of the
   predicted cost, with no exploration: once it settles on P it stops seeing transfers.
 - `oracle`: the argmin of the true expected costs, which only the simulator knows.
+
+The navigation options (`static` with `params: {option: N}`, `option:N`) are fixed policies
+too: `robotd.policies.nav_options`.
 """
 
 from __future__ import annotations
@@ -44,10 +47,17 @@ MIN_TRANSFER_S = 1e-4
 class FixedPolicy(Policy):
     """Always the same action."""
 
-    def __init__(self, cuts: CutTable, action: Action, name: str, codec: str = RAW_CODEC) -> None:
+    def __init__(
+        self,
+        cuts: CutTable,
+        action: Action,
+        name: str,
+        codec: str = RAW_CODEC,
+        end: int | None = None,
+    ) -> None:
         super().__init__(cuts)
-        # Raises UserError for a cut or codec the profile lacks.
-        self._decision = cuts.decision_at(cuts.position(action, codec))
+        # Raises UserError for a cut, codec or segment the profile lacks.
+        self._decision = cuts.decision_at(cuts.position(action, codec, end))
         self.name = name
 
     def decide(self, ctx: FrameContext) -> Decision:

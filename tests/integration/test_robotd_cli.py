@@ -154,6 +154,7 @@ def test_frames_and_json_print_the_summary_as_json(
         (["--id", DEPLOYMENT], "is a cloud machine"),
         (["--id", "robot-9"], "no machine 'robot-9'"),
         (["--id", ROBOT, "--frames", "0"], "--frames must be at least 1"),
+        (["--id", ROBOT, "--max-in-flight", "0"], "--max-in-flight must be at least 1"),
         (["--id", ROBOT, "--source", "video:/no/such/video.mp4"], "video file not found"),
         (["--id", ROBOT, "--source", "synthetic:key=lots"], "is not a number"),
         (["--id", ROBOT, "--policy", "telepathy"], "unknown policy"),

@@ -39,6 +39,7 @@ def fields(**overrides: Any) -> dict[str, Any]:
         "detail": "no reply within 0.200 s",
         "epoch": 2,
         "at": 5.0,
+        "stale": False,
     }
     return {**base, **overrides}
 

@@ -254,7 +254,9 @@ def test_camera_that_cannot_be_opened_is_a_clear_error() -> None:
 
 def test_unknown_source_names_the_accepted_forms() -> None:
     with pytest.raises(
-        UserError, match=r"expected synthetic.*photo\[:NAME\].*video:PATH or camera:INDEX"
+        UserError,
+        match=r"expected synthetic.*photo\[:NAME\].*video:PATH, camera:INDEX, stereo:world.*"
+        r"stereo:LEFT,RIGHT",
     ):
         open_source("rtsp://robot/stream", height=H, width=W)
     with pytest.raises(UserError, match="unknown frame source 'photos'"):
