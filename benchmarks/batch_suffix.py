@@ -22,8 +22,8 @@ from typing import Any
 
 from common.image_input import InputAdapter
 from common.partition import load_partition
+from common.partition.runtime import SplitModel
 from common.photos import still_views
-from common.split_runtime import SplitModel
 from common.zoo import parse_shape
 from deploy.experiments.report import md_table
 

@@ -130,7 +130,7 @@ def cut_names(model: str, shape: list[int] | None, count: int) -> list[str] | No
 def prepare(model: str, shape: list[int] | None, names: list[str] | None) -> tuple[int, Path, int]:
     """Split into the cache (so the daemon only loads it): weight bytes, split dir, cut count."""
     from common.partition import load_partition
-    from common.split_runtime import SharedWeights
+    from common.partition.runtime import SharedWeights
 
     part = load_partition(model, names or "auto", input_shape=tuple(shape) if shape else None)
     return SharedWeights(part).nbytes, part.dir, len(part.cuts)
@@ -189,7 +189,7 @@ def breakdown_child(split_dir: str) -> None:
     import numpy as np
 
     from common.partition import Partition
-    from common.split_runtime import SplitModel
+    from common.partition.runtime import SplitModel
 
     process = psutil.Process()
     steps = {"imported": process.memory_info().rss}

@@ -29,7 +29,7 @@ import numpy as np
 from common.codec_profile import Fidelity, profile_codecs
 from common.image_input import ImageInputs
 from common.partition import load_partition, sample_feeds
-from common.split_runtime import SplitModel
+from common.partition.runtime import SplitModel
 from common.zoo import parse_shape
 from robotd.calibration import calibration_frames
 from robotd.daemon import robot_profile

@@ -65,8 +65,8 @@ def time_parts(model_spec: str, shape: list[int], cut: int) -> dict[str, float]:
     import zenoh
 
     from common.partition import load_partition
+    from common.partition.runtime import SplitModel
     from common.session import open_session
-    from common.split_runtime import SplitModel
     from common.wire import decode
     from common.wire.cloud_to_robot import InferReply
     from common.wire.robot_to_cloud import InferRequest

@@ -56,8 +56,8 @@ def bench_model(name: str, shape: tuple[int, ...], profile_runs: int) -> dict[st
     }
     if profile_runs:
         from common.partition import load_partition, sample_feeds
+        from common.partition.runtime import SplitModel
         from common.profiler import median_ms, profile_model
-        from common.split_runtime import SplitModel
 
         t0 = time.perf_counter()
         prof = profile_model(str(ref.path), runs=profile_runs, refresh=True)

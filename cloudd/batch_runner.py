@@ -29,7 +29,7 @@ from cloudd.replies import Replier
 from cloudd.robot_book import RobotBook
 from cloudd.validate import decode_tensors
 from common.partition import TensorSpec, ort_reason
-from common.split_runtime import SplitModel
+from common.partition.runtime import SplitModel
 from common.throttled_log import ThrottledLog
 from common.wire import ErrorCode, ErrorReply, WireError, error_reply
 from common.wire.cloud_to_robot import InferReply

@@ -80,7 +80,7 @@ from common.config import FleetConfig, MachineConfig
 from common.daemon import Daemon
 from common.membership import MembershipView
 from common.partition import TensorSpec
-from common.split_runtime import SplitModel
+from common.partition.runtime import SplitModel
 from common.wire.registry import (
     CAP_CTL,
     CAP_FAULT_INJECTION,

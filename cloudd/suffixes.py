@@ -19,7 +19,7 @@ import numpy as np
 from common.config import FleetConfig, MachineConfig
 from common.errors import UserError
 from common.partition import TensorSpec, load_partition, ort_reason
-from common.split_runtime import SplitModel
+from common.partition.runtime import SplitModel
 
 log = logging.getLogger(__name__)
 

@@ -37,7 +37,7 @@ from common.wire.tensor_codecs import CODEC_RAW, decode_encoded, encode_tensor_a
 
 if TYPE_CHECKING:
     from common.config import FidelityConfig
-    from common.split_runtime import SplitModel
+    from common.partition.runtime import SplitModel
 
 # JPEG qualities tried on image crossings, best first; the lowest that meets the bound is kept.
 JPEG_LADDER = (95, 90, 80, 70, 50)

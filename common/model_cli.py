@@ -351,8 +351,8 @@ def _measure_codecs(
     from common.codec_profile import profile_codecs
     from common.image_input import InputAdapter
     from common.partition import load_partition
+    from common.partition.runtime import SplitModel
     from common.photos import still_views
-    from common.split_runtime import SplitModel
 
     split = SplitModel(load_partition(model, cuts, max_cut_tensors, input_shape), threads=threads)
     specs = split.input_specs()

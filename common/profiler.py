@@ -73,7 +73,7 @@ def profile_model(
 
 
 def _measure(part: Any, runs: int, threads: int | None, progress: bool) -> dict[str, Any]:
-    from common.split_runtime import SplitModel
+    from common.partition.runtime import SplitModel
 
     runtime = SplitModel(part, threads=threads, lazy=True)
     feeds = sample_feeds(runtime.input_specs())

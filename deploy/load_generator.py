@@ -48,9 +48,9 @@ from common.config import FleetConfig
 from common.errors import UserError
 from common.image_input import InputAdapter
 from common.partition import load_partition, sample_feeds
+from common.partition.runtime import SplitModel
 from common.photos import still_views
 from common.session import open_session
-from common.split_runtime import SplitModel
 from common.wire import ErrorReply, WireError, decode, encode_tensor_as, parse_codec
 from common.wire.cloud_to_robot import INFER_REPLIES, BusyReply, InferReply
 from common.wire.robot_to_cloud import InferRequest

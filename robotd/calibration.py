@@ -26,7 +26,7 @@ import numpy as np
 from common.codec_profile import Fidelity, profile_codecs
 from common.image_input import ImageInputs
 from common.models import cache_dir, read_cached_json, write_cached_json
-from common.split_runtime import SplitModel
+from common.partition.runtime import SplitModel
 from robotd.policies import RAW_CODEC, fixed_action
 from robotd.sources import open_source_for
 from robotd.stereo_frame import StereoFrame

@@ -65,8 +65,8 @@ from common.config import FleetConfig
 from common.daemon import Daemon
 from common.errors import UserError
 from common.membership import MemberChange, MembershipView
+from common.partition.runtime import SplitModel
 from common.session import open_session
-from common.split_runtime import SplitModel
 from common.wire.tensor_codecs import encode_tensor_as
 from robotd.emulation import (
     Emulation,

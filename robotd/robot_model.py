@@ -21,7 +21,7 @@ from common.config import FleetConfig, MachineConfig
 from common.errors import UserError
 from common.image_input import ImageInputs
 from common.partition import load_partition, sample_feeds
-from common.split_runtime import SplitModel
+from common.partition.runtime import SplitModel
 from common.wire.telemetry import FallbackReason
 from robotd.offload import CallResult
 from robotd.policies import Decision

@@ -19,8 +19,8 @@ from common.config import FleetConfig
 from common.errors import UserError
 from common.image_input import ImageInputs
 from common.partition.named_cuts import named_cuts
+from common.partition.runtime import SplitModel
 from common.profiler import median_ms
-from common.split_runtime import SplitModel
 from robotd.calibration import calibration_frames, codec_table, required_codecs
 from robotd.policies import Objective, Policy, make_policy
 from robotd.policies.nav_options import NAMED_CUTS_KEY, SEGMENTS_KEY

@@ -1,4 +1,5 @@
-"""The ONNX partitioner: find where a model can be cut, write prefix/suffix models, verify them.
+"""The ONNX partitioner: find where a model can be cut, write prefix/suffix models, verify and
+run them.
 
 A cut is a set of tensors that separates the model's inputs from its outputs: the robot computes
 them with the *prefix* model (inputs → cut tensors) and the cloud finishes with the *suffix* model
@@ -39,6 +40,7 @@ from common.partition.options import (
     parse_cuts,
     parse_input_shape,
 )
+from common.partition.runtime import SplitModel
 from common.partition.split import load_partition, split_model
 from common.partition.verify import (
     FLOAT16_ATOL,
@@ -71,6 +73,7 @@ __all__ = [
     "OptionError",
     "Partition",
     "RunnerFactory",
+    "SplitModel",
     "TensorSpec",
     "load_onnx",
     "load_partition",

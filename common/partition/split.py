@@ -2,9 +2,9 @@
 :func:`load_partition` (through the cache), with options checked before any work.
 
 Verification runs the cuts with the runtime that serves them, weights shared between sessions:
-``runner`` builds it. By default that is the daemons' ``SplitModel``; common.split_runtime
-imports this package, so the default is looked up when a split is verified, not when this
-module is imported, and callers that hold a runtime of their own pass it instead.
+``runner`` builds it. By default that is the daemons' ``SplitModel`` (``runtime``, which needs
+only the manifest, so nothing here is imported lazily); callers that hold a runtime of their own
+pass it instead.
 """
 
 from __future__ import annotations
@@ -23,6 +23,7 @@ from common.partition.options import (
     cuts_option,
 )
 from common.partition.partitioner import Partitioner
+from common.partition.runtime import SplitModel
 from common.partition.verify import FLOAT32_ATOL, CutRunner, RunnerFactory
 
 
@@ -59,7 +60,7 @@ def split_model(
             threads=threads, prune=prune, refresh=True, runner=runner, segments=segments,
         )  # fmt: skip
     ref = _resolve(spec_or_path, input_shape)
-    runner = runner or _split_runtime
+    runner = runner or _serving_runtime
     partitioner = Partitioner(
         ref, cuts, max_cut_tensors, input_shape, verify, atol, threads, prune,
         runner=runner, segments=segments,
@@ -96,7 +97,7 @@ def load_partition(
         cached = read_entry(final)
         if cached is not None:
             return cached
-    runner = runner or _split_runtime
+    runner = runner or _serving_runtime
     partitioner = Partitioner(
         ref, parsed_cuts, max_cut_tensors, input_shape, verify, atol, threads, prune,
         runner=runner, segments=segments,
@@ -111,8 +112,6 @@ def _resolve(spec_or_path: str | Path, input_shape: InputShape) -> ModelRef:
     return resolve_model(spec_or_path, zoo_shape)
 
 
-def _split_runtime(part: Partition, threads: int | None) -> CutRunner:
+def _serving_runtime(part: Partition, threads: int | None) -> CutRunner:
     """The daemons' runtime for ``part``, sessions built per cut as verification reaches it."""
-    from common.split_runtime import SplitModel  # imports this package: see the module docstring
-
     return SplitModel(part, threads=threads, lazy=True)

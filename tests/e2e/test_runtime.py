@@ -93,7 +93,7 @@ def test_every_split_through_the_service_key_equals_the_full_model(make_fleet, l
     """The test plays robot-1 (its liveliness token, its service key): the registry routes it to
     edge-1, and every cut's suffix computed by the cloud daemon matches the full model."""
     from common.partition import load_partition, sample_feeds
-    from common.split_runtime import SplitModel
+    from common.partition.runtime import SplitModel
     from common.wire.cloud_to_robot import InferReply
     from common.wire.robot_to_cloud import InferRequest
     from common.wire.tensor_codecs import EncodedTensor

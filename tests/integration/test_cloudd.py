@@ -28,8 +28,8 @@ from cloudd.daemon import DRAIN_TIMEOUT_S, CloudDaemon
 from common import keys
 from common.config import FleetConfig, fleet_from_dict
 from common.partition import load_partition, sample_feeds
+from common.partition.runtime import SplitModel
 from common.session import open_session
-from common.split_runtime import SplitModel
 from common.wire import ErrorCode, ErrorReply, Message, decode, encode_raw
 from common.wire.cloud_to_robot import BusyReply, InferReply
 from common.wire.codec import SCHEMA_VERSION

@@ -25,7 +25,7 @@ from cloudd.refusals import RefusalReason
 from common import keys
 from common.config import fleet_from_dict
 from common.partition import load_partition, sample_feeds
-from common.split_runtime import SplitModel
+from common.partition.runtime import SplitModel
 from common.wire import Message, decode
 from common.wire.cloud_to_robot import BusyReply, InferReply
 from common.wire.registry import CtlOp, CtlReply, CtlRequest

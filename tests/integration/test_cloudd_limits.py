@@ -23,7 +23,7 @@ import zenoh
 
 from cloudd.daemon import CloudDaemon
 from cloudd.refusals import RefusalReason
-from common.split_runtime import SplitModel
+from common.partition.runtime import SplitModel
 from common.wire import ErrorCode, ErrorReply
 from common.wire.cloud_to_robot import InferReply
 from common.wire.registry import CtlOp, ProbeReply, ProbeRequest

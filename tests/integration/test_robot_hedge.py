@@ -24,7 +24,7 @@ from onnx import TensorProto, numpy_helper
 
 from common import keys
 from common.partition import load_partition, sample_feeds
-from common.split_runtime import SplitModel
+from common.partition.runtime import SplitModel
 from robotd.policies import Decision, FrameContext, Outcome, Policy
 from robotd.policies.base import CutTable
 from tests.integration.conftest import Router

@@ -29,7 +29,7 @@ from onnx import TensorProto, numpy_helper
 from common import keys
 from common.config import FleetConfig, fleet_from_dict
 from common.partition import load_partition
-from common.split_runtime import SplitModel
+from common.partition.runtime import SplitModel
 from common.wire import ErrorCode, ErrorReply, decode
 from common.wire.cloud_to_robot import BusyReply, InferReply
 from common.wire.registry import PROTOCOL_VERSION, ProbeReply, ProbeRequest, RouteChange

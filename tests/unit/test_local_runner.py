@@ -19,7 +19,7 @@ import pytest
 from onnx import TensorProto, helper, numpy_helper
 
 from common.partition import sample_feeds, split_model
-from common.split_runtime import SplitModel
+from common.partition.runtime import SplitModel
 from robotd.offload import SPECULATIVE_NICE, LocalRunner
 from tests.unit.test_partition import diamond, make_model, save
 

@@ -402,7 +402,7 @@ def test_conv_and_gemm_flops(tmp_path: Path) -> None:
 def test_cut_that_fails_verification_is_excluded_with_the_reason(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    from common.split_runtime import SplitModel
+    from common.partition.runtime import SplitModel
 
     real = SplitModel.run_suffix
 
@@ -426,7 +426,7 @@ def test_cut_that_fails_verification_is_excluded_with_the_reason(
 
 def test_verification_runs_the_cuts_with_the_runtime_given(tmp_path: Path) -> None:
     """The partitioner does not build the serving runtime itself: the caller's runner does."""
-    from common.split_runtime import SplitModel
+    from common.partition.runtime import SplitModel
 
     built: list[list[list[str]]] = []
 

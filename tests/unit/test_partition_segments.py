@@ -15,8 +15,8 @@ from common.partition import Partition, load_partition, sample_feeds, split_mode
 from common.partition.errors import CutError
 from common.partition.graph import DataflowGraph
 from common.partition.manifest import excluded_cut
+from common.partition.runtime import SplitModel
 from common.partition.segments import plan_segment
-from common.split_runtime import SplitModel
 from tests.unit.test_partition import chain, late_input, residual, save
 
 

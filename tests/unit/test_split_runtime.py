@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from common.partition import sample_feeds, split_model
-from common.split_runtime import SplitModel
+from common.partition.runtime import SplitModel
 from tests.unit.test_partition import diamond, late_input, matmul_chain, save, two_outputs
 
 # A 15-layer MatMul chain has 16 cuts (the inputs, after each ReLU, before the final Identity);
@@ -110,7 +110,7 @@ import json, sys
 import numpy as np, onnx, onnxruntime as ort, psutil
 from onnx import TensorProto, helper
 from common.partition import Partition, sample_feeds
-from common.split_runtime import SplitModel
+from common.partition.runtime import SplitModel
 x = helper.make_tensor_value_info("x", TensorProto.FLOAT, [1, 4])
 y = helper.make_tensor_value_info("y", TensorProto.FLOAT, [1, 4])
 g = helper.make_graph([helper.make_node("Relu", ["x"], ["y"])], "warm", [x], [y])

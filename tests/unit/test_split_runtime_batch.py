@@ -12,7 +12,7 @@ import pytest
 from onnx import helper, numpy_helper
 
 from common.partition import sample_feeds, split_model
-from common.split_runtime import BATCH_DIM, NotBatchable, SplitModel, batch_axis_model
+from common.partition.runtime import BATCH_DIM, NotBatchable, SplitModel, batch_axis_model
 from tests.unit.test_partition import make_model, matmul_chain, node, save, vi
 
 CHAIN_LAYERS = 4

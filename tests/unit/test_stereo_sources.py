@@ -17,7 +17,7 @@ from common.codec_profile import Fidelity, profile_codecs
 from common.errors import UserError
 from common.image_input import ImageInputs
 from common.partition import TensorSpec, load_partition
-from common.split_runtime import SplitModel
+from common.partition.runtime import SplitModel
 from common.wire.robot_to_cloud import InferRequest
 from common.wire.tensor_codecs import encode_tensor_as
 from nav.stereo_graph import LEFT_INPUT, RIGHT_INPUT

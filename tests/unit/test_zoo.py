@@ -16,7 +16,7 @@ from common.errors import UserError
 from common.image_input import InputAdapter
 from common.models import file_digest, resolve_model
 from common.partition import load_partition
-from common.split_runtime import SplitModel
+from common.partition.runtime import SplitModel
 
 # Small inputs keep export + split + verify to about a second per model on two cores.
 SMALL_SHAPE = (3, 64, 64)

@@ -37,7 +37,9 @@ import onnx
 import onnxruntime as ort
 from onnx import helper, numpy_helper
 
-from common.partition import Partition, TensorSpec, load_partition, ort_reason, sample_feeds
+from common.partition.errors import ort_reason
+from common.partition.manifest import Partition, TensorSpec
+from common.partition.verify import sample_feeds
 
 Optimization = Literal["extended", "all"]
 _LEVELS = {
@@ -147,8 +149,7 @@ class SharedWeights:
 class SplitModel:
     """Runs a split model: the whole of it, or a cut's prefix (robot) and suffix (cloud).
 
-    ``partition_or_spec`` is a :class:`Partition` or anything :func:`load_partition` accepts
-    (a file path or ``zoo:NAME``; split with default options, from the cache when possible).
+    ``partition`` comes from :func:`~common.partition.load_partition` (or ``split_model``).
     Sessions are built at construction unless ``lazy`` is true; either way they share one copy
     of the weights. Methods are safe to call from several threads.
 
@@ -158,7 +159,7 @@ class SplitModel:
 
     def __init__(
         self,
-        partition_or_spec: Partition | str | Path,
+        partition: Partition,
         providers: Sequence[str] = ("CPUExecutionProvider",),
         threads: int | None = None,
         *,
@@ -166,10 +167,7 @@ class SplitModel:
         lazy: bool = False,
         arena: bool = False,
     ) -> None:
-        if isinstance(partition_or_spec, Partition):
-            self.partition = partition_or_spec
-        else:
-            self.partition = load_partition(partition_or_spec)
+        self.partition = partition
         if optimization not in _LEVELS:
             raise ValueError(f"optimization must be one of {', '.join(_LEVELS)}")
         self.providers = list(providers)
