@@ -23,7 +23,7 @@ STOPPING_REASON = "this deployment is stopping"
 
 
 @dataclass(frozen=True)
-class Decision:
+class CtlDecision:
     """A verdict on a service or standby request, and what carrying it out needs: the robot's
     service key to undeclare before the ack (`undeclare`), or none. `stopping`: refused
     because the daemon is shutting down (not a disagreement worth a log line)."""
@@ -76,13 +76,13 @@ class RobotBook:
             return self._states.serving_robots()
 
     # -- control ---------------------------------------------------------------------------
-    def decide(self, op: CtlOp, robot: str, epoch: int) -> Decision:
+    def decide(self, op: CtlOp, robot: str, epoch: int) -> CtlDecision:
         """Decide `op(robot, epoch)` (service or standby) and apply an accepted verdict."""
         with self._lock:
             if self._closing.is_set():
                 current = self._states.get(robot)
                 refused = Verdict(False, robot, current, current, STOPPING_REASON)
-                return Decision(refused, stopping=True)
+                return CtlDecision(refused, stopping=True)
             if op is CtlOp.SERVICE:
                 verdict = self._states.decide_service(robot, epoch)
             else:
@@ -91,7 +91,7 @@ class RobotBook:
             undeclare = self._services.pop(robot, None) if verdict.undeclare else None
             if verdict.declare:
                 self._unanswered.add(robot)
-        return Decision(verdict, undeclare)
+        return CtlDecision(verdict, undeclare)
 
     def restore(self, verdict: Verdict) -> None:
         """Undo an applied verdict (its service key could not be declared)."""

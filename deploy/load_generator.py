@@ -70,7 +70,7 @@ JOIN_TIMEOUT_S = 5.0
 """How long stopping waits for a robot's thread (at most one deadline is in flight)."""
 
 
-class Outcome(enum.Enum):
+class FrameOutcome(enum.Enum):
     """How one frame ended, as the robot saw it."""
 
     SERVED = "served"
@@ -89,7 +89,7 @@ class FrameRecord:
     frame: int
     sent_at: float
     latency_s: float
-    outcome: Outcome
+    outcome: FrameOutcome
     deployment: str = ""
     queue_s: float = 0.0
     compute_s: float = 0.0
@@ -186,7 +186,7 @@ class EmulatedRobot:
             record = self._send(frame)
             with self._lock:
                 self._records.append(record)
-            if record.outcome is Outcome.SERVED:
+            if record.outcome is FrameOutcome.SERVED:
                 self.served.set()
             elif stop.wait(self._gen.local_s):
                 break  # a robot finishes an unserved frame itself before its next one
@@ -217,37 +217,39 @@ class EmulatedRobot:
                 pass
         except zenoh.ZError as exc:
             return self._record(
-                frame, sent, time.monotonic(), Outcome.ERROR, detail=f"zenoh: {exc}"
+                frame, sent, time.monotonic(), FrameOutcome.ERROR, detail=f"zenoh: {exc}"
             )
         if reply is None:
-            return self._record(frame, sent, answered, Outcome.NO_ROUTE)
+            return self._record(frame, sent, answered, FrameOutcome.NO_ROUTE)
         if reply.ok is None:
             text = reply.err.payload.to_string() if reply.err is not None else ""
-            outcome = Outcome.TIMEOUT if "timeout" in text.lower() else Outcome.ERROR
+            outcome = FrameOutcome.TIMEOUT if "timeout" in text.lower() else FrameOutcome.ERROR
             return self._record(frame, sent, answered, outcome, detail=text)
         try:
             message = decode(reply.ok.payload.to_bytes(), expect=INFER_REPLIES)
         except WireError as exc:
             return self._record(
-                frame, sent, answered, Outcome.ERROR, detail=f"bad reply: {exc.reason}"
+                frame, sent, answered, FrameOutcome.ERROR, detail=f"bad reply: {exc.reason}"
             )
         if isinstance(message, InferReply):
             return self._record(
                 frame,
                 sent,
                 answered,
-                Outcome.SERVED,
+                FrameOutcome.SERVED,
                 deployment=message.deployment,
                 queue_s=message.queue_s,
                 compute_s=message.compute_s,
             )
         if isinstance(message, BusyReply):
-            return self._record(frame, sent, answered, Outcome.BUSY, deployment=message.deployment)
+            return self._record(
+                frame, sent, answered, FrameOutcome.BUSY, deployment=message.deployment
+            )
         assert isinstance(message, ErrorReply)
-        return self._record(frame, sent, answered, Outcome.ERROR, detail=message.code)
+        return self._record(frame, sent, answered, FrameOutcome.ERROR, detail=message.code)
 
     def _record(
-        self, frame: int, sent: float, answered: float, outcome: Outcome, **fields: Any
+        self, frame: int, sent: float, answered: float, outcome: FrameOutcome, **fields: Any
     ) -> FrameRecord:
         return FrameRecord(
             robot=self.robot,
@@ -353,16 +355,16 @@ def summarize(records: Sequence[FrameRecord], seconds: float) -> dict[str, Any]:
     """Figures of a window of `seconds`: frames and rates by outcome, served frames per second,
     the served frames' latency (median, p95) and each deployment's share of them."""
     frames = len(records)
-    counts = {outcome: 0 for outcome in Outcome}
+    counts = {outcome: 0 for outcome in FrameOutcome}
     for rec in records:
         counts[rec.outcome] += 1
-    served = [rec for rec in records if rec.outcome is Outcome.SERVED]
+    served = [rec for rec in records if rec.outcome is FrameOutcome.SERVED]
     latency = [rec.latency_s for rec in served]
     by_deployment: dict[str, int] = {}
     for rec in served:
         by_deployment[rec.deployment] = by_deployment.get(rec.deployment, 0) + 1
 
-    def rate(outcome: Outcome) -> float:
+    def rate(outcome: FrameOutcome) -> float:
         return counts[outcome] / frames if frames else 0.0
 
     return {
@@ -373,10 +375,10 @@ def summarize(records: Sequence[FrameRecord], seconds: float) -> dict[str, Any]:
         "p95_latency_s": percentile(latency, 95),
         "p95_queue_s": percentile([rec.queue_s for rec in served], 95),
         "p95_compute_s": percentile([rec.compute_s for rec in served], 95),
-        "busy_rate": rate(Outcome.BUSY),
-        "timeout_rate": rate(Outcome.TIMEOUT),
-        "error_rate": rate(Outcome.ERROR),
-        "no_route_rate": rate(Outcome.NO_ROUTE),
+        "busy_rate": rate(FrameOutcome.BUSY),
+        "timeout_rate": rate(FrameOutcome.TIMEOUT),
+        "error_rate": rate(FrameOutcome.ERROR),
+        "no_route_rate": rate(FrameOutcome.NO_ROUTE),
         "by_deployment": {
             dep: n / len(served) for dep, n in sorted(by_deployment.items()) if served
         },

@@ -21,7 +21,7 @@ from typing import Any
 import pytest
 
 from deploy.experiments.scale import measure_fairness
-from deploy.load_generator import LoadGenerator, Outcome, summarize
+from deploy.load_generator import FrameOutcome, LoadGenerator, summarize
 from deploy.procs import elasticfog_argv
 from tests.e2e.conftest import TEST_DEADLINE_S, TEST_INPUT_SHAPE, TEST_MODEL
 
@@ -82,7 +82,7 @@ def test_batched_cloud_serves_every_frame_of_three_robots(make_fleet, local_flee
     records = gen.records(t0, t1)
     figures = summarize(records, t1 - t0)
     assert figures["frames"] >= len(ROBOTS) * FPS * MEASURE_S * 0.8, figures
-    missed = [r for r in records if r.outcome is not Outcome.SERVED]
+    missed = [r for r in records if r.outcome is not FrameOutcome.SERVED]
     assert not missed, f"{len(missed)} frame(s) not served, e.g. {missed[:3]}"
     assert figures["by_deployment"] == {"edge-1": 1.0}
     assert figures["p95_latency_s"] < TEST_DEADLINE_S
