@@ -485,14 +485,15 @@ def zoo_list_cmd(
         DEFAULT_INPUT_SHAPE,
         DEFAULT_ZOO_MODEL,
         ZOO_INPUT_DTYPE,
-        ZOO_MODELS,
+        all_models,
         file_input_shape,
         format_shape,
     )
 
+    # The torch networks, then the graph models other packages register (zoo:stereo).
     rows = [
         {"name": m.name, "description": m.description, "default": m.name == DEFAULT_ZOO_MODEL}
-        for m in ZOO_MODELS.values()
+        for m in all_models().values()
     ]
     if as_json:
         _print_json(rows)
