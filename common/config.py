@@ -38,6 +38,7 @@ from common.defaults import (
     DEFAULT_CALIBRATION_FRAMES,
     DEFAULT_MAX_REQUEST_BYTES,
     DEFAULT_REGISTRY_PORT,
+    ZOO_PREFIX,
 )
 from common.errors import UserError
 from common.keys import DEFAULT_FLEET, validate_id
@@ -45,7 +46,6 @@ from common.wire.codec import DEFAULT_MAX_PAYLOAD_BYTES
 
 DEFAULT_REGISTRY_ENDPOINT = f"tcp/127.0.0.1:{DEFAULT_REGISTRY_PORT}"
 DEFAULT_LEASE_MS = 1000
-ZOO_PREFIX = "zoo:"
 CLI_IDENTITY = "cli"
 """The views CLI's identity: the common name of its read-only certificate (`elasticfog certs`)."""
 MAX_ERRORS_SHOWN = 5

@@ -12,3 +12,6 @@ DEFAULT_CALIBRATION_FRAMES = 8
 # Largest request the registry reads (fleet.yaml `registry.max_request_bytes`): its requests,
 # telemetry and probe reports are a few hundred bytes, so anything near this is an attack or a bug.
 DEFAULT_MAX_REQUEST_BYTES = 64 * 1024
+
+ZOO_PREFIX = "zoo:"
+"""A model spec naming a zoo entry (`zoo:NAME`) rather than an ONNX file."""

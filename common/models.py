@@ -16,10 +16,10 @@ from typing import Any
 
 import platformdirs
 
+from common.defaults import ZOO_PREFIX
 from common.errors import UserError
 
 CACHE_DIR_ENV = "ELASTICFOG_CACHE_DIR"
-ZOO_PREFIX = "zoo:"
 _DIGEST_CHUNK_BYTES = 1 << 20
 
 
