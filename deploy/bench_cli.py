@@ -123,7 +123,10 @@ def _run(
     plot: Callable[[dict[str, Any], Path], list[Path]],
     as_json: bool,
     public: Callable[[dict[str, Any]], dict[str, Any]] = lambda r: r,
+    tls_key: bool = True,
 ) -> None:
+    """Run, plot, print. `tls_key`: the JSON says whether TLS was on (False: a contract that
+    allows no key beyond its own)."""
     from deploy.testbed import require_root
 
     err = Console(stderr=True)
@@ -139,7 +142,8 @@ def _run(
         for path in plot(result, options.plots_dir):
             err.print(f"plot: {path}", highlight=False)
     if as_json:
-        typer.echo(json.dumps({**public(result), "tls": options.tls}))
+        extra = {"tls": options.tls} if tls_key else {}
+        typer.echo(json.dumps({**public(result), **extra}))
     else:
         typer.echo(render(result))
         if options.tls:
@@ -366,6 +370,71 @@ def anycast(
     from deploy.experiments import anycast as ac
 
     _run(options, lambda: ac.run(options), ac.markdown, ac.plot, as_json)
+
+
+@bench_app.command("nav")
+def nav(
+    resolutions: str = typer.Option(
+        "320x240,640x480", "--resolutions", help="Camera resolutions WxH, comma-separated."
+    ),
+    nav_options: str = typer.Option(
+        "1,2,3,4,elastic,off",
+        "--options",
+        help="Offloading options 1-4, elastic (the runtime's learner) and off (the assistant "
+        "off, closed loop only), comma-separated.",
+    ),
+    uplink_mbit: float | None = typer.Option(
+        None,
+        "--uplink-mbit",
+        help="The robot's uplink cap, Mbit/s (default 100: near what 802.11ac WiFi gives one "
+        "robot, the paper's link).",
+    ),
+    laps: int | None = typer.Option(
+        None, "--laps", help="Laps of the 7-maneuver circuit (default 10, 1 with --quick)."
+    ),
+    quick: bool = QUICK_OPTION,
+    frames: int | None = FRAMES_OPTION,
+    robot_cpu: float = ROBOT_CPU_OPTION,
+    plots_dir: Path = PLOTS_OPTION,
+    no_plots: bool = NO_PLOTS_OPTION,
+    workdir: Path | None = WORKDIR_OPTION,
+    name: str | None = NAME_OPTION,
+    as_json: bool = JSON_OPTION,
+) -> None:
+    """The navigation assistant paper's Tables III-V (update rate, delays, collisions per
+    option and resolution) and Figs. 8-9, on the testbed and in the closed loop."""
+    from deploy.experiments import nav as nv
+    from deploy.experiments.nav_rows import parse_options, parse_resolutions
+    from deploy.experiments.options import parse_floats
+
+    sizes = _guard(lambda: parse_resolutions(resolutions))
+    chosen = _guard(lambda: parse_options(nav_options))
+    uplink = nv.DEFAULT_UPLINK_MBIT
+    if uplink_mbit is not None:
+        (uplink,) = _guard(lambda: parse_floats(f"{uplink_mbit:g}", "--uplink-mbit"))
+    if laps is not None and laps < 1:
+        _fail(UserError(f"--laps {laps}: expected at least 1"))
+    options = _options(
+        quick=quick,
+        frames=frames,
+        robot_cpu=robot_cpu,
+        model=nv.MODEL,
+        input_shape=f"3x{sizes[0][1]}x{sizes[0][0]}",
+        plots_dir=plots_dir,
+        no_plots=no_plots,
+        workdir=workdir,
+        name=name,
+    )
+    settings = nv.NavSettings(tuple(sizes), tuple(chosen), uplink, laps)
+    _run(
+        options,
+        lambda: nv.run(options, settings),
+        nv.markdown,
+        nv.plot,
+        as_json,
+        nv.public,
+        tls_key=False,
+    )
 
 
 @bench_app.command("scale")

@@ -8,6 +8,10 @@ a run is deterministic whatever this host's speed). Each step the joystick's com
 :class:`nav.shared_control.SharedControl` (or straight to the robot, unassisted). The robot's
 footprint is a circle around the axle centre; touching a face is a collision and ends the run.
 
+With ``frame_latency`` (a draw per frame, e.g. from latencies measured on the daemons) the robot
+keeps one frame in flight, as a robot that works at full speed does: a camera tick while a frame
+is still being processed is skipped, so the update rate follows the drawn latencies.
+
 The stop margin must keep the camera beyond the nearest depth the disparity range covers: a
 face nearer than that is not seen at all (its disparity is out of range), so a robot allowed that
 close would drive on.
@@ -108,9 +112,11 @@ def run_maneuver(
     control_period_s: float = DEFAULT_CONTROL_PERIOD_S,
     frame_period_s: float = DEFAULT_FRAME_PERIOD_S,
     latency_s: float = DEFAULT_LATENCY_S,
+    frame_latency: Callable[[], float] | None = None,
 ) -> ManeuverResult:
     """Drive ``maneuver`` in ``world``; with ``perception`` the assistant filters the joystick,
-    without it the joystick drives the robot directly."""
+    without it the joystick drives the robot directly. ``frame_latency``: each frame's latency
+    drawn from it instead of ``latency_s``, one frame in flight at a time."""
     limits = limits or RobotLimits()
     frame_steps = round(frame_period_s / control_period_s)
     latency_steps = round(latency_s / control_period_s)
@@ -126,8 +132,13 @@ def run_maneuver(
     for step in range(steps):
         t = step * control_period_s
         if perception is not None:
-            if step % frame_steps == 0:
-                in_flight.append((step + latency_steps, t, perception.profile(world, robot.pose)))
+            # A frame whose result arrives at this step frees the robot for this tick.
+            busy = frame_latency is not None and bool(in_flight) and in_flight[0][0] > step
+            if step % frame_steps == 0 and not busy:
+                delay = latency_steps
+                if frame_latency is not None:
+                    delay = max(1, round(frame_latency() / control_period_s))
+                in_flight.append((step + delay, t, perception.profile(world, robot.pose)))
                 result.frames += 1
             while in_flight and in_flight[0][0] <= step:
                 _, t_frame, profile = in_flight.popleft()
