@@ -26,6 +26,7 @@ from nav.disparity import DisparityRunner
 from nav.stereo_eval import bad_pixels, opencv_disparity, stereo_motorcycle
 from nav.stereo_params import (
     DEFAULT_MAX_COST_SHARE,
+    DEFAULT_MIN_SUPPORT,
     DEFAULT_UNIQUENESS,
     DEFAULT_WINDOW_PX,
     StereoParams,
@@ -35,15 +36,16 @@ BM_BLOCKS = (5, 9, 15, 21)
 SGBM_BLOCKS = (3, 5)
 # Times are the fastest of these runs (a shared host's load only ever adds time).
 TIMED_RUNS = 3
-# (window, uniqueness, cost share) variants of ours; the first is the default, the last has no
-# cost-share check.
+# (window, uniqueness, cost share, min support) variants of ours; the first is the default, the
+# last two have no cost-share check and no small-region filter.
 OURS = (
-    (DEFAULT_WINDOW_PX, DEFAULT_UNIQUENESS, DEFAULT_MAX_COST_SHARE),
-    (7, 0.05, 0.3),
-    (11, 0.05, 0.3),
-    (9, 0.0, 0.3),
-    (9, 0.10, 0.3),
-    (9, 0.05, 1.0),
+    (DEFAULT_WINDOW_PX, DEFAULT_UNIQUENESS, DEFAULT_MAX_COST_SHARE, DEFAULT_MIN_SUPPORT),
+    (7, 0.05, 0.3, 8),
+    (11, 0.05, 0.3, 8),
+    (9, 0.0, 0.3, 8),
+    (9, 0.10, 0.3, 8),
+    (9, 0.05, 1.0, 8),
+    (9, 0.05, 0.3, 0),
 )
 
 
@@ -65,14 +67,21 @@ def measure(max_disparity: int) -> list[dict[str, Any]]:
             }
         )
 
-    for window, uniqueness, share in OURS:
+    for window, uniqueness, share, support in OURS:
         params = StereoParams(
-            max_disparity, window_px=window, uniqueness=uniqueness, max_cost_share=share
+            max_disparity,
+            window_px=window,
+            uniqueness=uniqueness,
+            max_cost_share=share,
+            min_support=support,
         )
         runner = DisparityRunner(params, threads=1)
         runner(left, right)  # warm-up: the first run allocates
         results = [runner(left, right) for _ in range(TIMED_RUNS)]
-        setting = f"window {window}, uniqueness {uniqueness:g}, cost share {share:g}"
+        setting = (
+            f"window {window}, uniqueness {uniqueness:g}, cost share {share:g}, "
+            f"min support {support}"
+        )
         row("ours (zoo:stereo)", setting, results[0].disparity, min(r.seconds for r in results))
     cv2.setNumThreads(1)
     for method, blocks in (("bm", BM_BLOCKS), ("sgbm", SGBM_BLOCKS)):

@@ -17,7 +17,7 @@ cost_agg    float 1×D×H×W          4D B        box filter (window × window) 
                                                convolution
 disparity   float 1×1×H×W          4 B         winner-take-all; uniqueness, left-right and
                                                cost-share checks; parabola sub-pixel refinement;
-                                               NaN where invalid
+                                               small-region filter; NaN where invalid
 points      float 1×H×W×3          12 B        camera model (one 3×3 MatMul) into the ground frame
                                                of :mod:`nav.camera`; NaN where no point
 d_coll      float 1×B              —           distance to collision per curvature bin
@@ -327,7 +327,33 @@ class _StereoGraph:
             valid = self.op("And", [valid, self._close_enough(best_cost)])
         valid = self.op("And", [valid, self._full_census(best)])
         value = self.op("Add", [best, self._subpixel(agg, best_index, best_cost)])
+        if self.p.min_support:
+            # valid and value stay live beside the filter's input: three tensors cross until
+            # the end of the stage, so the filter makes no cut of its own (module docstring).
+            checked = self.op("Where", [valid, value, self.const(np.nan)])
+            valid = self.op("And", [valid, self._supported(checked)])
         return self.op("Where", [valid, value, self.const(np.nan)], out=Stage.DISPARITY.value)
+
+    def _supported(self, disparity: str) -> str:
+        """Small-region (speckle) filter: at least ``min_support`` of the sampled neighbours
+        have a disparity within ``support_tolerance_px`` (NaN and the padding beyond the border
+        never do). Chance matches that pass the per-pixel checks (a window half on an untextured
+        sky, half on a wall's top edge) come in small patches whose sub-pixel values disagree;
+        a surface's pixels have neighbours at their depth."""
+        r = self.p.support_radius_px
+        axes = self.ints(2, 3)
+        padded = self.op("Pad", [disparity, self.ints(0, 0, r, r, 0, 0, r, r), self.const(np.nan)])
+        agree = []
+        for dy, dx in self.p.support_offsets:
+            # Rows r + dy .. H + r + dy of the padded map (the end as an offset from its end).
+            starts = self.ints(r + dy, r + dx)
+            ends = self.ints(*(o - r if o < r else INT64_MAX for o in (dy, dx)))
+            neighbour = self.op("Slice", [padded, starts, ends, axes])
+            gap = self.op("Abs", [self.op("Sub", [neighbour, disparity])])
+            close = self.op("LessOrEqual", [gap, self.const(self.p.support_tolerance_px)])
+            agree.append(self.op("Cast", [close], to=TensorProto.FLOAT))
+        support = self.op("Sum", agree)
+        return self.op("GreaterOrEqual", [support, self.const(float(self.p.min_support))])
 
     def _winner(self, planes: Sequence[str]) -> tuple[str, str]:
         """(index, cost) of each pixel's cheapest plane, as float; ties go to the first."""

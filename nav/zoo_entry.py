@@ -16,7 +16,8 @@ from common.zoo import ZooGraph
 
 # Bump when the graph changes for the same shape (cached exports are named by it).
 # 2: the metadata names the `points` cut (elasticfog.cut.points) for the offloading options.
-STEREO_FORMAT = 2
+# 3: the disparity stage's small-region filter (phantom obstacles at 640×480).
+STEREO_FORMAT = 3
 
 
 def build_stereo(shape: tuple[int, int, int]) -> Any:
