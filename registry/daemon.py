@@ -77,9 +77,10 @@ from registry.prober import Probed, Prober
 from registry.refusals import Refusals
 from registry.registration import Registrar, RegistrationState, Role, fleet_model_digest
 from registry.replies import answer, check_size, decode_query, error_payload, refusal
-from registry.rib import MEMORY, DeploymentRow, Rib
+from registry.rib import MEMORY, DeploymentRow, Rib, RobotRow, RouteRow
 from registry.scheduler import (
     Decision,
+    DeploymentTable,
     DeploymentView,
     Reason,
     RobotView,
@@ -544,9 +545,13 @@ class RegistryDaemon(Daemon):
 
     # -- decisions -------------------------------------------------------------------------------
     def _schedule_all(self) -> None:
-        for robot in self._parts.rib.robots():
-            if robot.alive:
-                self._evaluate(robot.id)
+        # One read of the RIB for the round (live robots with their routes, the deployments as
+        # one table), not three per robot: per robot, reading and converting every deployment
+        # made a round grow with robots x deployments (docs/scale.md).
+        rib = self._parts.rib
+        deployments = DeploymentTable(_deployment_views(rib.deployments(), frozenset()))
+        for robot_row, route_row in rib.live_robots():
+            self._evaluate(robot_row.id, read=(robot_row, route_row, deployments))
 
     def _waiting_for(self, robot: str, route: str | None) -> str | None:
         """The deployment a decision about `robot` should wait for (registration in flight, or a
@@ -565,15 +570,23 @@ class RegistryDaemon(Daemon):
         return None
 
     def _evaluate(
-        self, robot: str, *, unusable: frozenset[str] = frozenset()
+        self,
+        robot: str,
+        *,
+        unusable: frozenset[str] = frozenset(),
+        read: tuple[RobotRow | None, RouteRow | None, DeploymentTable] | None = None,
     ) -> SwitchResult | None:
-        """Ask the scheduler about one robot and carry out its decision (control loop only)."""
+        """Ask the scheduler about one robot and carry out its decision (control loop only).
+        `read`: the robot's row, its route and the deployments as the round read them (else
+        they are read here)."""
         rib = self._parts.rib
-        route_row = rib.route(robot)
+        if read is None:
+            deployments = DeploymentTable(_deployment_views(rib.deployments(), unusable))
+            read = (rib.robot(robot), rib.route(robot), deployments)
+        robot_row, route_row, deployments = read
         current = route_row.deployment if route_row else None
         if not unusable and self._waiting_for(robot, current) is not None:
             return None
-        robot_row = rib.robot(robot)
         measures = self.measurements.for_scheduler(robot, current)
         view = RobotView(
             id=robot,
@@ -584,7 +597,6 @@ class RegistryDaemon(Daemon):
             timeouts_on=measures.timeouts_on,
             model_digest=self._parts.registrar.robot_digest(robot),
         )
-        deployments = _deployment_views(rib.deployments(), unusable)
         decision = self.scheduler.evaluate(view, deployments, measures.profiles)
         if decision is None:
             return None

@@ -30,7 +30,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from common.wire.telemetry import FallbackReason, ProbeReport, TelemetryRecord
-from registry.latency import LatencyWindows, Source, WindowKey, WindowStats
+from registry.latency import LatencyWindows, Profiles, Source, WindowKey, WindowStats
 from registry.rib import Rib
 
 # Fallback reasons that count as consecutive failures of the route: the deployment did not answer
@@ -51,7 +51,7 @@ class RobotMeasures:
     telemetry: WindowStats | None
     timeouts_on: str | None
     timeouts: int
-    profiles: dict[str, WindowStats]
+    profiles: Profiles
 
 
 @dataclass(frozen=True)
@@ -290,22 +290,19 @@ class Measurements:
         """Persist the windows changed since the last save; returns how many were written."""
         with self._lock:
             dirty, self._dirty = self._dirty, set()
-            rows = []
+            rows: list[tuple[str, str, str, tuple[float, ...], float | None]] = []
             for wkey in dirty:
                 robot, deployment, source = wkey
-                samples = self._windows.window(robot, deployment, source).samples()
+                samples = self._windows.samples(robot, deployment, source)
                 if samples:
-                    rows.append((robot, deployment, source, samples, self._sample_wall[wkey]))
-        for robot, deployment, source, samples, updated_at in rows:
-            rib.save_profile(robot, deployment, source.value, samples, updated_at)
-        return len(rows)
+                    rows.append((robot, deployment, source.value, samples, self._sample_wall[wkey]))
+        # One transaction for them all: at 1,000 robots x 100 deployments that is 100,000 rows.
+        return rib.save_profiles(rows)
 
     def flush_loads(self, rib: Rib) -> None:
         """Write the loads reported since the last flush to the RIB (live deployments whose
         load or capacity changed)."""
         with self._lock:
             loads, self._loads = self._loads, {}
-        for deployment, (load, capacity) in loads.items():
-            row = rib.deployment(deployment)
-            if row is not None and row.alive and (row.load, row.capacity) != (load, capacity):
-                rib.update_deployment_load(deployment, load, capacity)
+        if loads:
+            rib.update_deployment_loads(loads)

@@ -36,11 +36,11 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import Enum
 
-from registry.latency import LatencyBound, WindowStats
+from registry.latency import LatencyBound, Profiles, WindowStats
 
 DEFAULT_MIN_DWELL_S = 3.0
 DEFAULT_TIMEOUT_COUNT = 3
@@ -130,6 +130,21 @@ class DeploymentView:
         return self.capacity > 0 and self.load >= self.capacity
 
 
+class DeploymentTable:
+    """The deployments as one scheduling round sees them, indexed once.
+
+    A round hands the same table to every robot's evaluation: indexing a list of deployments for
+    each robot made a round grow with robots x deployments (docs/scale.md). `evaluate` also takes
+    a plain sequence and indexes it itself.
+    """
+
+    __slots__ = ("by_id", "views")
+
+    def __init__(self, views: Iterable[DeploymentView]) -> None:
+        self.views: tuple[DeploymentView, ...] = tuple(views)
+        self.by_id: dict[str, DeploymentView] = {d.id: d for d in self.views}
+
+
 @dataclass(frozen=True)
 class RobotView:
     """What the scheduler needs to know about one robot.
@@ -163,7 +178,7 @@ class Decision:
     predicted_s: float | None = None
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class _Candidate:
     deployment: DeploymentView
     predicted_s: float | None
@@ -270,16 +285,27 @@ class Scheduler:
     def evaluate(
         self,
         robot: RobotView,
-        deployments: Sequence[DeploymentView],
+        deployments: Sequence[DeploymentView] | DeploymentTable,
         profiles: Mapping[str, WindowStats],
     ) -> Decision | None:
-        """Decide whether `robot` should move; `profiles` are its probe windows per deployment."""
+        """Decide whether `robot` should move; `profiles` are its probe windows per deployment.
+
+        Only a forced move ranks every deployment. A robot that stays (nearly every robot, nearly
+        every round) costs the few deployments whose probe statistic could beat its limit, found
+        by ascending statistic (`Profiles.ascending`: kept with the snapshot, so it is sorted
+        once per change of the robot's probes, not once per round).
+        """
         now = self._clock()
         st = self._state(robot.id)
-        by_id = {d.id: d for d in deployments}
-        self._update_recovery(st, by_id, profiles, now)
+        table = (
+            deployments
+            if isinstance(deployments, DeploymentTable)
+            else DeploymentTable(deployments)
+        )
+        snapshot = profiles if isinstance(profiles, Profiles) else Profiles(profiles)
+        self._update_recovery(st, table.by_id, snapshot, now)
 
-        current = by_id.get(robot.route) if robot.route is not None else None
+        current = table.by_id.get(robot.route) if robot.route is not None else None
         forced: Reason | None = None
         if robot.route is None:
             forced = Reason.INITIAL
@@ -300,28 +326,28 @@ class Scheduler:
         ):
             # The last attempt found no taker; retrying at once would hammer the same deployments.
             return None
-        ranked = self._rank(robot, deployments, profiles, st, now)
         if forced is not None:
             st.violation_since = None
             st.better_since = None
-            return self._forced(robot, forced, ranked)
+            return self._forced(robot, forced, self._rank(robot, table, snapshot, st, now))
 
         assert current is not None  # forced covers every route without a live deployment
+        targets = _Targets(self, robot, current, table, snapshot, st, now)
         if self._violating(robot):
             st.better_since = None
             if st.violation_since is None:
                 st.violation_since = now
             if now - st.violation_since >= self.bound.hysteresis_s and self._dwelt(st, now):
-                own = self._candidate(robot, current, profiles, st, now).confident_s
+                own = self._candidate(robot, current, snapshot, st, now).confident_s
                 recent = (
                     st.violation_move_at is not None
                     and now - st.violation_move_at < self.params.flap_window_s
                 )
-                return self._on_violation(robot, current, ranked, own, recent)
+                return self._on_violation(robot, current, targets, own, recent)
             return None
         st.violation_since = None
-        reference = self._reference(robot, current, profiles, st, now)
-        return self._on_improvement(robot, current, ranked, reference, st, now)
+        reference = self._reference(robot, current, snapshot, st, now)
+        return self._on_improvement(robot, current, targets, reference, st, now)
 
     def _forced(
         self, robot: RobotView, reason: Reason, ranked: list[_Candidate]
@@ -346,7 +372,7 @@ class Scheduler:
         self,
         robot: RobotView,
         current: DeploymentView,
-        ranked: list[_Candidate],
+        targets: _Targets,
         own_probe_s: float | None,
         recent_violation_move: bool,
     ) -> Decision | None:
@@ -363,30 +389,25 @@ class Scheduler:
             if own_probe_s is None:
                 return None
             limit = min(limit, own_probe_s * (1 - self.bound.better_margin))
-        targets = [
-            c
-            for c in ranked
-            if c.deployment.id != current.id
-            and c.tier < 2
-            and c.confident_s is not None
-            and c.confident_s < limit
-        ]
-        if not targets:
+        if targets.best(limit, max_tier=1) is None:
+            return None
+        ranked = targets.ranked(limit, max_tier=1)
+        if not ranked:
             return None
         return Decision(
             robot=robot.id,
             from_deployment=current.id,
-            to_deployment=targets[0].deployment.id,
+            to_deployment=ranked[0].deployment.id,
             reason=Reason.BOUND_VIOLATION,
-            candidates=tuple(c.deployment.id for c in targets),
-            predicted_s=targets[0].predicted_s,
+            candidates=tuple(c.deployment.id for c in ranked),
+            predicted_s=ranked[0].predicted_s,
         )
 
     def _on_improvement(
         self,
         robot: RobotView,
         current: DeploymentView,
-        ranked: list[_Candidate],
+        targets: _Targets,
         reference: float | None,
         st: _RobotState,
         now: float,
@@ -395,31 +416,27 @@ class Scheduler:
             st.better_since = None
             return None
         limit = reference * (1 - self.bound.better_margin)
-        targets = [
-            c
-            for c in ranked
-            if c.deployment.id != current.id
-            and c.tier == 0
-            and c.confident_s is not None
-            and c.confident_s < limit
-        ]
-        if not targets:
+        found = targets.best(limit, max_tier=0)
+        if found is None:
             st.better_since = None
             st.better_target = None
             return None
-        best = targets[0].deployment.id
+        best = found.deployment.id
         if st.better_target != best or st.better_since is None:
             st.better_since = now
             st.better_target = best
         if now - st.better_since < self.params.improve_hold_s or not self._dwelt(st, now):
             return None
+        ranked = targets.ranked(limit, max_tier=0)
+        if not ranked:
+            return None
         return Decision(
             robot=robot.id,
             from_deployment=current.id,
-            to_deployment=best,
+            to_deployment=ranked[0].deployment.id,
             reason=Reason.BETTER,
-            candidates=tuple(c.deployment.id for c in targets),
-            predicted_s=targets[0].predicted_s,
+            candidates=tuple(c.deployment.id for c in ranked),
+            predicted_s=ranked[0].predicted_s,
         )
 
     # -- helpers ---------------------------------------------------------------------------------
@@ -491,24 +508,14 @@ class Scheduler:
     def _rank(
         self,
         robot: RobotView,
-        deployments: Sequence[DeploymentView],
+        table: DeploymentTable,
         profiles: Mapping[str, WindowStats],
         st: _RobotState,
         now: float,
     ) -> list[_Candidate]:
-        usable = [
-            d
-            for d in deployments
-            if d.alive
-            and not d.draining
-            and d.service == robot.service
-            and (
-                robot.model_digest is None
-                or d.model_digest is None
-                or d.model_digest == robot.model_digest
-            )
+        ranked = [
+            self._candidate(robot, d, profiles, st, now) for d in table.views if _usable(robot, d)
         ]
-        ranked = [self._candidate(robot, d, profiles, st, now) for d in usable]
         return sorted(ranked, key=_Candidate.sort_key)
 
     def _update_recovery(
@@ -538,3 +545,88 @@ class Scheduler:
             if now - since >= self.params.recovery_s:
                 del st.left_at[dep]
                 del st.good_since[dep]
+
+
+def _usable(robot: RobotView, dep: DeploymentView) -> bool:
+    """Whether `dep` may serve `robot` at all: alive, not draining, its service, its model."""
+    return (
+        dep.alive
+        and not dep.draining
+        and dep.service == robot.service
+        and (
+            robot.model_digest is None
+            or dep.model_digest is None
+            or dep.model_digest == robot.model_digest
+        )
+    )
+
+
+class _Targets:
+    """Where a robot that is not forced to move could go: deployments other than its current
+    one, usable, neither penalized nor full, with a confident prediction below a limit, at most
+    `max_tier` (0: meeting the bound). `ranked` lists them all in rank order, as a decision
+    needs them (the switch falls back along the list); `best` finds only the first of that list,
+    visiting deployments by ascending probe statistic and stopping as soon as no later one can
+    come first: a prediction is the statistic scaled up by load, never down, so a statistic at
+    the limit, above the bound (for tier 0) or above the best prediction so far ends the search.
+    Among these candidates the rank is by prediction, then utilization, then id (the tier follows
+    the prediction: meeting the bound is a prediction at most the bound).
+    """
+
+    __slots__ = ("_current", "_now", "_profiles", "_robot", "_scheduler", "_st", "_table")
+
+    def __init__(
+        self,
+        scheduler: Scheduler,
+        robot: RobotView,
+        current: DeploymentView,
+        table: DeploymentTable,
+        profiles: Profiles,
+        st: _RobotState,
+        now: float,
+    ) -> None:
+        self._scheduler = scheduler
+        self._robot = robot
+        self._current = current
+        self._table = table
+        self._profiles = profiles
+        self._st = st
+        self._now = now
+
+    def _accepts(self, c: _Candidate, limit: float, max_tier: int) -> bool:
+        return (
+            c.deployment.id != self._current.id
+            and c.tier <= max_tier
+            and c.confident_s is not None
+            and c.confident_s < limit
+        )
+
+    def ranked(self, limit: float, max_tier: int) -> list[_Candidate]:
+        """Every target, best first (ranks every deployment)."""
+        sched = self._scheduler
+        every = sched._rank(self._robot, self._table, self._profiles, self._st, self._now)
+        return [c for c in every if self._accepts(c, limit, max_tier)]
+
+    def best(self, limit: float, max_tier: int) -> _Candidate | None:
+        """The first of `ranked(limit, max_tier)`, or None when there is none."""
+        sched, bound = self._scheduler, self._scheduler.bound
+        best: _Candidate | None = None
+        for value, dep_id in self._profiles.ascending(bound.stat):
+            if value >= limit or (max_tier == 0 and value > bound.seconds):
+                break
+            if best is not None and best.predicted_s is not None and value > best.predicted_s:
+                break
+            dep = self._table.by_id.get(dep_id)
+            if (
+                dep is None
+                or dep_id in self._st.left_at
+                or dep.full
+                or not _usable(self._robot, dep)
+            ):
+                continue  # a penalized or full deployment ranks in tier 2, never a target here
+            c = sched._candidate(self._robot, dep, self._profiles, self._st, self._now)
+            if self._accepts(c, limit, max_tier) and (
+                best is None or c.sort_key() < best.sort_key()
+            ):
+                best = c
+        return best

@@ -1,0 +1,63 @@
+"""Probe profiles as the scheduler takes them: one snapshot per robot and source, kept until one
+of its windows changes (so what the scheduler derives from it is computed once per change, not
+once per round), statistics made only when looked up and equal to a window's own, deployments
+listed by ascending statistic; windows hold their samples in a ring."""
+
+from __future__ import annotations
+
+import pytest
+
+from registry.latency import LatencyWindow, LatencyWindows, Profiles, Source, Stat, WindowStats
+
+
+def test_the_snapshot_is_kept_until_one_of_its_windows_changes() -> None:
+    table = LatencyWindows(size=4)
+    table.add("r1", "edge-1", Source.PROBE, 0.02, at=1.0)
+    table.add("r1", "edge-2", Source.PROBE, 0.03, at=1.0)
+    first = table.profiles("r1")
+    assert table.profiles("r1") is first
+    table.add("r1", "edge-1", Source.TELEMETRY, 0.5, at=2.0)
+    table.add("r2", "edge-1", Source.PROBE, 0.9, at=2.0)
+    assert table.profiles("r1") is first, "another source or robot changes nothing here"
+    table.add("r1", "edge-2", Source.PROBE, 0.05, at=2.0)
+    second = table.profiles("r1")
+    assert second is not first
+    assert second["edge-2"].median == pytest.approx(0.04)
+    assert first["edge-2"].median == 0.03, "an old snapshot does not change under its holder"
+    table.drop_deployment("edge-1")
+    assert set(table.profiles("r1")) == {"edge-2"}
+    table.drop_robot("r1")
+    assert table.profiles("r1") == {}
+
+
+def test_lazy_statistics_equal_the_windows_own() -> None:
+    table = LatencyWindows(size=5)
+    for i, value in enumerate([0.09, 0.01, 0.05, 0.05, 0.3, 0.02]):
+        table.add("r1", "edge-1", Source.PROBE, value, at=float(i))
+    window = table.window("r1", "edge-1", Source.PROBE)
+    assert table.profiles("r1")["edge-1"] == window.stats()
+    assert window.samples() == (0.01, 0.05, 0.05, 0.3, 0.02), "oldest first, the first fell out"
+
+
+@pytest.mark.parametrize("stat", list(Stat))
+def test_ascending_orders_by_the_statistic_then_by_id(stat: Stat) -> None:
+    stats = {
+        "edge-b": WindowStats.of([0.02, 0.04], last_at=0.0),
+        "edge-a": WindowStats.of([0.02, 0.04], last_at=0.0),
+        "edge-c": WindowStats.of([0.01], last_at=0.0),
+    }
+    profiles = Profiles(stats)
+    expected = sorted((s.value(stat), dep) for dep, s in stats.items())
+    assert list(profiles.ascending(stat)) == expected
+    assert [dep for _, dep in profiles.ascending(Stat.MEDIAN)] == ["edge-c", "edge-a", "edge-b"]
+
+
+def test_a_window_ring_keeps_the_last_samples_in_order_and_clears() -> None:
+    window = LatencyWindow(3)
+    window.extend([1.0, 2.0, 3.0, 4.0, 5.0], at=9.0)
+    assert window.samples() == (3.0, 4.0, 5.0) and len(window) == 3
+    assert window.sorted_samples() == ((3.0, 4.0, 5.0), 9.0)
+    window.clear()
+    assert window.samples() == () and window.stats() is None and window.sorted_samples() is None
+    window.add(7.0, at=10.0)
+    assert window.samples() == (7.0,)
