@@ -596,6 +596,8 @@ class RegistryDaemon(Daemon):
             timeouts=measures.timeouts,
             timeouts_on=measures.timeouts_on,
             model_digest=self._parts.registrar.robot_digest(robot),
+            busy=measures.busy,
+            offloaded=measures.offloaded,
         )
         decision = self.scheduler.evaluate(view, deployments, measures.profiles)
         if decision is None:

@@ -19,6 +19,10 @@ counted against the deployment that was meant to serve it. Windows are persisted
 (only those that changed since, each with the wall clock of its newest sample) and come back with
 `restore`, keeping their age: the scheduler ignores probe windows older than its limit, across a
 restart too. Loads from probe reports are written to the RIB by `flush_loads`, not on every report.
+
+`busy` replies are a scheduling signal too: of the last `busy_window` frames a robot offloaded to
+its route's deployment, the scheduler sees how many were refused `busy` (`RobotMeasures.busy`
+out of `offloaded`); the count restarts when the route changes.
 """
 
 from __future__ import annotations
@@ -26,6 +30,7 @@ from __future__ import annotations
 import math
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -42,16 +47,22 @@ Route = tuple[str | None, int]
 
 NO_ROUTE: Route = (None, 0)
 
+DEFAULT_BUSY_WINDOW = 20
+"""Frames offloaded to the route's deployment over which the share refused `busy` is counted."""
+
 
 @dataclass(frozen=True)
 class RobotMeasures:
     """What the scheduler needs about one robot: the telemetry window of its route, its
-    consecutive failures (and the deployment they were against), its probe profiles."""
+    consecutive failures (and the deployment they were against), its probe profiles, and of its
+    last frames offloaded to its route (`offloaded`) how many were refused `busy`."""
 
     telemetry: WindowStats | None
     timeouts_on: str | None
     timeouts: int
     profiles: Profiles
+    busy: int = 0
+    offloaded: int = 0
 
 
 @dataclass(frozen=True)
@@ -91,8 +102,12 @@ class Measurements:
         on_bad_sample: Callable[[str, str], None],
         clock: Callable[[], float] = time.monotonic,
         wall_clock: Callable[[], float] = time.time,
+        busy_window: int = DEFAULT_BUSY_WINDOW,
     ) -> None:
+        if busy_window < 1:
+            raise ValueError(f"busy_window must be at least 1 frame, got {busy_window}")
         self.deadline_s = deadline_s
+        self.busy_window = busy_window
         self.timeout_count = timeout_count
         self._on_bad_sample = on_bad_sample
         self._clock = clock
@@ -107,6 +122,8 @@ class Measurements:
         self._last_telemetry: dict[str, float] = {}
         self._routes: dict[str, Route] = {}
         self._loads: dict[str, tuple[int, int | None]] = {}  # from probe reports, not yet saved
+        # robot -> its last frames offloaded to its route, True for a `busy` refusal.
+        self._busy: dict[str, deque[bool]] = {}
 
     # -- feeding (Zenoh callback threads) --------------------------------------------------------
     def record_telemetry(self, rec: TelemetryRecord, key: str) -> bool:
@@ -123,6 +140,8 @@ class Measurements:
                 return False  # computed on the robot: says nothing about any deployment
             route = self._routes.get(robot, NO_ROUTE)[0]
             remote_s = rec.transfer_s + rec.cloud_s
+            if route is not None and (rec.deployment == route or rec.deployment is None):
+                self._note_busy(robot, rec)
             if not rec.fallback and rec.deployment is not None:
                 self._add(robot, rec.deployment, Source.TELEMETRY, remote_s, now, key, problems)
                 if rec.deployment == route:
@@ -142,6 +161,19 @@ class Measurements:
                     reroute = True
         self._report(problems)
         return reroute
+
+    def _note_busy(self, robot: str, rec: TelemetryRecord) -> None:
+        """Count one frame offloaded to the route in the robot's busy window (the lock is held):
+        answered, or refused `busy`. Other failures say nothing about room at the deployment."""
+        busy = rec.fallback and rec.reason is FallbackReason.BUSY
+        if rec.fallback and not busy:
+            return
+        if not busy and rec.deployment is None:
+            return
+        window = self._busy.get(robot)
+        if window is None:
+            window = self._busy[robot] = deque(maxlen=self.busy_window)
+        window.append(busy)
 
     def record_probe_report(self, rep: ProbeReport, key: str) -> None:
         """Account for one probe report published on `key`."""
@@ -200,6 +232,7 @@ class Measurements:
                     self._windows.window(robot, deployment, Source.TELEMETRY).clear()
                 self._timeouts.pop(robot, None)
                 self._reroute_asked.discard(robot)
+                self._busy.pop(robot, None)
 
     def force_timeouts(self, robot: str, deployment: str, reported: int) -> None:
         """The robot asked to leave `deployment` after `reported` consecutive timeouts: count at
@@ -214,6 +247,7 @@ class Measurements:
             self._forget_saved(lambda wkey: wkey[0] == robot)
             self._timeouts.pop(robot, None)
             self._reroute_asked.discard(robot)
+            self._busy.pop(robot, None)
 
     def forget_deployment(self, deployment: str) -> None:
         """A deployment left: a returning process starts clean."""
@@ -232,7 +266,10 @@ class Measurements:
             telemetry = self._windows.stats(robot, route, Source.TELEMETRY) if route else None
             timeouts_on, timeouts = self._timeouts.get(robot, (None, 0))
             profiles = self._windows.profiles(robot, Source.PROBE)
-        return RobotMeasures(telemetry, timeouts_on, timeouts, profiles)
+            window = self._busy.get(robot)
+            busy = sum(window) if window else 0
+            offloaded = len(window) if window else 0
+        return RobotMeasures(telemetry, timeouts_on, timeouts, profiles, busy, offloaded)
 
     def robot_status(self, robot: str, route: str | None) -> RobotStatus:
         """What the robots view shows of the robot, `route` being its deployment."""

@@ -12,8 +12,17 @@ Triggers, in order:
 3. the robot reports `timeout_count` consecutive timeouts against its deployment (`timeouts`);
 4. the latency bound is violated by the robot's telemetry window for `hysteresis_s` without a break
    (`bound_violation`);
-5. another deployment is predicted better by `better_margin` for `improve_hold_s` (`better`).
-1–3 act at once; 4 and 5 wait out `min_dwell_s` after the robot's last move.
+5. more than `busy_share` of the robot's last frames offloaded to its deployment (at least
+   `busy_min_frames` of them) were refused `busy`, for `hysteresis_s` without a break (`busy`);
+6. another deployment is predicted better by `better_margin` for `improve_hold_s` (`better`).
+1–3 act at once; 4–6 wait out `min_dwell_s` after the robot's last move.
+
+A move for `busy` goes only to a deployment with room to spare: not full, at most
+`1 - busy_headroom` of its capacity taken, and no other robot moved there for `busy` within
+`busy_arrival_gap_s` (loads are sampled every few seconds: without the gap a whole round's busy
+robots would pile onto the same deployment before its load shows them). The deployment left for
+`busy` is not a target of a move by choice (`busy`, `bound_violation`, `better`) for
+`flap_window_s`, so robots that found room do not drift back and forth.
 
 Choice: among live, non-draining deployments of the robot's service, those whose recent probe
 profile (load-adjusted) meets the bound rank first, lowest predicted latency first; then the others
@@ -52,6 +61,10 @@ DEFAULT_MIN_PROBE_SAMPLES = 3
 DEFAULT_LOAD_WEIGHT = 1.0
 DEFAULT_RETRY_BACKOFF_S = 1.0
 DEFAULT_FLAP_WINDOW_S = 60.0
+DEFAULT_BUSY_SHARE = 0.05
+DEFAULT_BUSY_MIN_FRAMES = 10
+DEFAULT_BUSY_HEADROOM = 0.25
+DEFAULT_BUSY_ARRIVAL_GAP_S = 2.0
 
 
 class Reason(str, Enum):
@@ -63,6 +76,7 @@ class Reason(str, Enum):
     TIMEOUTS = "timeouts"
     BOUND_VIOLATION = "bound_violation"
     BETTER = "better"
+    BUSY = "busy"
 
 
 # Triggers that cannot wait: the robot is (or will soon be) without a working deployment.
@@ -85,6 +99,10 @@ class SchedulerParams:
     load_weight: float = DEFAULT_LOAD_WEIGHT
     retry_backoff_s: float = DEFAULT_RETRY_BACKOFF_S
     flap_window_s: float = DEFAULT_FLAP_WINDOW_S
+    busy_share: float = DEFAULT_BUSY_SHARE
+    busy_min_frames: int = DEFAULT_BUSY_MIN_FRAMES
+    busy_headroom: float = DEFAULT_BUSY_HEADROOM
+    busy_arrival_gap_s: float = DEFAULT_BUSY_ARRIVAL_GAP_S
 
     def __post_init__(self) -> None:
         for name in (
@@ -94,6 +112,7 @@ class SchedulerParams:
             "load_weight",
             "retry_backoff_s",
             "flap_window_s",
+            "busy_arrival_gap_s",
         ):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
@@ -102,7 +121,11 @@ class SchedulerParams:
             raise ValueError(
                 f"scheduler profile_max_age_s must be > 0, got {self.profile_max_age_s!r}"
             )
-        for name in ("timeout_count", "min_samples", "min_probe_samples"):
+        for name in ("busy_share", "busy_headroom"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and 0 <= value < 1):
+                raise ValueError(f"scheduler {name} must be a share in [0, 1), got {value!r}")
+        for name in ("timeout_count", "min_samples", "min_probe_samples", "busy_min_frames"):
             if getattr(self, name) < 1:
                 raise ValueError(f"scheduler {name} must be at least 1, got {getattr(self, name)}")
 
@@ -129,6 +152,11 @@ class DeploymentView:
         """True when every worker and queue slot is taken (it would answer `busy`)."""
         return self.capacity > 0 and self.load >= self.capacity
 
+    def has_room(self, headroom: float) -> bool:
+        """Not full, and at most `1 - headroom` of the capacity taken (unknown capacity: no
+        load reported, so nothing says it is short of room)."""
+        return not self.full and self.load <= self.capacity * (1 - headroom)
+
 
 class DeploymentTable:
     """The deployments as one scheduling round sees them, indexed once.
@@ -150,7 +178,8 @@ class RobotView:
     """What the scheduler needs to know about one robot.
 
     `telemetry` is the window of frames answered by the serving deployment; `timeouts` counts the
-    robot's consecutive timeouts against `timeouts_on` (None: its current route).
+    robot's consecutive timeouts against `timeouts_on` (None: its current route); of its last
+    `offloaded` frames to its route, `busy` were refused for want of room.
     """
 
     id: str
@@ -160,6 +189,8 @@ class RobotView:
     timeouts: int = 0
     timeouts_on: str | None = None
     model_digest: str | None = None
+    busy: int = 0
+    offloaded: int = 0
 
 
 @dataclass(frozen=True)
@@ -217,11 +248,13 @@ class _Candidate:
 class _RobotState:
     last_switch_at: float | None = None
     violation_since: float | None = None
+    busy_since: float | None = None
     better_since: float | None = None
     better_target: str | None = None
     failed_at: float | None = None
     violation_move_at: float | None = None
     left_at: dict[str, float] = field(default_factory=dict)
+    left_busy: dict[str, float] = field(default_factory=dict)
     good_since: dict[str, float] = field(default_factory=dict)
 
 
@@ -239,6 +272,8 @@ class Scheduler:
         self.params = params if params is not None else SchedulerParams()
         self._clock = clock
         self._robots: dict[str, _RobotState] = {}
+        # deployment -> when a robot was last moved there for `busy` (the arrival gap).
+        self._busy_arrivals: dict[str, float] = {}
 
     # -- memory --------------------------------------------------------------------------------
     def record_switch(
@@ -249,9 +284,15 @@ class Scheduler:
         st = self._state(robot)
         st.last_switch_at = now
         st.violation_since = None
+        st.busy_since = None
         st.better_since = None
         st.better_target = None
         st.failed_at = None
+        if Reason(reason) is Reason.BUSY:
+            if from_deployment is not None:
+                st.left_busy[from_deployment] = now
+            if to_deployment is not None:
+                self._busy_arrivals[to_deployment] = now
         if Reason(reason) is Reason.BOUND_VIOLATION:
             st.violation_move_at = now
         if from_deployment is not None and Reason(reason) in PENALIZING_REASONS:
@@ -260,6 +301,7 @@ class Scheduler:
         if to_deployment is not None:
             # A forced move may have had to pick a penalized deployment: it is the route now.
             st.left_at.pop(to_deployment, None)
+            st.left_busy.pop(to_deployment, None)
             st.good_since.pop(to_deployment, None)
 
     def record_failure(self, robot: str) -> None:
@@ -274,6 +316,19 @@ class Scheduler:
         """Deployments the robot left for being slow and that have not recovered yet."""
         st = self._robots.get(robot)
         return frozenset(st.left_at) if st else frozenset()
+
+    def _avoided(self, st: _RobotState, deployment: str, now: float) -> bool:
+        """Whether a move by choice must not go to `deployment`: left for being slow and not
+        recovered, or left for `busy` within flap_window_s."""
+        if deployment in st.left_at:
+            return True
+        left = st.left_busy.get(deployment)
+        if left is None:
+            return False
+        if now - left < self.params.flap_window_s:
+            return True
+        del st.left_busy[deployment]
+        return False
 
     def _state(self, robot: str) -> _RobotState:
         st = self._robots.get(robot)
@@ -328,6 +383,7 @@ class Scheduler:
             return None
         if forced is not None:
             st.violation_since = None
+            st.busy_since = None
             st.better_since = None
             return self._forced(robot, forced, self._rank(robot, table, snapshot, st, now))
 
@@ -346,6 +402,14 @@ class Scheduler:
                 return self._on_violation(robot, current, targets, own, recent)
             return None
         st.violation_since = None
+        if self._refused_busy(robot):
+            st.better_since = None
+            if st.busy_since is None:
+                st.busy_since = now
+            if now - st.busy_since >= self.bound.hysteresis_s and self._dwelt(st, now):
+                return self._on_busy(robot, current, table, snapshot, st, now)
+            return None
+        st.busy_since = None
         reference = self._reference(robot, current, snapshot, st, now)
         return self._on_improvement(robot, current, targets, reference, st, now)
 
@@ -399,6 +463,38 @@ class Scheduler:
             from_deployment=current.id,
             to_deployment=ranked[0].deployment.id,
             reason=Reason.BOUND_VIOLATION,
+            candidates=tuple(c.deployment.id for c in ranked),
+            predicted_s=ranked[0].predicted_s,
+        )
+
+    def _on_busy(
+        self,
+        robot: RobotView,
+        current: DeploymentView,
+        table: DeploymentTable,
+        profiles: Profiles,
+        st: _RobotState,
+        now: float,
+    ) -> Decision | None:
+        # Any deployment with room beats frames finished on the robot, but one predicted to meet
+        # the bound ranks first: _rank orders by tier, then prediction, then utilization.
+        gap = self.params.busy_arrival_gap_s
+        ranked = [
+            c
+            for c in self._rank(robot, table, profiles, st, now)
+            if c.deployment.id != current.id
+            and c.tier <= 1
+            and not self._avoided(st, c.deployment.id, now)
+            and c.deployment.has_room(self.params.busy_headroom)
+            and now - self._busy_arrivals.get(c.deployment.id, -math.inf) >= gap
+        ]
+        if not ranked:
+            return None
+        return Decision(
+            robot=robot.id,
+            from_deployment=current.id,
+            to_deployment=ranked[0].deployment.id,
+            reason=Reason.BUSY,
             candidates=tuple(c.deployment.id for c in ranked),
             predicted_s=ranked[0].predicted_s,
         )
@@ -465,6 +561,13 @@ class Scheduler:
             return None
         return tele.value(self.bound.stat)
 
+    def _refused_busy(self, robot: RobotView) -> bool:
+        """More than busy_share of enough recent frames to the route were refused `busy`."""
+        return (
+            robot.offloaded >= self.params.busy_min_frames
+            and robot.busy > self.params.busy_share * robot.offloaded
+        )
+
     def _violating(self, robot: RobotView) -> bool:
         observed = self._observed(robot)
         return observed is not None and observed > self.bound.seconds
@@ -501,7 +604,7 @@ class Scheduler:
             deployment=dep,
             predicted_s=predicted,
             meets=predicted is not None and predicted <= self.bound.seconds,
-            penalized=dep.id in st.left_at,
+            penalized=self._avoided(st, dep.id, now),
             thin=stats is not None and stats.count < self.params.min_probe_samples,
         )
 
@@ -619,7 +722,7 @@ class _Targets:
             dep = self._table.by_id.get(dep_id)
             if (
                 dep is None
-                or dep_id in self._st.left_at
+                or sched._avoided(self._st, dep_id, now=self._now)
                 or dep.full
                 or not _usable(self._robot, dep)
             ):
