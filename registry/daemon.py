@@ -20,19 +20,20 @@ Each step hands what it made to the lifecycle (`hold`, `on_release`, `announce`)
 it all at shutdown in reverse order, the token first, also after a failed startup.
 
 Threads. Every Zenoh callback is `guarded` and short: membership changes, drain and reroute
-requests are queued for the control loop; telemetry and probe reports only update the
-measurements (`registry.measurements`, under their own lock); the read-only views
-(`registry.views`) and `reg/register` are answered on the callback thread. Probing deployments
-(registration, and a load refresh every few seconds) runs on the prober's pool
-(`registry.prober`), which queues each outcome. The control loop (the main thread) is the only
-one that decides and switches: it handles queued events at once and runs the scheduler every
-`tick_s` (~100 ms).
+requests (`registry.requests`) are queued for the control loop; telemetry and probe reports
+(read by `registry.publications`) only update the measurements (`registry.measurements`, under
+their own lock); the read-only views (`registry.views`) and `reg/register` are answered on the
+callback thread. Probing deployments (registration, and a load refresh every few seconds) runs on
+the prober's pool (`registry.prober`), which queues each outcome. The control loop (the main
+thread) is the only one that decides and switches: it handles queued events at once and runs the
+scheduler every `tick_s` (~100 ms).
 
 Decisions. A robot with no live route gets one: its restored route if that deployment is alive
 (re-asserted at the same epoch, so a cloud daemon restarted meanwhile declares the key again),
-else initial_policy's service machine if alive, else the scheduler's choice. A deployment whose
-token disappears, or a robot reporting `timeout_count` consecutive timeouts (in telemetry or by a
-`reg/reroute` request), is handled at once; bound violations and improvements wait out the
+else initial_policy's service machine if alive, else the scheduler's choice (what it is asked
+with: `registry.round_inputs`). A deployment whose token disappears, or a robot reporting
+`timeout_count` consecutive timeouts (in telemetry or by a `reg/reroute` request), is handled at
+once; bound violations and improvements wait out the
 scheduler's hysteresis. After a restart, a route whose deployment has not reconnected yet is left
 alone for `restore_grace_s` (peers retry their connection to the router every few seconds).
 
@@ -55,10 +56,10 @@ import logging
 import queue
 import threading
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any
 
 import zenoh
 
@@ -68,29 +69,30 @@ from common.daemon import Daemon
 from common.file_safety import check_private_file
 from common.membership import MemberChange, MembershipView
 from common.session import open_session
-from common.wire import ErrorCode, ErrorReply, Message, WireError
 from common.wire import registry as msg
 from common.wire.telemetry import ProbeReport, TelemetryRecord
 from registry.latency import LatencyBound
 from registry.measurements import Measurements
 from registry.prober import Probed, Prober
+from registry.publications import PublicationReader
 from registry.refusals import Refusals
 from registry.registration import Registrar, RegistrationState, Role, fleet_model_digest
-from registry.replies import answer, check_size, decode_query, error_payload, refusal
-from registry.rib import MEMORY, DeploymentRow, Rib, RobotRow, RouteRow
-from registry.scheduler import (
-    Decision,
-    DeploymentTable,
-    DeploymentView,
-    Reason,
-    RobotView,
-    Scheduler,
-    SchedulerParams,
+from registry.replies import answer, answer_error, error_payload
+from registry.requests import (
+    QueuedRequest,
+    RequestQueue,
+    drain,
+    refuse_queued,
+    reroute,
+    route_change,
 )
+from registry.rib import MEMORY, Rib, RobotRow, RouteRow
+from registry.round_inputs import deployment_table, prefer_initial, robot_view, waiting_for
+from registry.scheduler import DeploymentTable, Reason, RouteDecision, Scheduler, SchedulerParams
 from registry.switch import (
     CTL_TIMEOUT_S,
-    Outcome,
     Switcher,
+    SwitchOutcome,
     SwitchResult,
     TransportError,
     carry_out,
@@ -109,7 +111,6 @@ RESTORE_GRACE_S = 5.0
 # How long the membership's seeding get waits for replies (it returns earlier once every peer
 # answered; tokens it misses still come through the subscriber's history).
 MEMBERSHIP_SEED_TIMEOUT_S = 0.5
-STOPPING_REASON = "the registry is stopping"
 
 
 # -- events for the control loop (besides MemberChange and Probed) ------------------------------
@@ -118,15 +119,7 @@ class _Evaluate:
     robot: str
 
 
-@dataclass(frozen=True)
-class _Request:
-    message: Message
-    query: zenoh.Query
-    key: str  # the queryable's own key: replies go there (the query's may hold wildcards)
-
-
-_Event = MemberChange | Probed | _Evaluate | _Request
-_Published = TypeVar("_Published", TelemetryRecord, ProbeReport)
+_Event = MemberChange | Probed | _Evaluate | QueuedRequest
 
 
 @dataclass(frozen=True)
@@ -186,6 +179,12 @@ class RegistryDaemon(Daemon):
         )
 
         self._events: queue.Queue[_Event] = queue.Queue()
+        self._publications = PublicationReader(
+            self.refusals, self._bad_input, max_bytes=self.max_request_bytes
+        )
+        self._requests = RequestQueue(
+            self.fleet, self._events.put, max_request_bytes=self.max_request_bytes
+        )
         # Control-loop state (only the control loop touches these).
         self._confirmed: set[str] = set()  # robots whose route was confirmed in this run
         self._started_at = 0.0
@@ -240,7 +239,7 @@ class RegistryDaemon(Daemon):
         prober = Prober(transport, self.id, self._events.put, self.closing)
         self.on_release(prober.close, what="probe pool")
         # After the queryables are gone: what they queued gets a refusal instead of a timeout.
-        self.on_release(self._answer_pending, what="queued requests")
+        self.on_release(refuse_queued, self._events, what="queued requests")
         self._started = _Started(
             session=session,
             rib=rib,
@@ -295,16 +294,21 @@ class RegistryDaemon(Daemon):
             (
                 "reroute",
                 keys.reg_reroute(fleet),
-                self._on_reroute,
+                self._requests.on_reroute,
                 lambda _q: keys.reg_reroute(fleet),
             ),
-            ("drain", keys.reg_drain(fleet), self._on_drain, lambda _q: keys.reg_drain(fleet)),
+            (
+                "drain",
+                keys.reg_drain(fleet),
+                self._requests.on_drain,
+                lambda _q: keys.reg_drain(fleet),
+            ),
         ]
         for name, key, handler, reply_key in queryables:
             callback = self.guarded(
                 handler,
                 what=f"a query on {key}",
-                on_error=functools.partial(self._answer_error, name, reply_key),
+                on_error=functools.partial(answer_error, self.refusals, name, reply_key),
                 drop_when_closing=True,
             )
             self.hold(session.declare_queryable(key, callback), f"queryable {key}")
@@ -363,57 +367,19 @@ class RegistryDaemon(Daemon):
         self._events.put(change)
 
     def _on_telemetry(self, sample: zenoh.Sample) -> None:
-        rec = self._publication(sample, TelemetryRecord, "telemetry")
+        rec = self._publications.read(sample, TelemetryRecord, "telemetry")
         if rec is not None and self.measurements.record_telemetry(rec, str(sample.key_expr)):
             self._events.put(_Evaluate(rec.robot))
 
     def _on_probe_report(self, sample: zenoh.Sample) -> None:
-        rep = self._publication(sample, ProbeReport, "probe report")
+        rep = self._publications.read(sample, ProbeReport, "probe report")
         if rep is not None:
             self.measurements.record_probe_report(rep, str(sample.key_expr))
-
-    def _publication(
-        self, sample: zenoh.Sample, kind: type[_Published], what: str
-    ) -> _Published | None:
-        """A robot's publication about itself (the key's robot must be the message's), or None
-        once a bad one is logged."""
-        key = str(sample.key_expr)
-        try:
-            data = sample.payload.to_bytes()
-            check_size(data, self.max_request_bytes, what)
-            message = kind.from_wire(data, max_bytes=self.max_request_bytes)
-            parts = keys.parse_key(key)
-            if parts is None or parts.id != message.robot:
-                raise WireError(f"{what} of robot {message.robot!r} published on {key}")
-        except WireError as exc:
-            self.refusals.count(what, exc.code)
-            self._bad_input(f"{what} on {key}", str(exc))
-            return None
-        return message
 
     def _bad_input(self, where: str, problem: str) -> None:
         """A dropped publication or sample: one throttled warning, so a misbehaving publisher
         cannot flood the log."""
         self.throttled.warning("ignored bad %s: %s", where, problem)
-
-    def _on_reroute(self, query: zenoh.Query) -> None:
-        request = decode_query(query, msg.RerouteRequest, max_bytes=self.max_request_bytes)
-        self._events.put(_Request(request, query, keys.reg_reroute(self.fleet)))
-
-    def _on_drain(self, query: zenoh.Query) -> None:
-        request = decode_query(query, msg.DrainRequest, max_bytes=self.max_request_bytes)
-        self._events.put(_Request(request, query, keys.reg_drain(self.fleet)))
-
-    def _answer_error(
-        self,
-        name: str,
-        reply_key: Callable[[zenoh.Query], str],
-        query: zenoh.Query,
-        exc: Exception,
-    ) -> None:
-        """Answer a query whose callback failed (`guarded` has logged why), and count it."""
-        self.refusals.count(name, exc.code if isinstance(exc, WireError) else ErrorCode.INTERNAL)
-        answer(query, (reply_key(query), error_payload(exc)))
 
     # -- control loop ----------------------------------------------------------------------------
     def _safely(self, fn: Callable[..., object], *args: Any) -> None:
@@ -434,28 +400,20 @@ class RegistryDaemon(Daemon):
         else:
             self._on_request(event)
 
-    def _on_request(self, event: _Request) -> None:
+    def _on_request(self, event: QueuedRequest) -> None:
         """Act on a queued drain or reroute and answer it (an internal error if acting failed)."""
+        rib, request = self._parts.rib, event.message
         try:
-            if isinstance(event.message, msg.DrainRequest):
-                payload = self._drain(event.message).to_wire()
+            if isinstance(request, msg.DrainRequest):
+                reply = drain(request, rib, self._parts.registrar, self._evaluate)
             else:
-                assert isinstance(event.message, msg.RerouteRequest)
-                payload = self._reroute(event.message).to_wire()
+                assert isinstance(request, msg.RerouteRequest)
+                reply = reroute(request, rib, self.measurements, self._evaluate)
+            payload = reply.to_wire()
         except Exception as exc:
             self.throttled.error("%s: unexpected error in %s", self.name, event.key, exc_info=True)
             payload = error_payload(exc)
         answer(event.query, (event.key, payload))
-
-    def _answer_pending(self) -> None:
-        """Requests still queued at shutdown get a refusal instead of a timeout."""
-        while True:
-            try:
-                event = self._events.get_nowait()
-            except queue.Empty:
-                return
-            if isinstance(event, _Request):
-                answer(event.query, (event.key, refusal(STOPPING_REASON)))
 
     def _on_membership(self, change: MemberChange) -> None:
         rib = self._parts.rib
@@ -519,7 +477,7 @@ class RegistryDaemon(Daemon):
             if route.deployment != deployment or route.robot in self._confirmed:
                 continue
             result = self._parts.switcher.reassert(route.robot)
-            if result.attempts and result.attempts[-1].outcome is Outcome.ACKED:
+            if result.attempts and result.attempts[-1].outcome is SwitchOutcome.ACKED:
                 self._confirmed.add(route.robot)
                 self.measurements.set_route(result.robot, result.deployment, result.epoch)
                 if not result.changed:
@@ -546,28 +504,11 @@ class RegistryDaemon(Daemon):
     # -- decisions -------------------------------------------------------------------------------
     def _schedule_all(self) -> None:
         # One read of the RIB for the round (live robots with their routes, the deployments as
-        # one table), not three per robot: per robot, reading and converting every deployment
-        # made a round grow with robots x deployments (docs/scale.md).
+        # one table), not three per robot (`registry.round_inputs`).
         rib = self._parts.rib
-        deployments = DeploymentTable(_deployment_views(rib.deployments(), frozenset()))
+        deployments = deployment_table(rib.deployments())
         for robot_row, route_row in rib.live_robots():
             self._evaluate(robot_row.id, read=(robot_row, route_row, deployments))
-
-    def _waiting_for(self, robot: str, route: str | None) -> str | None:
-        """The deployment a decision about `robot` should wait for (registration in flight, or a
-        restored route's deployment not reconnected yet), else None."""
-        target = route
-        if target is None and robot in self.cfg.machines:
-            target = self.cfg.initial_service(robot)
-        if target is None:
-            return None
-        registrar = self._parts.registrar
-        if registrar.is_state(target, RegistrationState.PENDING):
-            return target
-        in_grace = time.monotonic() - self._started_at < self.restore_grace_s
-        if not registrar.seen(target) and in_grace:
-            return target
-        return None
 
     def _evaluate(
         self,
@@ -579,32 +520,37 @@ class RegistryDaemon(Daemon):
         """Ask the scheduler about one robot and carry out its decision (control loop only).
         `read`: the robot's row, its route and the deployments as the round read them (else
         they are read here)."""
-        rib = self._parts.rib
+        rib, registrar = self._parts.rib, self._parts.registrar
         if read is None:
-            deployments = DeploymentTable(_deployment_views(rib.deployments(), unusable))
-            read = (rib.robot(robot), rib.route(robot), deployments)
+            read = (
+                rib.robot(robot),
+                rib.route(robot),
+                deployment_table(rib.deployments(), unusable),
+            )
         robot_row, route_row, deployments = read
         current = route_row.deployment if route_row else None
-        if not unusable and self._waiting_for(robot, current) is not None:
-            return None
+        if not unusable:
+            grace_until = self._started_at + self.restore_grace_s
+            if (
+                waiting_for(self.cfg, registrar, robot, current, grace_until=grace_until)
+                is not None
+            ):
+                return None
         measures = self.measurements.for_scheduler(robot, current)
-        view = RobotView(
-            id=robot,
-            service=robot_row.service if robot_row is not None else self.service,
-            route=current,
-            telemetry=measures.telemetry,
-            timeouts=measures.timeouts,
-            timeouts_on=measures.timeouts_on,
-            model_digest=self._parts.registrar.robot_digest(robot),
-            busy=measures.busy,
-            offloaded=measures.offloaded,
+        view = robot_view(
+            robot,
+            robot_row,
+            current,
+            measures,
+            default_service=self.service,
+            model_digest=registrar.robot_digest(robot),
         )
         decision = self.scheduler.evaluate(view, deployments, measures.profiles)
         if decision is None:
             return None
-        return self._carry_out(_prefer_initial(self.cfg, decision))
+        return self._carry_out(prefer_initial(self.cfg, decision))
 
-    def _carry_out(self, decision: Decision) -> SwitchResult:
+    def _carry_out(self, decision: RouteDecision) -> SwitchResult:
         switcher, scheduler = self._parts.switcher, self.scheduler
         if decision.reason is Reason.INITIAL:
             # A placement is not a move: it must not start the scheduler's dwell time, or a
@@ -630,62 +576,9 @@ class RegistryDaemon(Daemon):
             log.warning("route %s not moved (%s): %s", result.robot, decision.reason.value, tried)
         return result
 
-    def _drain(self, request: msg.DrainRequest) -> Message:
-        """Move every robot of a deployment that stops; the reply lists the robots moved."""
-        deployment = request.deployment
-        rib = self._parts.rib
-        if rib.deployment(deployment) is None and self._parts.registrar.get(deployment) is None:
-            return ErrorReply.make(
-                ErrorCode.REFUSED, f"unknown deployment {deployment!r}: it never registered here"
-            )
-        rib.set_deployment_draining(deployment, request.reason or "drain requested")
-        log.info("deployment %s drains: moving its robots", deployment)
-        moved: list[str] = []
-        stuck: list[str] = []
-        for route in rib.routes():
-            if route.deployment != deployment:
-                continue
-            result = self._evaluate(route.robot)
-            if result is not None and result.changed:
-                moved.append(route.robot)
-            else:
-                stuck.append(route.robot)
-        reason = ""
-        if stuck:
-            reason = (
-                f"no other deployment took {', '.join(stuck)}; they compute locally once it stops"
-            )
-            log.warning("drain of %s: %s", deployment, reason)
-        return msg.DrainReply(ok=not stuck, moved=tuple(moved), reason=reason)
-
-    def _reroute(self, request: msg.RerouteRequest) -> Message:
-        """A robot's request for another deployment: answered with its route afterwards."""
-        robot = request.robot
-        rib = self._parts.rib
-        if rib.robot(robot) is None:
-            return ErrorReply.make(
-                ErrorCode.REFUSED, f"unknown robot {robot!r}: its liveliness token was never seen"
-            )
-        route = rib.route(robot)
-        if route is None or route.deployment is None:
-            self._evaluate(robot)
-        elif not 0 < request.epoch < route.epoch:
-            # The route failing the robot is the current one (or the robot does not know which it
-            # holds): a forced move, as after timeouts. An older epoch: it has moved already.
-            self.measurements.force_timeouts(robot, route.deployment, request.consecutive_timeouts)
-            self._evaluate(robot)
-        now = rib.route(robot)
-        moved = now is not None and (route is None or now.epoch != route.epoch)
-        return _route_change(
-            robot,
-            now.deployment if now else None,
-            now.epoch if now else 0,
-            "rerouted" if moved else "current route",
-        )
-
     def _publish(self, robot: str, deployment: str | None, epoch: int, reason: str) -> None:
         try:
-            self._parts.transport.publish_route(_route_change(robot, deployment, epoch, reason))
+            self._parts.transport.publish_route(route_change(robot, deployment, epoch, reason))
         except TransportError as exc:
             log.warning("%s", exc)
 
@@ -698,41 +591,6 @@ def _latency_bound(cfg: FleetConfig) -> LatencyBound:
         window=lb.window,
         hysteresis_s=lb.hysteresis_s,
         better_margin=lb.better_margin,
-    )
-
-
-def _deployment_views(
-    rows: Iterable[DeploymentRow], unusable: frozenset[str]
-) -> list[DeploymentView]:
-    """The scheduler's view of the RIB's deployments; those `unusable` count as dead."""
-    return [
-        DeploymentView(
-            id=row.id,
-            service=row.service,
-            alive=row.alive and row.id not in unusable,
-            draining=row.draining,
-            load=row.load,
-            capacity=row.capacity,
-            model_digest=row.model_digest or None,
-        )
-        for row in rows
-    ]
-
-
-def _prefer_initial(cfg: FleetConfig, decision: Decision) -> Decision:
-    """An initial placement goes to initial_policy's service machine when it can."""
-    if decision.reason is not Reason.INITIAL or decision.robot not in cfg.machines:
-        return decision
-    wanted = cfg.initial_service(decision.robot)
-    if wanted is None or wanted not in decision.candidates:
-        return decision
-    order = (wanted, *(c for c in decision.candidates if c != wanted))
-    return Decision(decision.robot, decision.from_deployment, wanted, decision.reason, order, None)
-
-
-def _route_change(robot: str, deployment: str | None, epoch: int, reason: str) -> msg.RouteChange:
-    return msg.RouteChange(
-        robot=robot, deployment=deployment, epoch=epoch, reason=reason, at=time.time()
     )
 
 

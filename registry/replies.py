@@ -10,6 +10,7 @@ query at once (a querier waits for the final reply), tolerating a querier that w
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from typing import Any
 
 import zenoh
@@ -17,6 +18,7 @@ import zenoh
 from common.session import zenoh_error_text
 from common.wire import ErrorCode, ErrorReply, Message, WireError, decode, error_reply
 from common.wire.errors import PayloadTooLarge
+from registry.refusals import Refusals
 
 log = logging.getLogger(__name__)
 
@@ -69,3 +71,16 @@ def answer(query: zenoh.Query, *replies: tuple[str, bytes]) -> None:
                 query.reply(key, payload)
             except zenoh.ZError as exc:
                 log.debug("cannot reply on %s: %s", key, zenoh_error_text(exc))
+
+
+def answer_error(
+    refusals: Refusals,
+    name: str,
+    reply_key: Callable[[zenoh.Query], str],
+    query: zenoh.Query,
+    exc: Exception,
+) -> None:
+    """Answer a query whose callback failed (the daemon's guard has logged why) on
+    `reply_key(query)`, and count it in `refusals` under `name`."""
+    refusals.count(name, exc.code if isinstance(exc, WireError) else ErrorCode.INTERNAL)
+    answer(query, (reply_key(query), error_payload(exc)))

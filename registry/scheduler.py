@@ -1,10 +1,10 @@
 """The latency-bounded scheduler: decides which deployment should serve each robot.
 
 Pure decision logic, no I/O: the registry daemon hands it a snapshot (the robot's route and
-telemetry window, the live deployments with their load, the robot's probe profiles) and gets back a
-`Decision` or None. It keeps a little memory per robot (when a violation started, when the robot
-last moved, which deployments it left for being slow) so that it can apply hysteresis; time comes
-from an injectable clock so tests run instantly.
+telemetry window, the live deployments with their load, the robot's probe profiles) and gets back
+a `RouteDecision` or None. It keeps a little memory per robot (when a violation started, when the
+robot last moved, which deployments it left for being slow) so that it can apply hysteresis; time
+comes from an injectable clock so tests run instantly.
 
 Triggers, in order:
 1. the robot has no route and a deployment is available (`initial`);
@@ -194,7 +194,7 @@ class RobotView:
 
 
 @dataclass(frozen=True)
-class Decision:
+class RouteDecision:
     """Move `robot` from `from_deployment` to `to_deployment` (None: compute locally).
 
     `candidates` lists acceptable targets best first (`to_deployment` first) so the switch protocol
@@ -342,7 +342,7 @@ class Scheduler:
         robot: RobotView,
         deployments: Sequence[DeploymentView] | DeploymentTable,
         profiles: Mapping[str, WindowStats],
-    ) -> Decision | None:
+    ) -> RouteDecision | None:
         """Decide whether `robot` should move; `profiles` are its probe windows per deployment.
 
         Only a forced move ranks every deployment. A robot that stays (nearly every robot, nearly
@@ -415,10 +415,10 @@ class Scheduler:
 
     def _forced(
         self, robot: RobotView, reason: Reason, ranked: list[_Candidate]
-    ) -> Decision | None:
+    ) -> RouteDecision | None:
         targets = [c for c in ranked if c.deployment.id != robot.route]
         if targets:
-            return Decision(
+            return RouteDecision(
                 robot=robot.id,
                 from_deployment=robot.route,
                 to_deployment=targets[0].deployment.id,
@@ -428,7 +428,7 @@ class Scheduler:
             )
         if reason is Reason.DEPLOYMENT_LOST:
             # Nothing else alive: drop the route so the robot computes locally.
-            return Decision(robot.id, robot.route, None, reason)
+            return RouteDecision(robot.id, robot.route, None, reason)
         # No route and nothing to offer, or the only deployment drains / times out: stay put.
         return None
 
@@ -439,7 +439,7 @@ class Scheduler:
         targets: _Targets,
         own_probe_s: float | None,
         recent_violation_move: bool,
-    ) -> Decision | None:
+    ) -> RouteDecision | None:
         # Targets that meet the bound rank first, then the best available. Either way a target has
         # to be predicted better than what the robot sees by `better_margin`: moving between two
         # equally marginal deployments trades one violation for another and back.
@@ -458,7 +458,7 @@ class Scheduler:
         ranked = targets.ranked(limit, max_tier=1)
         if not ranked:
             return None
-        return Decision(
+        return RouteDecision(
             robot=robot.id,
             from_deployment=current.id,
             to_deployment=ranked[0].deployment.id,
@@ -475,7 +475,7 @@ class Scheduler:
         profiles: Profiles,
         st: _RobotState,
         now: float,
-    ) -> Decision | None:
+    ) -> RouteDecision | None:
         # Any deployment with room beats frames finished on the robot, but one predicted to meet
         # the bound ranks first: _rank orders by tier, then prediction, then utilization.
         gap = self.params.busy_arrival_gap_s
@@ -490,7 +490,7 @@ class Scheduler:
         ]
         if not ranked:
             return None
-        return Decision(
+        return RouteDecision(
             robot=robot.id,
             from_deployment=current.id,
             to_deployment=ranked[0].deployment.id,
@@ -507,7 +507,7 @@ class Scheduler:
         reference: float | None,
         st: _RobotState,
         now: float,
-    ) -> Decision | None:
+    ) -> RouteDecision | None:
         if reference is None:
             st.better_since = None
             return None
@@ -526,7 +526,7 @@ class Scheduler:
         ranked = targets.ranked(limit, max_tier=0)
         if not ranked:
             return None
-        return Decision(
+        return RouteDecision(
             robot=robot.id,
             from_deployment=current.id,
             to_deployment=ranked[0].deployment.id,

@@ -35,7 +35,7 @@ from typing import Protocol
 
 from common.wire.registry import CtlOp, CtlReply, CtlRequest, DeploymentState, RouteChange
 from registry.rib import EventKind, Rib
-from registry.scheduler import Decision, Scheduler
+from registry.scheduler import RouteDecision, Scheduler
 
 CTL_TIMEOUT_S = 0.5
 DEFAULT_SENDER = "registry"
@@ -64,7 +64,7 @@ class SwitchTransport(Protocol):
         ...
 
 
-class Outcome(str, Enum):
+class SwitchOutcome(str, Enum):
     """How one service request ended."""
 
     ACKED = "acked"
@@ -80,7 +80,7 @@ class Attempt:
 
     deployment: str
     epoch: int
-    outcome: Outcome
+    outcome: SwitchOutcome
     detail: str = ""
 
 
@@ -99,7 +99,7 @@ class SwitchResult:
 
 @dataclass(frozen=True)
 class _Answer:
-    outcome: Outcome
+    outcome: SwitchOutcome
     detail: str
     newer_epoch: int | None = None
 
@@ -125,7 +125,7 @@ class Switcher:
         # Wall clock of published route changes (`RouteChange.at`), like the RIB's times.
         self._clock = clock
 
-    def apply(self, decision: Decision) -> SwitchResult:
+    def apply(self, decision: RouteDecision) -> SwitchResult:
         """Carry out a scheduler decision; a decision about a route that changed meanwhile is
         dropped unchanged."""
         route = self.rib.route(decision.robot)
@@ -166,7 +166,7 @@ class Switcher:
                 epoch = self._epoch_past(robot, deployment, answer.newer_epoch)
                 answer = self._request(deployment, self._ctl(CtlOp.SERVICE, robot, epoch, reason))
             attempts.append(Attempt(deployment, epoch, answer.outcome, answer.detail))
-            if answer.outcome is Outcome.ACKED:
+            if answer.outcome is SwitchOutcome.ACKED:
                 return self._commit(robot, previous, deployment, epoch, reason, failed, attempts)
             failed.append(deployment)
             self.rib.record_event(
@@ -212,17 +212,17 @@ class Switcher:
         deployment, epoch = route.deployment, route.epoch
         answer = self._request(deployment, self._ctl(CtlOp.SERVICE, robot, epoch, reason))
         attempts = [Attempt(deployment, epoch, answer.outcome, answer.detail)]
-        if answer.outcome is Outcome.REFUSED:
+        if answer.outcome is SwitchOutcome.REFUSED:
             epoch = self._epoch_past(robot, deployment, answer.newer_epoch)
             answer = self._request(deployment, self._ctl(CtlOp.SERVICE, robot, epoch, reason))
             attempts.append(Attempt(deployment, epoch, answer.outcome, answer.detail))
-            if answer.outcome is Outcome.ACKED:
+            if answer.outcome is SwitchOutcome.ACKED:
                 self.rib.set_route(robot, deployment, epoch, reason)
                 self._publish(self._change(robot, deployment, epoch, reason))
                 return SwitchResult(
                     robot, deployment, deployment, epoch, True, reason, tuple(attempts)
                 )
-        if answer.outcome is Outcome.ACKED:
+        if answer.outcome is SwitchOutcome.ACKED:
             return SwitchResult(
                 robot, deployment, deployment, epoch, False, reason, tuple(attempts)
             )
@@ -301,7 +301,7 @@ class Switcher:
             self.rib.set_deployment_state(deployment, robot, DeploymentState.STANDBY, epoch)
             return
         answer = self._request(deployment, self._ctl(CtlOp.STANDBY, robot, epoch, STANDBY_REASON))
-        if answer.outcome is Outcome.ACKED:
+        if answer.outcome is SwitchOutcome.ACKED:
             self.rib.set_deployment_state(deployment, robot, DeploymentState.STANDBY, epoch)
         else:
             self.rib.record_event(
@@ -337,33 +337,35 @@ class Switcher:
         try:
             reply = self.transport.send_ctl(deployment, request, self.ctl_timeout_s)
         except TransportError as exc:
-            return _Answer(Outcome.ERROR, str(exc))
+            return _Answer(SwitchOutcome.ERROR, str(exc))
         if reply is None:
-            return _Answer(Outcome.TIMEOUT, f"no reply within {self.ctl_timeout_s:g} s")
+            return _Answer(SwitchOutcome.TIMEOUT, f"no reply within {self.ctl_timeout_s:g} s")
         if (reply.deployment, reply.robot) != (deployment, request.robot):
             return _Answer(
-                Outcome.STALE,
+                SwitchOutcome.STALE,
                 f"reply is for {reply.deployment}/{reply.robot}, not {deployment}/{request.robot}",
             )
         if not reply.ok:
             # A refusal carries the deployment's own state and epoch, whatever was asked.
             if reply.epoch > request.epoch:
                 return _Answer(
-                    Outcome.REFUSED,
+                    SwitchOutcome.REFUSED,
                     f"refused epoch {request.epoch}: deployment knows epoch {reply.epoch}",
                     newer_epoch=reply.epoch,
                 )
-            return _Answer(Outcome.REFUSED, reply.reason or "refused")
+            return _Answer(SwitchOutcome.REFUSED, reply.reason or "refused")
         expected = _ACKED_STATE[request.op]
         state = reply.state.value if isinstance(reply.state, Enum) else reply.state
         if state != expected.value:
-            return _Answer(Outcome.STALE, f"ack for state {state}, expected {expected.value}")
+            return _Answer(SwitchOutcome.STALE, f"ack for state {state}, expected {expected.value}")
         if reply.epoch != request.epoch:
-            return _Answer(Outcome.STALE, f"ack for epoch {reply.epoch}, expected {request.epoch}")
-        return _Answer(Outcome.ACKED, "")
+            return _Answer(
+                SwitchOutcome.STALE, f"ack for epoch {reply.epoch}, expected {request.epoch}"
+            )
+        return _Answer(SwitchOutcome.ACKED, "")
 
 
-def carry_out(scheduler: Scheduler, switcher: Switcher, decision: Decision) -> SwitchResult:
+def carry_out(scheduler: Scheduler, switcher: Switcher, decision: RouteDecision) -> SwitchResult:
     """Apply a decision and tell the scheduler how it went (the daemon's glue, in one place)."""
     result = switcher.apply(decision)
     if result.changed:

@@ -11,10 +11,10 @@ import pytest
 
 from registry.latency import LatencyBound, LatencyWindows, Source, Stat, WindowStats
 from registry.scheduler import (
-    Decision,
     DeploymentView,
     Reason,
     RobotView,
+    RouteDecision,
     Scheduler,
     SchedulerParams,
 )
@@ -65,7 +65,7 @@ def hold(
     seconds: float,
     make: Callable[[], tuple[RobotView, list[DeploymentView], dict[str, WindowStats]]],
     step_s: float = 0.125,
-) -> Decision | None:
+) -> RouteDecision | None:
     """Evaluate every `step_s` (exact in binary: no drift) for `seconds`; the first decision."""
     for _ in range(round(seconds / step_s) + 1):
         r, deps, profiles = make()
@@ -83,7 +83,7 @@ def test_initial_route_is_the_lowest_predicted_deployment_meeting_the_bound(
     deps = [dep("a"), dep("b"), dep("c")]
     profiles = {"a": window(0.05, clock), "b": window(0.03, clock)}
     decision = sched.evaluate(robot(None), deps, profiles)
-    assert decision == Decision(ROBOT, None, "b", Reason.INITIAL, ("b", "a", "c"), 0.03)
+    assert decision == RouteDecision(ROBOT, None, "b", Reason.INITIAL, ("b", "a", "c"), 0.03)
 
 
 def test_no_usable_deployment_means_no_initial_route(sched: Scheduler, clock: FakeClock) -> None:
@@ -229,7 +229,7 @@ def test_deployment_loss_reroutes_at_once_even_right_after_a_switch(
 
 def test_losing_the_last_deployment_drops_the_route(sched: Scheduler) -> None:
     decision = sched.evaluate(robot("a"), [dep("a", alive=False)], {})
-    assert decision == Decision(ROBOT, "a", None, Reason.DEPLOYMENT_LOST)
+    assert decision == RouteDecision(ROBOT, "a", None, Reason.DEPLOYMENT_LOST)
 
 
 def test_drain_moves_the_robot_unless_nothing_else_is_there(

@@ -12,8 +12,8 @@ import pytest
 from common.wire.registry import CtlOp, CtlReply, CtlRequest, DeploymentState, RouteChange
 from registry.latency import LatencyBound, Stat
 from registry.rib import Rib
-from registry.scheduler import Decision, Reason, Scheduler
-from registry.switch import Outcome, Switcher, TransportError, carry_out
+from registry.scheduler import Reason, RouteDecision, Scheduler
+from registry.switch import Switcher, SwitchOutcome, TransportError, carry_out
 
 ROBOT = "robot-1"
 _STATE = {CtlOp.SERVICE: DeploymentState.SERVICE, CtlOp.STANDBY: DeploymentState.STANDBY}
@@ -172,16 +172,16 @@ def test_a_dead_old_deployment_is_not_asked_to_step_down(rib: Rib) -> None:
 @pytest.mark.parametrize(
     ("mode", "outcome", "detail"),
     [
-        ("timeout", Outcome.TIMEOUT, "no reply within 0.5 s"),
-        ("lost_reply", Outcome.TIMEOUT, "no reply within 0.5 s"),
-        ("refuse", Outcome.REFUSED, "busy"),
-        ("error", Outcome.ERROR, "no route to b"),
-        ("stale", Outcome.STALE, "ack for epoch 1, expected 2"),
-        ("wrong_state", Outcome.STALE, "ack for state draining, expected service"),
+        ("timeout", SwitchOutcome.TIMEOUT, "no reply within 0.5 s"),
+        ("lost_reply", SwitchOutcome.TIMEOUT, "no reply within 0.5 s"),
+        ("refuse", SwitchOutcome.REFUSED, "busy"),
+        ("error", SwitchOutcome.ERROR, "no route to b"),
+        ("stale", SwitchOutcome.STALE, "ack for epoch 1, expected 2"),
+        ("wrong_state", SwitchOutcome.STALE, "ack for state draining, expected service"),
     ],
 )
 def test_no_ack_falls_back_to_the_next_candidate_under_a_new_epoch(
-    rib: Rib, mode: str, outcome: Outcome, detail: str
+    rib: Rib, mode: str, outcome: SwitchOutcome, detail: str
 ) -> None:
     transport, deps = _fleet(rib, b=mode)
     _serve_a(rib, deps, transport)
@@ -189,7 +189,7 @@ def test_no_ack_falls_back_to_the_next_candidate_under_a_new_epoch(
     assert (result.deployment, result.epoch) == ("c", 3)
     assert [(a.deployment, a.epoch, a.outcome, a.detail) for a in result.attempts] == [
         ("b", 2, outcome, detail),
-        ("c", 3, Outcome.ACKED, ""),
+        ("c", 3, SwitchOutcome.ACKED, ""),
     ]
     [failed] = rib.events(kind="ack_failed")
     assert (failed.deployment, failed.epoch) == ("b", 2)
@@ -222,7 +222,7 @@ def test_ack_for_another_robot_is_ignored(rib: Rib) -> None:
 
     deps["b"].handle = confused  # type: ignore[method-assign]
     result = Switcher(rib, transport).switch(ROBOT, ["b", "c"], reason="better")
-    assert result.attempts[0].outcome is Outcome.STALE
+    assert result.attempts[0].outcome is SwitchOutcome.STALE
     assert "robot-2" in result.attempts[0].detail
     assert result.deployment == "c"
 
@@ -261,7 +261,7 @@ def test_decision_with_no_target_drops_the_route(rib: Rib) -> None:
     _serve_a(rib, deps, transport)
     for name in ("a", "b", "c"):
         rib.set_deployment_alive(name, False, "token gone")
-    result = Switcher(rib, transport).apply(Decision(ROBOT, "a", None, Reason.DEPLOYMENT_LOST))
+    result = Switcher(rib, transport).apply(RouteDecision(ROBOT, "a", None, Reason.DEPLOYMENT_LOST))
     assert result.changed and result.deployment is None
     assert _published(transport) == [_route(ROBOT, None, 2, "deployment_lost")]
     assert [e[0] for e in transport.log] == ["publish"]  # nobody alive to talk to
@@ -270,7 +270,7 @@ def test_decision_with_no_target_drops_the_route(rib: Rib) -> None:
 def test_a_stale_decision_is_dropped(rib: Rib) -> None:
     transport, deps = _fleet(rib)
     _serve_a(rib, deps, transport)
-    result = Switcher(rib, transport).apply(Decision(ROBOT, "c", "b", Reason.BETTER, ("b",)))
+    result = Switcher(rib, transport).apply(RouteDecision(ROBOT, "c", "b", Reason.BETTER, ("b",)))
     assert not result.changed and result.deployment == "a"
     assert "stale decision" in result.reason
     assert transport.log == []
@@ -284,8 +284,8 @@ def test_a_deployment_that_knows_a_newer_epoch_raises_ours(rib: Rib) -> None:
     result = Switcher(rib, transport).switch(ROBOT, ["b"], reason="initial")
     assert (result.deployment, result.epoch) == ("b", 11)
     assert [(a.epoch, a.outcome) for a in result.attempts] == [
-        (1, Outcome.REFUSED),
-        (11, Outcome.ACKED),
+        (1, SwitchOutcome.REFUSED),
+        (11, SwitchOutcome.ACKED),
     ]
     assert rib.events(kind="epoch_raised")[0].reason == "b knows epoch 10"
     assert rib.reserve_epoch(ROBOT) == 12
@@ -304,7 +304,7 @@ def test_epochs_keep_growing_across_a_registry_restart(tmp_path: Path) -> None:
             route = r.route(ROBOT)
             target = "b" if route is not None and route.deployment == "a" else "a"
             result = Switcher(r, transport).switch(ROBOT, [target], reason="test")
-            assert result.attempts[-1].outcome is Outcome.ACKED
+            assert result.attempts[-1].outcome is SwitchOutcome.ACKED
             epochs.append(result.epoch)
     assert epochs == [1, 2, 3]
 
@@ -335,11 +335,13 @@ def test_carry_out_tells_the_scheduler(rib: Rib) -> None:
     transport, deps = _fleet(rib, c="refuse")
     _serve_a(rib, deps, transport)
     moved = carry_out(
-        sched, Switcher(rib, transport), Decision(ROBOT, "a", "b", Reason.BOUND_VIOLATION, ("b",))
+        sched,
+        Switcher(rib, transport),
+        RouteDecision(ROBOT, "a", "b", Reason.BOUND_VIOLATION, ("b",)),
     )
     assert moved.changed and sched.penalized(ROBOT) == {"a"}
     stuck = carry_out(
-        sched, Switcher(rib, transport), Decision(ROBOT, "b", "c", Reason.TIMEOUTS, ("c",))
+        sched, Switcher(rib, transport), RouteDecision(ROBOT, "b", "c", Reason.TIMEOUTS, ("c",))
     )
     assert not stuck.changed
     assert sched._robots[ROBOT].failed_at == 0.0
@@ -379,7 +381,7 @@ def test_reassert_resends_service_at_the_same_epoch(rib: Rib) -> None:
     deps["a"].states.clear()
     result = Switcher(rib, transport).reassert(ROBOT)
     assert not result.changed and (result.deployment, result.epoch) == ("a", 1)
-    assert result.attempts[-1].outcome is Outcome.ACKED
+    assert result.attempts[-1].outcome is SwitchOutcome.ACKED
     assert deps["a"].states[ROBOT] is DeploymentState.SERVICE
     assert transport.published == []
 
@@ -402,7 +404,7 @@ def test_reassert_refused_at_the_same_epoch_takes_a_fresh_one(rib: Rib) -> None:
     deps["a"].states[ROBOT] = DeploymentState.STANDBY
     result = Switcher(rib, transport).reassert(ROBOT)
     assert result.changed and (result.deployment, result.epoch) == ("a", 2)
-    assert [a.outcome for a in result.attempts] == [Outcome.REFUSED, Outcome.ACKED]
+    assert [a.outcome for a in result.attempts] == [SwitchOutcome.REFUSED, SwitchOutcome.ACKED]
     assert deps["a"].states[ROBOT] is DeploymentState.SERVICE
     assert rib.events(kind="epoch_raised") == []
 
@@ -412,7 +414,7 @@ def test_reassert_without_an_answer_is_recorded_and_keeps_the_route(rib: Rib) ->
     _serve_a(rib, deps, transport)
     deps["a"].mode = "timeout"
     result = Switcher(rib, transport).reassert(ROBOT)
-    assert not result.changed and result.attempts[-1].outcome is Outcome.TIMEOUT
+    assert not result.changed and result.attempts[-1].outcome is SwitchOutcome.TIMEOUT
     assert rib.events(kind="ack_failed")[-1].reason.startswith("restore: timeout")
 
 

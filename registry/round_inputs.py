@@ -1,0 +1,107 @@
+"""What the registry hands the scheduler about a robot, built from the RIB's rows, the
+measurements and the registrar; and the initial placement's preference, applied to its answer.
+
+The scheduler (`registry.scheduler`) is pure: it sees `RobotView`s and a `DeploymentTable`, never
+the RIB. A scheduling round reads the deployments once as one table (`deployment_table`) and
+each live robot's row and route with them; reading and converting every deployment per robot
+made a round grow with robots x deployments (docs/scale.md). `waiting_for` says when a decision
+about a robot should wait instead (a registration in flight, or a restored route whose deployment
+has not reconnected yet).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterable
+
+from common.config import FleetConfig
+from registry.measurements import RobotMeasures
+from registry.registration import Registrar, RegistrationState
+from registry.rib import DeploymentRow, RobotRow
+from registry.scheduler import (
+    DeploymentTable,
+    DeploymentView,
+    Reason,
+    RobotView,
+    RouteDecision,
+)
+
+
+def deployment_table(
+    rows: Iterable[DeploymentRow], unusable: frozenset[str] = frozenset()
+) -> DeploymentTable:
+    """The scheduler's view of the RIB's deployments; those `unusable` count as dead."""
+    return DeploymentTable(
+        [
+            DeploymentView(
+                id=row.id,
+                service=row.service,
+                alive=row.alive and row.id not in unusable,
+                draining=row.draining,
+                load=row.load,
+                capacity=row.capacity,
+                model_digest=row.model_digest or None,
+            )
+            for row in rows
+        ]
+    )
+
+
+def robot_view(
+    robot: str,
+    row: RobotRow | None,
+    route: str | None,
+    measures: RobotMeasures,
+    *,
+    default_service: str,
+    model_digest: str | None,
+) -> RobotView:
+    """The scheduler's view of one robot: its RIB row (`default_service` without one), its
+    current route and its measurements."""
+    return RobotView(
+        id=robot,
+        service=row.service if row is not None else default_service,
+        route=route,
+        telemetry=measures.telemetry,
+        timeouts=measures.timeouts,
+        timeouts_on=measures.timeouts_on,
+        model_digest=model_digest,
+        busy=measures.busy,
+        offloaded=measures.offloaded,
+    )
+
+
+def waiting_for(
+    cfg: FleetConfig,
+    registrar: Registrar,
+    robot: str,
+    route: str | None,
+    *,
+    grace_until: float,
+) -> str | None:
+    """The deployment a decision about `robot` should wait for (registration in flight, or a
+    restored route's deployment not reconnected before `grace_until`, on the monotonic clock),
+    else None."""
+    target = route
+    if target is None and robot in cfg.machines:
+        target = cfg.initial_service(robot)
+    if target is None:
+        return None
+    if registrar.is_state(target, RegistrationState.PENDING):
+        return target
+    if not registrar.seen(target) and time.monotonic() < grace_until:
+        return target
+    return None
+
+
+def prefer_initial(cfg: FleetConfig, decision: RouteDecision) -> RouteDecision:
+    """An initial placement goes to initial_policy's service machine when it can."""
+    if decision.reason is not Reason.INITIAL or decision.robot not in cfg.machines:
+        return decision
+    wanted = cfg.initial_service(decision.robot)
+    if wanted is None or wanted not in decision.candidates:
+        return decision
+    order = (wanted, *(c for c in decision.candidates if c != wanted))
+    return RouteDecision(
+        decision.robot, decision.from_deployment, wanted, decision.reason, order, None
+    )
