@@ -418,14 +418,7 @@ class Scheduler:
     ) -> RouteDecision | None:
         targets = [c for c in ranked if c.deployment.id != robot.route]
         if targets:
-            return RouteDecision(
-                robot=robot.id,
-                from_deployment=robot.route,
-                to_deployment=targets[0].deployment.id,
-                reason=reason,
-                candidates=tuple(c.deployment.id for c in targets),
-                predicted_s=targets[0].predicted_s,
-            )
+            return _move(robot.id, robot.route, targets, reason)
         if reason is Reason.DEPLOYMENT_LOST:
             # Nothing else alive: drop the route so the robot computes locally.
             return RouteDecision(robot.id, robot.route, None, reason)
@@ -458,14 +451,7 @@ class Scheduler:
         ranked = targets.ranked(limit, max_tier=1)
         if not ranked:
             return None
-        return RouteDecision(
-            robot=robot.id,
-            from_deployment=current.id,
-            to_deployment=ranked[0].deployment.id,
-            reason=Reason.BOUND_VIOLATION,
-            candidates=tuple(c.deployment.id for c in ranked),
-            predicted_s=ranked[0].predicted_s,
-        )
+        return _move(robot.id, current.id, ranked, Reason.BOUND_VIOLATION)
 
     def _on_busy(
         self,
@@ -490,14 +476,7 @@ class Scheduler:
         ]
         if not ranked:
             return None
-        return RouteDecision(
-            robot=robot.id,
-            from_deployment=current.id,
-            to_deployment=ranked[0].deployment.id,
-            reason=Reason.BUSY,
-            candidates=tuple(c.deployment.id for c in ranked),
-            predicted_s=ranked[0].predicted_s,
-        )
+        return _move(robot.id, current.id, ranked, Reason.BUSY)
 
     def _on_improvement(
         self,
@@ -526,14 +505,7 @@ class Scheduler:
         ranked = targets.ranked(limit, max_tier=0)
         if not ranked:
             return None
-        return RouteDecision(
-            robot=robot.id,
-            from_deployment=current.id,
-            to_deployment=ranked[0].deployment.id,
-            reason=Reason.BETTER,
-            candidates=tuple(c.deployment.id for c in ranked),
-            predicted_s=ranked[0].predicted_s,
-        )
+        return _move(robot.id, current.id, ranked, Reason.BETTER)
 
     # -- helpers ---------------------------------------------------------------------------------
     def _dwelt(self, st: _RobotState, now: float) -> bool:
@@ -733,3 +705,17 @@ class _Targets:
             ):
                 best = c
         return best
+
+
+def _move(
+    robot: str, from_deployment: str | None, ranked: list[_Candidate], reason: Reason
+) -> RouteDecision:
+    """Move `robot` to the first of `ranked` (not empty), the others as fallbacks in order."""
+    return RouteDecision(
+        robot=robot,
+        from_deployment=from_deployment,
+        to_deployment=ranked[0].deployment.id,
+        reason=reason,
+        candidates=tuple(c.deployment.id for c in ranked),
+        predicted_s=ranked[0].predicted_s,
+    )
