@@ -560,7 +560,14 @@ class RegistryDaemon(Daemon):
                 scheduler.record_failure(decision.robot)
         else:
             result = carry_out(scheduler, switcher, decision)
-        if result.changed:
+        if result.changed and decision.reason is Reason.NO_CAPACITY:
+            self.measurements.set_route(result.robot, None, result.epoch)
+            log.info(
+                "route %s: no deployment has room, the robot computes locally (epoch %d)",
+                result.robot,
+                result.epoch,
+            )
+        elif result.changed:
             self._confirmed.add(decision.robot)
             self.measurements.set_route(result.robot, result.deployment, result.epoch)
             log.info(

@@ -39,6 +39,11 @@ within `flap_window_s` of the last move for one also needs the target to beat th
 deployment's own probe profile. For an improvement it is the current deployment's probe profile
 (like for like), else the telemetry. With no live deployment the robot gets no route and computes
 locally.
+
+Admission: a robot to be placed (no route, or its deployment lost) when every usable deployment is
+`full` is not piled onto one: it gets no route (`no_capacity`, so it is told why; it finishes every
+frame itself, as without a route) once, and is placed by a later round's `initial` as soon as a
+deployment has room. A deployment of unknown capacity is never full.
 """
 
 from __future__ import annotations
@@ -49,6 +54,7 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import Enum
 
+from common.wire.registry import NO_CAPACITY_REASON
 from registry.latency import LatencyBound, Profiles, WindowStats
 
 DEFAULT_MIN_DWELL_S = 3.0
@@ -77,6 +83,8 @@ class Reason(str, Enum):
     BOUND_VIOLATION = "bound_violation"
     BETTER = "better"
     BUSY = "busy"
+    # Not a move but a refusal to place: every deployment is full (the wire's reason string).
+    NO_CAPACITY = NO_CAPACITY_REASON
 
 
 # Triggers that cannot wait: the robot is (or will soon be) without a working deployment.
@@ -256,6 +264,8 @@ class _RobotState:
     left_at: dict[str, float] = field(default_factory=dict)
     left_busy: dict[str, float] = field(default_factory=dict)
     good_since: dict[str, float] = field(default_factory=dict)
+    # The robot was told it has no route for want of capacity: not told again each round.
+    no_capacity: bool = False
 
 
 class Scheduler:
@@ -288,6 +298,7 @@ class Scheduler:
         st.better_since = None
         st.better_target = None
         st.failed_at = None
+        st.no_capacity = to_deployment is None and Reason(reason) is Reason.NO_CAPACITY
         if Reason(reason) is Reason.BUSY:
             if from_deployment is not None:
                 st.left_busy[from_deployment] = now
@@ -361,6 +372,8 @@ class Scheduler:
         self._update_recovery(st, table.by_id, snapshot, now)
 
         current = table.by_id.get(robot.route) if robot.route is not None else None
+        if robot.route is not None:
+            st.no_capacity = False  # placed since it was told (a placement is not recorded)
         forced: Reason | None = None
         if robot.route is None:
             forced = Reason.INITIAL
@@ -385,7 +398,7 @@ class Scheduler:
             st.violation_since = None
             st.busy_since = None
             st.better_since = None
-            return self._forced(robot, forced, self._rank(robot, table, snapshot, st, now))
+            return self._forced(robot, forced, self._rank(robot, table, snapshot, st, now), st)
 
         assert current is not None  # forced covers every route without a live deployment
         targets = _Targets(self, robot, current, table, snapshot, st, now)
@@ -414,9 +427,19 @@ class Scheduler:
         return self._on_improvement(robot, current, targets, reference, st, now)
 
     def _forced(
-        self, robot: RobotView, reason: Reason, ranked: list[_Candidate]
+        self, robot: RobotView, reason: Reason, ranked: list[_Candidate], st: _RobotState
     ) -> RouteDecision | None:
         targets = [c for c in ranked if c.deployment.id != robot.route]
+        if (
+            reason in (Reason.INITIAL, Reason.DEPLOYMENT_LOST)
+            and targets
+            and all(c.deployment.full for c in targets)
+        ):
+            # Admission: a full deployment would answer `busy` to this robot's frames and slow
+            # the robots it serves; the robot computes locally until a deployment has room.
+            if robot.route is None and st.no_capacity:
+                return None  # already told; a later round places it when one has room
+            return RouteDecision(robot.id, robot.route, None, Reason.NO_CAPACITY)
         if targets:
             return _move(robot.id, robot.route, targets, reason)
         if reason is Reason.DEPLOYMENT_LOST:

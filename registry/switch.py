@@ -139,10 +139,20 @@ class Switcher:
                 changed=False,
                 reason=f"stale decision (route is {current or 'local'} now)",
             )
+        if decision.to_deployment is None and current is None:
+            return self._tell_local(decision.robot, decision.reason.value)
         candidates = decision.candidates or (
             (decision.to_deployment,) if decision.to_deployment is not None else ()
         )
         return self.switch(decision.robot, candidates, reason=decision.reason.value)
+
+    def _tell_local(self, robot: str, reason: str) -> SwitchResult:
+        """A robot without a route stays without one, and is told why (e.g. `no_capacity`):
+        a route to no deployment under a new epoch. No deployment serves it, none to stand by."""
+        epoch = self.rib.reserve_epoch(robot)
+        self.rib.set_route(robot, None, epoch, reason)
+        self._publish(self._change(robot, None, epoch, reason))
+        return SwitchResult(robot, None, None, epoch, True, reason)
 
     def switch(self, robot: str, candidates: Sequence[str], *, reason: str) -> SwitchResult:
         """Move `robot` to the first candidate that acknowledges `service`.

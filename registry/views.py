@@ -11,7 +11,7 @@ their fields and values do not change lightly.
 | view | rows |
 | --- | --- |
 | deployments | every deployment in the RIB, then refused ones never accepted (`extra.refused`) |
-| robots | every robot with its route, its deployment's state for it and its telemetry window |
+| robots | every robot with its route and why, its deployment's state for it, its telemetry window |
 | routes | every route with the reason of its last route event |
 | events | the newest `limit` events (100 by default, at most 10 000), oldest first |
 | profiles | the probe windows per robot x deployment |
@@ -163,6 +163,8 @@ class RibViews:
                 state = RouteState.UNROUTED.value
             status = self.measurements.robot_status(row.id, deployment)
             stats = status.telemetry
+            # Why the robot is where it is: its last route event (as in the routes view).
+            last = rib.events(limit=1, robot=row.id, kind=EventKind.ROUTE.value)
             yield msg.RobotRow(
                 id=row.id,
                 service=row.service,
@@ -175,6 +177,7 @@ class RibViews:
                 window_len=stats.count if stats else 0,
                 deadline_s=self.deadline_s,
                 action=status.action,
+                reason=last[0].reason if last else "",
                 extra={
                     "state": state,
                     "consecutive_timeouts": status.timeouts,

@@ -224,9 +224,17 @@ def routes_table(rows: Sequence[RouteRow], now: float) -> Table:
 
 
 def deployments_table(rows: Sequence[DeploymentRow], now: float) -> Table:
-    """Deployments: alive, load, per-robot states, model."""
+    """Deployments: alive, load against capacity, per-robot states, model."""
     table = _table(
-        "deployments", "deployment", "alive", "service", "load", "robots", "model", "last seen"
+        "deployments",
+        "deployment",
+        "alive",
+        "service",
+        "load",
+        "capacity",
+        "robots",
+        "model",
+        "last seen",
     )
     for d in rows:
         refused = d.extra.get("refused")
@@ -236,6 +244,7 @@ def deployments_table(rows: Sequence[DeploymentRow], now: float) -> Table:
             alive = Text("draining" if d.extra.get("draining") else "yes", style="green")
         else:
             alive = Text("no", style="dim")
+        full = d.capacity > 0 and d.load >= d.capacity
         epochs = d.extra.get("epochs", {})
         states = ", ".join(
             f"{robot}: {state.value}@{epochs.get(robot, '?')}"
@@ -245,7 +254,8 @@ def deployments_table(rows: Sequence[DeploymentRow], now: float) -> Table:
             d.id,
             alive,
             d.service or "-",
-            f"{d.load}/{d.capacity}" if d.capacity else str(d.load),
+            Text(str(d.load), style="red") if full else str(d.load),
+            str(d.capacity) if d.capacity else "-",  # 0: not reported, never counted full
             states or "-",
             (d.model_digest or "-")[:DIGEST_SHOWN_CHARS],
             _ago(d.last_seen, now),
@@ -254,7 +264,8 @@ def deployments_table(rows: Sequence[DeploymentRow], now: float) -> Table:
 
 
 def robots_table(rows: Sequence[RobotRow], now: float, title: str = "robots") -> Table:
-    """Robots: deployment, its state, epoch, latency window against the bound, cut chosen."""
+    """Robots: deployment, its state, epoch, latency window against the bound, cut chosen, and
+    the reason of the robot's last route change."""
     table = _table(
         title,
         "robot",
@@ -265,6 +276,7 @@ def robots_table(rows: Sequence[RobotRow], now: float, title: str = "robots") ->
         "window vs bound",
         "cut",
         "timeouts",
+        "reason",
     )
     for r in rows:
         state = str(r.extra.get("state", "-"))
@@ -278,6 +290,7 @@ def robots_table(rows: Sequence[RobotRow], now: float, title: str = "robots") ->
             _window(r),
             r.action or "-",
             str(r.extra.get("consecutive_timeouts", 0)),
+            r.reason or "-",
         )
     return table
 

@@ -42,6 +42,7 @@ from common.wire.registry import (
     CAP_LOCAL_FALLBACK,
     CAP_PROBE_REPORTS,
     CAP_TELEMETRY,
+    NO_CAPACITY_REASON,
     PROTOCOL_VERSION,
     RegisterReply,
     RegisterRequest,
@@ -84,6 +85,8 @@ class Route:
     deployment: str | None = None
     epoch: int = 0
     known: bool = False
+    # Held without a deployment because every deployment is full (the registry's admission).
+    no_capacity: bool = False
 
 
 class RegistryLink:
@@ -153,9 +156,20 @@ class RegistryLink:
             if held.known and change.epoch < held.epoch:
                 return False  # older than what we hold: epochs only grow
             moved = not held.known or change.deployment != held.deployment
-            self._route = Route(change.deployment, change.epoch, True)
+            no_capacity = change.deployment is None and change.reason == NO_CAPACITY_REASON
+            refused = no_capacity and not held.no_capacity
+            self._route = Route(change.deployment, change.epoch, True, no_capacity)
             self._changed.notify_all()
-        if moved:
+        if refused:
+            # Logged once per change, not for every repetition of the same refusal (a restarted
+            # registry tells it again): frames are finished on the robot, none is lost.
+            log.info(
+                "%s: no deployment has room: computing locally (epoch %d, %s)",
+                self.robot,
+                change.epoch,
+                change.reason,
+            )
+        elif moved:
             log.info(
                 "%s: route -> %s (epoch %d, %s)",
                 self.robot,

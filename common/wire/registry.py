@@ -37,6 +37,10 @@ MAX_ECHO_BYTES = 16 * 1024 * 1024
 
 Role = Literal["cloud", "robot"]
 
+# The `RouteChange.reason` of a robot left without a route because every deployment of its
+# service is full (admission control): the robot computes locally until the registry places it.
+NO_CAPACITY_REASON = "no_capacity"
+
 # Capability names a daemon may announce.
 CAP_INFER = "infer"  # serves the anycast service key
 CAP_PROBE = "probe"  # answers probes with echo
@@ -352,8 +356,9 @@ class DeploymentRow(Struct):
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class RobotRow(Struct):
-    """One robot: its route, and its latency window against its bound (`window_stat_s` is the
-    bound's statistic over the last `window_len` frames), and the last action its policy chose."""
+    """One robot: its route and why (`reason`, of its last route event), its latency window
+    against its bound (`window_stat_s` is the bound's statistic over the last `window_len`
+    frames), and the last action its policy chose."""
 
     id: str
     service: str
@@ -367,6 +372,8 @@ class RobotRow(Struct):
     deadline_s: float | None = None
     action: str | None = None
     extra: dict[str, Any] = field(default_factory=dict)
+    # Why the robot is where it is: the reason of its last route event ("" before any).
+    reason: str = ""
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)

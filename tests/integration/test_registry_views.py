@@ -64,6 +64,8 @@ def test_views_print_the_routing_state(routed: Fleet, tmp_path: Path) -> None:
     deployments = {d["id"]: d for d in json.loads(out)}
     assert deployments["edge-1"]["states"] == {ROBOT: "service"}
     assert deployments["edge-2"]["alive"] is True
+    # Load and capacity as the deployments report them (the fake reports 0 of 4).
+    assert (deployments["edge-1"]["load"], deployments["edge-1"]["capacity"]) == (0, 4)
 
     code, out, err = _invoke("robots", *_connect(cfg), "--json")
     assert code == 0, err
@@ -73,6 +75,8 @@ def test_views_print_the_routing_state(routed: Fleet, tmp_path: Path) -> None:
         "median",
         "service",
     )
+    # Why the robot is where it is: its last route event.
+    assert robot["reason"] == "initial: local -> edge-1"
 
     code, out, err = _invoke("events", *_connect(cfg), "--limit", "3", "--json")
     assert code == 0, err
@@ -80,6 +84,10 @@ def test_views_print_the_routing_state(routed: Fleet, tmp_path: Path) -> None:
 
     code, out, err = _invoke("deployments", *_connect(cfg))
     assert code == 0 and "edge-2" in out and "standby" not in out, out
+    assert "capacity" in out, out
+
+    code, out, err = _invoke("robots", *_connect(cfg))
+    assert code == 0 and "reason" in out and "initial: local -> edge-1" in out, out
 
     # --config: the file names the endpoint and the fleet.
     config = cfg.source_path

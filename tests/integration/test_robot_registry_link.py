@@ -31,6 +31,7 @@ from common.throttled_log import ThrottledLog
 from common.wire import ErrorCode, ErrorReply
 from common.wire.registry import (
     CAP_LOCAL_FALLBACK,
+    NO_CAPACITY_REASON,
     PROTOCOL_VERSION,
     RegisterReply,
     RegisterRequest,
@@ -271,6 +272,27 @@ def test_routes_only_move_forward_and_garbage_is_one_warning(
     assert link.route == ("edge-1", 6)
     bad = [line for line in log_watch.lines if "ignoring a bad route message" in line]
     assert len(bad) == 1 and bad[0].startswith(f"{ROBOT}: ")
+
+
+def test_no_capacity_is_logged_once_per_change(
+    linked: Callable[..., Linked], log_watch: LogWatch
+) -> None:
+    link = linked().link
+
+    def refused(epoch: int) -> RouteChange:
+        return RouteChange(
+            robot=ROBOT, deployment=None, epoch=epoch, reason=NO_CAPACITY_REASON, at=0.0
+        )
+
+    def told() -> int:
+        return sum("no deployment has room: computing locally" in line for line in log_watch.lines)
+
+    assert link.apply_route(refused(1)) and link.route == (None, 1)
+    assert link.apply_route(refused(2))  # told again (a restarted registry): no second line
+    assert told() == 1
+    assert link.apply_route(route(3))  # placed once a deployment has room
+    assert link.apply_route(refused(4))  # its deployment lost while every other is full
+    assert told() == 2
 
 
 def test_reroute_only_while_the_registry_is_up_at_most_once_per_interval(

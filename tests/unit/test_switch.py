@@ -267,6 +267,17 @@ def test_decision_with_no_target_drops_the_route(rib: Rib) -> None:
     assert [e[0] for e in transport.log] == ["publish"]  # nobody alive to talk to
 
 
+def test_a_robot_without_a_route_is_told_it_has_no_capacity(rib: Rib) -> None:
+    transport, _deps = _fleet(rib)
+    decision = RouteDecision(ROBOT, None, None, Reason.NO_CAPACITY)
+    result = Switcher(rib, transport).apply(decision)
+    assert result.changed and (result.previous, result.deployment, result.epoch) == (None, None, 1)
+    assert _published(transport) == [_route(ROBOT, None, 1, "no_capacity")]
+    assert [e[0] for e in transport.log] == ["publish"]  # no deployment to talk to
+    [event] = rib.events(kind="route")
+    assert event.reason == "no_capacity: local -> local"
+
+
 def test_a_stale_decision_is_dropped(rib: Rib) -> None:
     transport, deps = _fleet(rib)
     _serve_a(rib, deps, transport)
