@@ -16,15 +16,17 @@ raises nothing; the callers count refusals (`cloudd.refusals`).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+
+import numpy as np
 
 from common.config import FleetConfig, MachineConfig
 from common.partition import TensorSpec
 from common.wire import ErrorCode, ErrorReply
 from common.wire.registry import ProbeRequest
 from common.wire.robot_to_cloud import InferRequest
-from common.wire.tensor_codecs import check_encoded
 
 
 @dataclass(frozen=True)
@@ -57,9 +59,9 @@ class CloudLimits:
         """The error reply for the first tensor of `request` declaring more decoded bytes than
         `tensor_bytes`, or None."""
         for name, tensor in request.tensors.items():
-            # Decoding checked each declaration already; this only reads its size back.
-            dtype, count = check_encoded(tensor, name)
-            size = count * dtype.itemsize
+            # Decoding the request checked each declaration (`check_encoded`): its dtype and
+            # shape are valid, so only their size is read here.
+            size = np.dtype(tensor.dtype).itemsize * math.prod(tensor.shape)
             if size > self.tensor_bytes:
                 return ErrorReply.make(
                     ErrorCode.TOO_LARGE,

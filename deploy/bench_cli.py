@@ -15,6 +15,7 @@ subprocesses, emulated robots from a load generator; see docs/scale.md).
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, NoReturn
@@ -405,13 +406,12 @@ def nav(
     option and resolution) and Figs. 8-9, on the testbed and in the closed loop."""
     from deploy.experiments import nav as nv
     from deploy.experiments.nav_rows import parse_options, parse_resolutions
-    from deploy.experiments.options import parse_floats
 
     sizes = _guard(lambda: parse_resolutions(resolutions))
     chosen = _guard(lambda: parse_options(nav_options))
-    uplink = nv.DEFAULT_UPLINK_MBIT
-    if uplink_mbit is not None:
-        (uplink,) = _guard(lambda: parse_floats(f"{uplink_mbit:g}", "--uplink-mbit"))
+    uplink = nv.DEFAULT_UPLINK_MBIT if uplink_mbit is None else uplink_mbit
+    if not (math.isfinite(uplink) and uplink > 0):
+        _fail(UserError(f"--uplink-mbit {uplink:g}: must be a positive number"))
     if laps is not None and laps < 1:
         _fail(UserError(f"--laps {laps}: expected at least 1"))
     options = _options(

@@ -166,9 +166,7 @@ class Measurements:
         """Count one frame offloaded to the route in the robot's busy window (the lock is held):
         answered, or refused `busy`. Other failures say nothing about room at the deployment."""
         busy = rec.fallback and rec.reason is FallbackReason.BUSY
-        if rec.fallback and not busy:
-            return
-        if not busy and rec.deployment is None:
+        if not busy and (rec.fallback or rec.deployment is None):
             return
         window = self._busy.get(robot)
         if window is None:
