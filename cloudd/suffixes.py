@@ -18,7 +18,8 @@ import numpy as np
 
 from common.config import FleetConfig, MachineConfig
 from common.errors import UserError
-from common.partition import TensorSpec, load_partition, ort_reason
+from common.fleet_model import fleet_partition
+from common.partition import TensorSpec, ort_reason
 from common.partition.runtime import SplitModel
 
 log = logging.getLogger(__name__)
@@ -27,16 +28,8 @@ log = logging.getLogger(__name__)
 def open_split_model(cfg: FleetConfig, machine: MachineConfig) -> SplitModel:
     """The fleet's model split at its cuts (from the partition cache; split on first use), with
     the machine's providers and threads; sessions are built later (`warm_suffixes`)."""
-    shape = tuple(cfg.input_shape) if cfg.input_shape else None
-    partition = load_partition(
-        cfg.model,
-        cfg.cuts.names or "auto",
-        cfg.cuts.max_cut_tensors,
-        shape,
-        segments=cfg.cuts.segments,
-    )
     return SplitModel(
-        partition,
+        fleet_partition(cfg),
         providers=machine.providers,
         threads=machine.threads or None,
         lazy=True,

@@ -216,10 +216,9 @@ class KillSwitch:
 def prepare_model(cfg: Any) -> None:
     """Export and split the fleet's model into the cache once, before the daemons start, so they
     load it (and never race each other exporting it)."""
-    from common.partition import load_partition
+    from common.fleet_model import fleet_partition
 
-    shape = tuple(cfg.input_shape) if cfg.input_shape else None
-    load_partition(cfg.model, cfg.cuts.names or "auto", cfg.cuts.max_cut_tensors, shape)
+    fleet_partition(cfg)
 
 
 def run_demo(

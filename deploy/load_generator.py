@@ -46,8 +46,9 @@ import zenoh
 from common import keys
 from common.config import FleetConfig
 from common.errors import UserError
+from common.fleet_model import fleet_partition
 from common.image_input import InputAdapter
-from common.partition import load_partition, sample_feeds
+from common.partition import sample_feeds
 from common.partition.runtime import SplitModel
 from common.photos import still_views
 from common.session import open_session
@@ -101,9 +102,7 @@ def cut_payloads(
 ) -> tuple[str, list[dict[str, EncodedTensor]]]:
     """The fleet model's digest and `frames` sets of cut `cut`'s tensors, encoded with `codec`
     (the robot's prefix run on photographs; random input for a model without one image input)."""
-    shape = tuple(cfg.input_shape) if cfg.input_shape else None
-    partition = load_partition(cfg.model, cfg.cuts.names or "auto", cfg.cuts.max_cut_tensors, shape)
-    model = SplitModel(partition, lazy=True)
+    model = SplitModel(fleet_partition(cfg), lazy=True)
     if not 0 <= cut < model.num_cuts:
         raise UserError(f"cut {cut}: this model has cuts 0..{model.num_cuts - 1}")
     try:

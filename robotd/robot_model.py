@@ -19,8 +19,9 @@ import numpy as np
 
 from common.config import FleetConfig, MachineConfig
 from common.errors import UserError
+from common.fleet_model import fleet_partition
 from common.image_input import ImageInputs
-from common.partition import load_partition, sample_feeds
+from common.partition import sample_feeds
 from common.partition.runtime import SplitModel
 from common.wire.telemetry import FallbackReason
 from robotd.offload import CallResult
@@ -32,15 +33,9 @@ from robotd.stereo_frame import CameraFrame, StereoFrame
 
 def open_split_model(config: FleetConfig, machine: MachineConfig) -> SplitModel:
     """The fleet's model, partitioned at its cuts, as sessions on `machine`'s providers."""
-    shape = tuple(config.input_shape) if config.input_shape else None
-    partition = load_partition(
-        config.model,
-        config.cuts.names or "auto",
-        config.cuts.max_cut_tensors,
-        shape,
-        segments=config.cuts.segments,
+    return SplitModel(
+        fleet_partition(config), providers=machine.providers, threads=machine.threads or None
     )
-    return SplitModel(partition, providers=machine.providers, threads=machine.threads or None)
 
 
 class RobotModel:
