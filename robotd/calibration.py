@@ -28,6 +28,7 @@ from common.image_input import ImageInputs
 from common.models import cache_dir, read_cached_json, write_cached_json
 from common.partition.runtime import SplitModel
 from robotd.policies import RAW_CODEC, fixed_action
+from robotd.policies.nav_options import nav_option
 from robotd.sources import open_source_for
 from robotd.stereo_frame import StereoFrame
 
@@ -37,9 +38,15 @@ CALIBRATION_STRIDE = 5
 CALIBRATION_FORMAT = 1
 
 
-def required_codecs(policy_spec: str, lowest_cut: int) -> dict[int, list[str]]:
+def required_codecs(
+    policy_spec: str, lowest_cut: int, params: Mapping[str, Any] | None = None
+) -> dict[int, list[str]]:
     """The codecs a baseline names, by cut index: `cloud:jpeg80` needs jpeg80 at the lowest
-    cut, `static:3:int8` int8 at cut 3; other policies name none."""
+    cut, `static:3:int8` int8 at cut 3, a navigation option's codec (`option:1:png`, or
+    `static` with `params`) the lowest cut's (the camera pair); other policies name none."""
+    option = nav_option(policy_spec, params)
+    if option is not None:
+        return {} if option.codec == RAW_CODEC else {lowest_cut: [option.codec]}
     fixed = fixed_action(policy_spec)
     if fixed is None or fixed.codec == RAW_CODEC:
         return {}

@@ -96,7 +96,7 @@ def measured_profile(
         model,
         lambda: calibration_frames(source_spec, inputs, fidelity.calibration_frames, seed),
         fidelity_of(fidelity),
-        required_codecs(policy_spec, lowest),
+        required_codecs(policy_spec, lowest, fleet_params(policy_spec, config)),
         {
             "source": source_spec,
             "frames": fidelity.calibration_frames,
@@ -118,6 +118,11 @@ def build_policy(
             "policy oracle needs the true costs, which only the simulator has "
             "(use it with `elasticfog sim`)"
         )
-    same = spec.lower() == config.policy.kind.strip().lower()
-    params = config.policy.params if same else {}
-    return make_policy(spec, profile, params, objective)
+    return make_policy(spec, profile, fleet_params(spec, config), objective)
+
+
+def fleet_params(spec: str, config: FleetConfig) -> dict[str, Any]:
+    """The fleet's policy parameters when `spec` is the fleet's policy kind; none for another
+    policy (`--policy` naming a different one), whose parameters they are not."""
+    same = spec.strip().lower() == config.policy.kind.strip().lower()
+    return config.policy.params if same else {}

@@ -32,7 +32,7 @@ from robotd.policies.base import (
 )
 from robotd.policies.baselines import FixedPolicy, NeurosurgeonPolicy, OraclePolicy
 from robotd.policies.elastic import ElasticPolicy, elastic_params_for_ans
-from robotd.policies.nav_options import OptionParams, option_policy, parse_option_spec
+from robotd.policies.nav_options import OptionParams, nav_option, option_policy, parse_option_spec
 from robotd.policies.objective import Objective, PowerModel
 from robotd.policies.params import (
     AnsParams,
@@ -76,15 +76,15 @@ REAL_TIME_POLICIES = (
     "static:K:CODEC",
 )
 # Not in REAL_TIME_POLICIES: it builds only on a model that names its `points` cut (zoo:stereo).
-NAV_POLICIES = ("option:N",)
+NAV_POLICIES = ("option:N", "option:N:CODEC")
 SIM_ONLY_POLICIES = ("oracle",)
 
 
 def policy_names() -> tuple[str, ...]:
     """Every accepted policy spec (`static:K` stands for any cut index K, `CODEC` for any codec
     name the profile offers at that cut, e.g. `cloud:jpeg80`). The navigation options
-    (`NAV_POLICIES`: `option:N`, or `static` with `params: {option: N}`) are accepted too, on a
-    model that names its `points` cut."""
+    (`NAV_POLICIES`: `option:N[:CODEC]`, or `static` with `params: {option: N, codec: C}`) are
+    accepted too, on a model that names its `points` cut."""
     return REAL_TIME_POLICIES + SIM_ONLY_POLICIES
 
 
@@ -187,11 +187,8 @@ def make_policy(
         return ElasticPolicy(cuts, elastic_params_for_ans(ans), goal, name)
     if name == "neurosurgeon":
         return NeurosurgeonPolicy(cuts, parse_params(NeurosurgeonParams, params, name), goal)
-    if name == "static":
-        return option_policy(parse_params(OptionParams, params, name).option, profile, name)
-    option = parse_option_spec(name)
+    option = nav_option(name, params)
     if option is not None:
-        parse_params(NoParams, params, name)
         return option_policy(option, profile, name)
     fixed = fixed_action(name)
     if name in ("robot", "oracle") or fixed is not None:

@@ -11,8 +11,8 @@
   predicted cost, with no exploration: once it settles on P it stops seeing transfers.
 - `oracle`: the argmin of the true expected costs, which only the simulator knows.
 
-The navigation options (`static` with `params: {option: N}`, `option:N`) are fixed policies
-too: `robotd.policies.nav_options`.
+The navigation options (`static` with `params: {option: N, codec: C}`, `option:N[:CODEC]`) are
+fixed policies too: `robotd.policies.nav_options`.
 """
 
 from __future__ import annotations

@@ -1,12 +1,15 @@
 """The navigation assistant's offloading options 1–4 on the real daemons, over Zenoh on loopback.
 
 A registry, a cloud daemon serving zoo:stereo at 160×120 (D = 32; split with segments) and one
-robot daemon per option, each fed the same rendered stereo frames (`stereo:world`, seeded):
+robot daemon per run, each fed the same rendered stereo frames (`stereo:world`, seeded):
 option 1 sends the pair and the cloud runs everything, option 2 sends the points, option 3 sends
 the pair and gets the points back (a segment; the robot runs d_coll from them), option 4 runs
-everything on the robot. What must hold: no frame lost, every offloaded frame answered by the
-cloud, the action label naming the segment, and each frame's d_coll equal (float tolerance) to
-the all-robot one on the same frame.
+everything on the robot; options 1 and 3 also run with the pair coded (`option:1:jpeg80`,
+`option:3:png`: the cloud decodes the coded pair for a suffix and for a segment request). What
+must hold: no frame lost, every offloaded frame answered by the cloud, the action label naming
+the segment and the codec, and each frame's d_coll equal (float tolerance) to the all-robot one
+on the same frame when the pair crossed losslessly (raw, PNG); under JPEG, d_coll with the
+model's bins.
 """
 
 from __future__ import annotations
@@ -29,7 +32,21 @@ from tests.integration.test_registry import LEASE_MS, TEST_PARAMS, RunningRegist
 
 SERVICE = "nav"
 DEPLOYMENT = "edge-1"
-ROBOTS = {option: f"robot-{option}" for option in (1, 2, 3, 4)}
+RUNS = {
+    "1": "option:1",
+    "2": "option:2",
+    "3": "option:3",
+    "4": "option:4",
+    "1:jpeg80": None,
+    "3:png": "option:3:png",
+}
+"""Run → the robot's `--policy`; None takes the fleet file's (`static`, option 1 with jpeg80)."""
+ROBOTS = {run: f"robot-{run.replace(':', '-')}" for run in RUNS}
+ALL_ROBOT = "4"
+LOSSLESS = ("1", "2", "3", "3:png")
+"""The runs whose crossings are exact, so d_coll equals the all-robot one."""
+DCOLL_BINS = 41
+"""zoo:stereo's curvature bins (`nav.bins.count`)."""
 FRAMES = 4
 SOURCE = "stereo:world"
 INPUT_SHAPE = [3, 120, 160]
@@ -39,7 +56,14 @@ WAIT_S = 30.0
 """Bound of each wait for a daemon to start (the first start splits and verifies the model)."""
 DCOLL_ATOL_M = 1e-5
 """d_coll is metres in float32; every cut and segment verifies with error 0, so this is slack."""
-EXPECTED_ACTIONS = {1: "cut:0", 2: "cut:4", 3: "cut:0-4", 4: "P"}
+EXPECTED_ACTIONS = {
+    "1": "cut:0",
+    "2": "cut:4",
+    "3": "cut:0-4",
+    "4": "P",
+    "1:jpeg80": "cut:0:jpeg80",
+    "3:png": "cut:0-4:png",
+}
 """zoo:stereo at 160×120 has cuts 0 (the pair) … 4 (points)."""
 
 
@@ -62,7 +86,7 @@ def fleet_config(folder: Path) -> FleetConfig:
         "initial_policy": {DEPLOYMENT: "service", **dict.fromkeys(ROBOTS.values(), "robot")},
         "latency_bound": {"stat": "median", "seconds": DEADLINE_S},
         "deadline_s": DEADLINE_S,
-        "policy": {"kind": "static", "params": {"option": 1}},
+        "policy": {"kind": "static", "params": {"option": 1, "codec": "jpeg80"}},
         "zenoh": {"lease_ms": LEASE_MS},
     }
     return fleet_from_dict(data)
@@ -71,8 +95,8 @@ def fleet_config(folder: Path) -> FleetConfig:
 @pytest.fixture(scope="module")
 def results(
     tmp_path_factory: pytest.TempPathFactory,
-) -> Iterator[dict[int, list[FrameResult]]]:
-    """Each option's frames, run against one registry and one cloud daemon."""
+) -> Iterator[dict[str, list[FrameResult]]]:
+    """Each run's frames, run against one registry and one cloud daemon."""
     cfg = fleet_config(tmp_path_factory.mktemp("nav-fleet"))
     registry = RunningRegistry(cfg, params=TEST_PARAMS).start()
     cloud = CloudDaemon(cfg, DEPLOYMENT)
@@ -81,14 +105,12 @@ def results(
     try:
         if not cloud.ready.wait(WAIT_S):
             pytest.fail(f"{DEPLOYMENT} did not become ready within {WAIT_S} s")
-        by_option: dict[int, list[FrameResult]] = {}
-        for option, robot in ROBOTS.items():
-            # The fleet file's kind is `static` with option 1; the CLI form names the others.
-            spec = None if option == 1 else f"option:{option}"
+        by_run: dict[str, list[FrameResult]] = {}
+        for run, spec in RUNS.items():
             frames: list[FrameResult] = []
             daemon = RobotDaemon(
                 cfg,
-                robot,
+                ROBOTS[run],
                 RobotOptions(
                     frames=FRAMES,
                     policy=spec,
@@ -98,8 +120,8 @@ def results(
                 on_result=frames.append,
             )
             assert daemon.run() == 0
-            by_option[option] = frames
-        yield by_option
+            by_run[run] = frames
+        yield by_run
     finally:
         cloud.stop()
         thread.join(WAIT_S)
@@ -107,25 +129,25 @@ def results(
     assert not thread.is_alive(), "the cloud daemon did not stop"
 
 
-@pytest.mark.parametrize("option", [1, 2, 3, 4])
+@pytest.mark.parametrize("run", list(RUNS))
 def test_no_frame_is_lost_and_the_cloud_answers_each_offload(
-    results: dict[int, list[FrameResult]], option: int
+    results: dict[str, list[FrameResult]], run: str
 ) -> None:
-    frames = results[option]
+    frames = results[run]
     assert sorted(r.frame for r in frames) == list(range(FRAMES))
     for r in frames:
-        assert r.record.action == EXPECTED_ACTIONS[option]
-        assert not r.record.fallback, f"option {option} frame {r.frame}: {r.record.detail}"
-        served = SERVED_BY_ROBOT if option == 4 else SERVED_BY_CLOUD
+        assert r.record.action == EXPECTED_ACTIONS[run]
+        assert not r.record.fallback, f"run {run} frame {r.frame}: {r.record.detail}"
+        served = SERVED_BY_ROBOT if run == ALL_ROBOT else SERVED_BY_CLOUD
         assert r.served_by == served
 
 
-@pytest.mark.parametrize("option", [1, 2, 3])
-def test_dcoll_of_each_option_equals_the_all_robot_one(
-    results: dict[int, list[FrameResult]], option: int
+@pytest.mark.parametrize("run", LOSSLESS)
+def test_dcoll_of_each_lossless_run_equals_the_all_robot_one(
+    results: dict[str, list[FrameResult]], run: str
 ) -> None:
-    robot_only = {r.frame: r for r in results[4]}
-    for r in results[option]:
+    robot_only = {r.frame: r for r in results[ALL_ROBOT]}
+    for r in results[run]:
         same = robot_only[r.frame]
         for view in ("left", "right"):  # the same frame went in
             np.testing.assert_array_equal(r.feeds[view], same.feeds[view])
@@ -135,11 +157,32 @@ def test_dcoll_of_each_option_equals_the_all_robot_one(
         )
 
 
-def test_the_segment_reply_carried_the_points(results: dict[int, list[FrameResult]]) -> None:
+def test_a_jpeg_pair_gives_dcoll_with_the_model_bins(
+    results: dict[str, list[FrameResult]],
+) -> None:
+    """JPEG is lossy: the disparities, hence d_coll, may differ from the raw pair's; the shape
+    and finite distances must not."""
+    for r in results["1:jpeg80"]:
+        assert sorted(r.outputs) == ["d_coll"]
+        d_coll = np.asarray(r.outputs["d_coll"])
+        assert d_coll.shape == (1, DCOLL_BINS) and np.isfinite(d_coll).all()
+
+
+def test_the_coded_pair_is_smaller_than_the_raw_one(
+    results: dict[str, list[FrameResult]],
+) -> None:
+    """The codec is applied on the wire, not only named in the label."""
+    raw = min(r.record.bytes_up for r in results["1"])
+    assert max(r.record.bytes_up for r in results["1:jpeg80"]) < raw / 2
+    assert max(r.record.bytes_up for r in results["3:png"]) < raw
+
+
+def test_the_segment_reply_carried_the_points(results: dict[str, list[FrameResult]]) -> None:
     """Option 3's reply is the points (1×H×W×3 float32), far bigger than d_coll's 164 bytes."""
     height, width = INPUT_SHAPE[1:]
     points_bytes = height * width * 3 * 4
-    for r in results[3]:
-        assert r.record.bytes_down > points_bytes
-    for r in results[1]:
+    for run in ("3", "3:png"):
+        for r in results[run]:
+            assert r.record.bytes_down > points_bytes
+    for r in results["1"]:
         assert r.record.bytes_down < points_bytes

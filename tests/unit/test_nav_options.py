@@ -1,6 +1,7 @@
-"""The navigation options 1–4 as policies (`robotd.policies.nav_options`), the segment action
-they need (`Decision.end`, `CutTable.with_segment`, labels), and the request's optional end cut
-on the wire (`InferRequest.end_cut`: absent means to the end, as older peers send it)."""
+"""The navigation options 1–4 as policies (`robotd.policies.nav_options`), the camera pair's
+codec in options 1 and 3 (parsed, refused elsewhere, measured by the robot at start), the segment
+action they need (`Decision.end`, `CutTable.with_segment`, labels), and the request's optional
+end cut on the wire (`InferRequest.end_cut`: absent means to the end, as older peers send it)."""
 
 from __future__ import annotations
 
@@ -15,9 +16,10 @@ from common.wire.errors import InvalidValue
 from common.wire.robot_to_cloud import InferRequest
 from common.wire.telemetry import action_label, parse_action_codec, parse_action_segment
 from common.wire.tensor_codecs import EncodedTensor
+from robotd.calibration import required_codecs
 from robotd.policies import PURE_ROBOT, Decision, FrameContext, make_policy, params_model
 from robotd.policies.base import CutTable
-from robotd.policies.nav_options import OptionParams
+from robotd.policies.nav_options import OptionParams, nav_option
 
 POINTS = 4
 
@@ -38,8 +40,20 @@ def nav_profile(**changes: Any) -> dict[str, Any]:
     return profile
 
 
+def with_pair_codecs(profile: dict[str, Any], *names: str) -> dict[str, Any]:
+    """`profile` with the camera pair (cut 0) measured in `names` besides raw, as the robot's
+    calibration leaves it when the option names a codec."""
+    pair = profile["cuts"][0]
+    pair["codecs"] = [{"name": "raw", "bytes": pair["bytes"]}] + [
+        {"name": name, "bytes": pair["bytes"] / 10, "encode_ms": 1.0, "decode_ms": 1.0}
+        for name in names
+    ]
+    return profile
+
+
 def decided(spec: str, params: dict[str, Any] | None = None, **changes: Any) -> Decision:
-    return make_policy(spec, nav_profile(**changes), params).decide(FrameContext(index=0))
+    profile = with_pair_codecs(nav_profile(**changes), "jpeg80", "png")
+    return make_policy(spec, profile, params).decide(FrameContext(index=0))
 
 
 @pytest.mark.parametrize(
@@ -62,6 +76,85 @@ def test_the_fleet_form_takes_the_option_as_its_only_parameter() -> None:
         decided("static", {"option": 5})
     with pytest.raises(UserError, match="expected option:1, option:2, option:3 or option:4"):
         decided("option:7")
+
+
+@pytest.mark.parametrize(
+    ("option", "codec", "end", "label"),
+    [
+        (1, "jpeg80", None, "0:jpeg80"),
+        (1, "png", None, "0:png"),
+        (3, "jpeg80", POINTS, "0-4:jpeg80"),
+    ],
+)
+def test_options_1_and_3_send_the_pair_in_the_codec_they_name(
+    option: int, codec: str, end: int | None, label: str
+) -> None:
+    fleet = decided("static", {"option": option, "codec": codec})
+    cli = decided(f"option:{option}:{codec}")
+    for decision in (fleet, cli):
+        assert (decision.action, decision.codec, decision.end) == (0, codec, end)
+        assert decision.label == label and not decision.hedge
+
+
+def test_without_a_codec_the_pair_crosses_raw() -> None:
+    assert decided("static", {"option": 1}).codec == "raw"
+    assert decided("option:3").codec == "raw"
+    assert decided("option:1:raw").label == "0"
+
+
+@pytest.mark.parametrize(
+    ("spec", "params"),
+    [
+        ("option:1:jpg80", None),
+        ("option:3:fp16", None),  # a codec, but not one an image crosses in
+        ("static", {"option": 1, "codec": "jpeg101"}),
+    ],
+)
+def test_an_unknown_pair_codec_is_one_line_listing_the_known_ones(
+    spec: str, params: dict[str, Any] | None
+) -> None:
+    with pytest.raises(UserError) as caught:
+        decided(spec, params)
+    message = str(caught.value)
+    assert "unknown codec for the camera pair" in message
+    assert "known: raw, raw+zstd, jpeg<Q>, png" in message
+    assert "\n" not in message
+
+
+@pytest.mark.parametrize(
+    ("spec", "params"),
+    [("option:2:jpeg80", None), ("option:4:png", None), ("static", {"option": 2, "codec": "png"})],
+)
+def test_a_codec_is_refused_for_options_that_send_no_pair(
+    spec: str, params: dict[str, Any] | None
+) -> None:
+    with pytest.raises(UserError, match="only options 1 and 3 send the camera pair"):
+        decided(spec, params)
+
+
+def test_malformed_option_specs_say_what_is_expected() -> None:
+    with pytest.raises(UserError, match=r"needs a codec after the colon, e\.g\. option:1:jpeg80"):
+        decided("option:1:")
+    # The CLI form carries its codec in the spec, not in params.
+    with pytest.raises(UserError, match=r"option:1 params: codec: Extra inputs are not permitted"):
+        decided("option:1", {"codec": "png"})
+
+
+def test_a_profile_without_the_pair_codec_names_the_codecs_it_has() -> None:
+    with pytest.raises(
+        UserError, match=r"no codec jpeg50 for the camera pair \(cut 0; it has raw, "
+    ):
+        decided("option:3:jpeg50")
+
+
+def test_the_robot_measures_the_option_codec_at_the_pair_cut() -> None:
+    """The calibration keeps the named codec as an action, else the policy could not be built."""
+    assert required_codecs("option:1:jpeg80", 0) == {0: ["jpeg80"]}
+    assert required_codecs("static", 0, {"option": 3, "codec": "png"}) == {0: ["png"]}
+    assert required_codecs("option:3", 0) == {}
+    assert required_codecs("static", 0, {"option": 4}) == {}
+    assert required_codecs("static:2:int8", 0) == {2: ["int8"]}  # the baselines' form, unchanged
+    assert nav_option("elastic", {"beta": 1.0}) is None
 
 
 def test_a_model_without_the_named_cut_is_refused_for_every_option() -> None:
