@@ -23,6 +23,10 @@ restart too. Loads from probe reports are written to the RIB by `flush_loads`, n
 `busy` replies are a scheduling signal too: of the last `busy_window` frames a robot offloaded to
 its route's deployment, the scheduler sees how many were refused `busy` (`RobotMeasures.busy`
 out of `offloaded`); the count restarts when the route changes.
+
+A robot to be placed also sees how many robots are routed to each deployment
+(`RobotMeasures.routed`): counted as routes are set, so a robot placed earlier in the same round
+counts at once, where the deployments' reported loads are seconds old.
 """
 
 from __future__ import annotations
@@ -30,9 +34,9 @@ from __future__ import annotations
 import math
 import threading
 import time
-from collections import deque
-from collections.abc import Callable
-from dataclasses import dataclass
+from collections import Counter, deque
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
 
 from common.wire.telemetry import FallbackReason, ProbeReport, TelemetryRecord
 from registry.latency import LatencyWindows, Profiles, Source, WindowKey, WindowStats
@@ -55,7 +59,8 @@ DEFAULT_BUSY_WINDOW = 20
 class RobotMeasures:
     """What the scheduler needs about one robot: the telemetry window of its route, its
     consecutive failures (and the deployment they were against), its probe profiles, and of its
-    last frames offloaded to its route (`offloaded`) how many were refused `busy`."""
+    last frames offloaded to its route (`offloaded`) how many were refused `busy`. `routed`: the
+    robots routed to each deployment, for a robot without a route (empty for the others)."""
 
     telemetry: WindowStats | None
     timeouts_on: str | None
@@ -63,6 +68,7 @@ class RobotMeasures:
     profiles: Profiles
     busy: int = 0
     offloaded: int = 0
+    routed: Mapping[str, int] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -124,6 +130,9 @@ class Measurements:
         self._loads: dict[str, tuple[int, int | None]] = {}  # from probe reports, not yet saved
         # robot -> its last frames offloaded to its route, True for a `busy` refusal.
         self._busy: dict[str, deque[bool]] = {}
+        # Robots present with a route: robot -> its deployment, and how many per deployment.
+        self._counted: dict[str, str] = {}
+        self._routed: Counter[str] = Counter()
 
     # -- feeding (Zenoh callback threads) --------------------------------------------------------
     def record_telemetry(self, rec: TelemetryRecord, key: str) -> bool:
@@ -225,12 +234,24 @@ class Measurements:
         with self._lock:
             before = self._routes.get(robot)
             self._routes[robot] = (deployment, epoch)
+            self._count(robot, deployment)
             if before is None or before[0] != deployment:
                 if deployment is not None:
                     self._windows.window(robot, deployment, Source.TELEMETRY).clear()
                 self._timeouts.pop(robot, None)
                 self._reroute_asked.discard(robot)
                 self._busy.pop(robot, None)
+
+    def _count(self, robot: str, deployment: str | None) -> None:
+        """Count `robot` on `deployment` from now on, on none for None (the lock is held)."""
+        before = self._counted.pop(robot, None)
+        if before is not None:
+            self._routed[before] -= 1
+            if self._routed[before] <= 0:
+                del self._routed[before]
+        if deployment is not None:
+            self._counted[robot] = deployment
+            self._routed[deployment] += 1
 
     def force_timeouts(self, robot: str, deployment: str, reported: int) -> None:
         """The robot asked to leave `deployment` after `reported` consecutive timeouts: count at
@@ -246,6 +267,7 @@ class Measurements:
             self._timeouts.pop(robot, None)
             self._reroute_asked.discard(robot)
             self._busy.pop(robot, None)
+            self._count(robot, None)
 
     def forget_deployment(self, deployment: str) -> None:
         """A deployment left: a returning process starts clean."""
@@ -259,15 +281,20 @@ class Measurements:
 
     # -- reading ---------------------------------------------------------------------------------
     def for_scheduler(self, robot: str, route: str | None) -> RobotMeasures:
-        """The robot's measures as the scheduler takes them, `route` being its deployment."""
+        """The robot's measures as the scheduler takes them, `route` being its deployment (the
+        RIB's: the robot is counted there from now on, so a robot that came back counts again).
+        """
         with self._lock:
+            self._count(robot, route)
+            # Copied only for a robot to be placed: the others' decisions do not read it.
+            routed = dict(self._routed) if route is None else {}
             telemetry = self._windows.stats(robot, route, Source.TELEMETRY) if route else None
             timeouts_on, timeouts = self._timeouts.get(robot, (None, 0))
             profiles = self._windows.profiles(robot, Source.PROBE)
             window = self._busy.get(robot)
             busy = sum(window) if window else 0
             offloaded = len(window) if window else 0
-        return RobotMeasures(telemetry, timeouts_on, timeouts, profiles, busy, offloaded)
+        return RobotMeasures(telemetry, timeouts_on, timeouts, profiles, busy, offloaded, routed)
 
     def robot_status(self, robot: str, route: str | None) -> RobotStatus:
         """What the robots view shows of the robot, `route` being its deployment."""
@@ -302,6 +329,7 @@ class Measurements:
         with self._lock:
             for route in routes:
                 self._routes[route.robot] = (route.deployment, route.epoch)
+                self._count(route.robot, route.deployment)
             for row in profiles:
                 try:
                     source = Source(row.source)

@@ -6,12 +6,13 @@ daemon that asks on `reg/register` from its request; both are checked with
 The reference digest is the fleet file's model when this host has the file; for a `zoo:` model
 (the registry never exports one) it is the digest of the deployments already accepted.
 
-`Registrar` serves `reg/register` (a robot that is accepted gets its current route), and keeps the
-registration state of every cloud whose token is alive (`pending` until its
-probe is answered, then `accepted` or `refused`), which deployments were accepted in this run, and
-the model digest each robot registered with. The control loop writes; the views and `reg/register`
-read from Zenoh callback threads, hence the lock. A refusal is an event in the RIB and one warning
-naming the machine and the reason; nothing is ever routed to a refused deployment.
+`Registrar` serves `reg/register` (a robot that is accepted gets its current route, and one left
+without a deployment the reason, e.g. `no_capacity`), and keeps the registration state of every
+cloud whose token is alive (`pending` until its probe is answered, then `accepted` or `refused`),
+which deployments were accepted in this run, and the model digest each robot registered with. The
+control loop writes; the views and `reg/register` read from Zenoh callback threads, hence the lock.
+A refusal is an event in the RIB and one warning naming the machine and the reason; nothing is ever
+routed to a refused deployment.
 """
 
 from __future__ import annotations
@@ -30,9 +31,15 @@ from common.defaults import DEFAULT_MAX_REQUEST_BYTES
 from common.models import file_digest
 from common.wire import registry as msg
 from registry.replies import answer, decode_query
-from registry.rib import EventKind, Rib
+from registry.rib import EventKind, Rib, RouteRow
+from registry.scheduler import Reason
 
 log = logging.getLogger(__name__)
+
+# The reason of the route in a registration reply: the robot's route as it stands.
+CURRENT_ROUTE_REASON = "current"
+# The scheduler's reasons, the only ones a reply repeats from the RIB's route events.
+ROUTE_REASONS = frozenset(r.value for r in Reason)
 
 
 class Role(str, Enum):
@@ -200,6 +207,12 @@ class Registrar:
         """Serve `reg/register` on Zenoh's callback thread (a WireError for a bad request, which
         the caller answers)."""
         request = decode_query(query, msg.RegisterRequest, max_bytes=self.max_request_bytes)
+        reply = self.reply_to(request)
+        answer(query, (keys.reg_register(self.fleet), reply.to_wire()))
+
+    def reply_to(self, request: msg.RegisterRequest) -> msg.RegisterReply:
+        """The answer to a `reg/register` request: accepted or the reason not, and for an
+        accepted robot its current route."""
         reason = self.register(request)
         route = None
         if reason is None and Role(request.role) is Role.ROBOT:
@@ -209,16 +222,30 @@ class Registrar:
                     robot=request.id,
                     deployment=row.deployment,
                     epoch=row.epoch,
-                    reason="current",
+                    reason=self._route_reason(row),
                     at=time.time(),
+                    pool=row.pool,
                 )
-        reply = msg.RegisterReply(
+        return msg.RegisterReply(
             accepted=reason is None,
             reason=reason or "accepted",
             protocol_version=msg.PROTOCOL_VERSION,
             route=route,
         )
-        answer(query, (keys.reg_register(self.fleet), reply.to_wire()))
+
+    def _route_reason(self, row: RouteRow) -> str:
+        """Why a robot has its route, for the registration reply: `current` for a deployment;
+        for none, the reason it was given (`no_capacity`: every deployment full), so a robot
+        that registers again learns why it computes locally, as it did from the route change."""
+        if row.deployment is not None:
+            return CURRENT_ROUTE_REASON
+        for event in self.rib.events(limit=1, robot=row.robot, kind=EventKind.ROUTE.value):
+            # The RIB writes a route event as "<reason>: <from> -> <to>"; only a reason of the
+            # scheduler's vocabulary, for this very epoch, is repeated.
+            code = event.reason.partition(":")[0]
+            if event.epoch == row.epoch and code in ROUTE_REASONS:
+                return code
+        return CURRENT_ROUTE_REASON
 
     def register(self, request: msg.RegisterRequest) -> str | None:
         """Check a `reg/register` request; the reason to refuse it (recorded), or None. An

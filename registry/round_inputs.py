@@ -1,6 +1,11 @@
 """What the registry hands the scheduler about a robot, built from the RIB's rows, the
 measurements and the registrar; and the initial placement's preference, applied to its answer.
 
+The preference (`prefer_initial`: initial_policy's service machine) gives way to load: it does not
+send a robot to a deployment the scheduler found crowded (`RouteDecision.crowded`), so a fleet
+whose robots are all in service on one deployment spreads to the others once it has no room to
+spare (docs/registry.md, "Choice").
+
 The scheduler (`registry.scheduler`) is pure: it sees `RobotView`s and a `DeploymentTable`, never
 the RIB. A scheduling round reads the deployments once as one table (`deployment_table`) and
 each live robot's row and route with them; reading and converting every deployment per robot
@@ -13,6 +18,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Iterable
+from dataclasses import replace
 
 from common.config import FleetConfig
 from registry.measurements import RobotMeasures
@@ -57,7 +63,7 @@ def robot_view(
     model_digest: str | None,
 ) -> RobotView:
     """The scheduler's view of one robot: its RIB row (`default_service` without one), its
-    current route and its measurements."""
+    current route and its measurements (with the robots routed to each deployment)."""
     return RobotView(
         id=robot,
         service=row.service if row is not None else default_service,
@@ -68,6 +74,7 @@ def robot_view(
         model_digest=model_digest,
         busy=measures.busy,
         offloaded=measures.offloaded,
+        routed=measures.routed,
     )
 
 
@@ -95,13 +102,12 @@ def waiting_for(
 
 
 def prefer_initial(cfg: FleetConfig, decision: RouteDecision) -> RouteDecision:
-    """An initial placement goes to initial_policy's service machine when it can."""
+    """An initial placement goes to initial_policy's service machine when it can: a candidate
+    with room to spare (not crowded)."""
     if decision.reason is not Reason.INITIAL or decision.robot not in cfg.machines:
         return decision
     wanted = cfg.initial_service(decision.robot)
-    if wanted is None or wanted not in decision.candidates:
+    if wanted is None or wanted not in decision.candidates or wanted in decision.crowded:
         return decision
     order = (wanted, *(c for c in decision.candidates if c != wanted))
-    return RouteDecision(
-        decision.robot, decision.from_deployment, wanted, decision.reason, order, None
-    )
+    return replace(decision, to_deployment=wanted, candidates=order, predicted_s=None)

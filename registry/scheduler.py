@@ -44,6 +44,16 @@ Admission: a robot to be placed (no route, or its deployment lost) when every us
 `full` is not piled onto one: it gets no route (`no_capacity`, so it is told why; it finishes every
 frame itself, as without a route) once, and is placed by a later round's `initial` as soon as a
 deployment has room. A deployment of unknown capacity is never full.
+
+Placement by load (`initial`): a deployment's committed load is its reported load or the robots
+routed to it (`RobotView.routed`), whichever is more: a robot takes a request slot as soon as it is
+routed, while a reported load is seconds old, so a round that places several robots would pile
+them all onto the deployment that reported room. Targets whose committed load is below
+`1 - busy_headroom` of their capacity (the busy trigger's room to spare) come first, in rank order;
+the others are `crowded` in the decision, so the initial policy's preference (applied after the
+scheduler, `registry.round_inputs.prefer_initial`) does not send a robot there while another has
+room. With room nowhere the targets are ordered by committed share, those meeting the bound first:
+robots spread instead of all going to the first in rank.
 """
 
 from __future__ import annotations
@@ -51,7 +61,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from enum import Enum
 
 from common.wire.registry import NO_CAPACITY_REASON
@@ -187,7 +197,9 @@ class RobotView:
 
     `telemetry` is the window of frames answered by the serving deployment; `timeouts` counts the
     robot's consecutive timeouts against `timeouts_on` (None: its current route); of its last
-    `offloaded` frames to its route, `busy` were refused for want of room.
+    `offloaded` frames to its route, `busy` were refused for want of room. `routed` counts the
+    robots routed to each deployment now (this one excluded), for a robot to be placed; it may be
+    empty otherwise.
     """
 
     id: str
@@ -199,6 +211,7 @@ class RobotView:
     model_digest: str | None = None
     busy: int = 0
     offloaded: int = 0
+    routed: Mapping[str, int] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -206,7 +219,8 @@ class RouteDecision:
     """Move `robot` from `from_deployment` to `to_deployment` (None: compute locally).
 
     `candidates` lists acceptable targets best first (`to_deployment` first) so the switch protocol
-    can fall back to the next one when a deployment does not acknowledge.
+    can fall back to the next one when a deployment does not acknowledge. `crowded` (an initial
+    placement only) names the candidates without room to spare for one more robot.
     """
 
     robot: str
@@ -215,6 +229,7 @@ class RouteDecision:
     reason: Reason
     candidates: tuple[str, ...] = ()
     predicted_s: float | None = None
+    crowded: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True, slots=True)
@@ -440,6 +455,8 @@ class Scheduler:
             if robot.route is None and st.no_capacity:
                 return None  # already told; a later round places it when one has room
             return RouteDecision(robot.id, robot.route, None, Reason.NO_CAPACITY)
+        if targets and reason is Reason.INITIAL:
+            return self._place(robot, targets)
         if targets:
             return _move(robot.id, robot.route, targets, reason)
         if reason is Reason.DEPLOYMENT_LOST:
@@ -447,6 +464,26 @@ class Scheduler:
             return RouteDecision(robot.id, robot.route, None, reason)
         # No route and nothing to offer, or the only deployment drains / times out: stay put.
         return None
+
+    def _place(self, robot: RobotView, targets: list[_Candidate]) -> RouteDecision:
+        """An initial placement by load (module docstring): the targets with room for one more
+        robot first, in rank order, then the crowded ones, named in the decision."""
+        share = 1 - self.params.busy_headroom
+        room: list[_Candidate] = []
+        crowded: list[_Candidate] = []
+        for c in targets:
+            roomy = c.tier <= 1 and _room_to_place(
+                c.deployment, _committed(robot, c.deployment), share
+            )
+            (room if roomy else crowded).append(c)
+        if not room:
+            # Nowhere with room to spare: the least committed first, or every robot of a round
+            # would go to the first in rank (the one that met the bound or had the lowest id).
+            crowded.sort(
+                key=lambda c: (c.tier, _committed_share(robot, c.deployment), c.sort_key())
+            )
+        decision = _move(robot.id, robot.route, room + crowded, Reason.INITIAL)
+        return replace(decision, crowded=tuple(c.deployment.id for c in crowded))
 
     def _on_violation(
         self,
@@ -657,6 +694,23 @@ def _usable(robot: RobotView, dep: DeploymentView) -> bool:
             or dep.model_digest == robot.model_digest
         )
     )
+
+
+def _committed(robot: RobotView, dep: DeploymentView) -> int:
+    """The load `dep` is committed to: its reported load, or the robots routed to it when more
+    (each holds a request slot as soon as it is routed; the report is seconds old)."""
+    return max(dep.load, robot.routed.get(dep.id, 0))
+
+
+def _committed_share(robot: RobotView, dep: DeploymentView) -> float:
+    """Committed load over capacity (0 when the capacity is unknown)."""
+    return _committed(robot, dep) / dep.capacity if dep.capacity > 0 else 0.0
+
+
+def _room_to_place(dep: DeploymentView, committed: int, share: float) -> bool:
+    """Whether one more robot fits on `dep`: its committed load below `share` of its capacity
+    (unknown capacity: nothing says it is short of room)."""
+    return dep.capacity <= 0 or committed < dep.capacity * share
 
 
 class _Targets:

@@ -14,6 +14,7 @@ from common.wire.registry import (
     CAP_INFER,
     CAP_LOCAL_FALLBACK,
     CAP_PROBE,
+    NO_CAPACITY_REASON,
     PROTOCOL_VERSION,
     ProbeReply,
     RegisterRequest,
@@ -154,3 +155,34 @@ def test_robot_registration_keeps_its_digest_and_refusals_name_the_robot(rib: Ri
     [event] = rib.events(kind=EventKind.REGISTRATION_REFUSED.value)
     assert (event.robot, event.deployment) == ("robot-2", None)
     assert registrar.robot_digest("robot-2") is None
+
+
+def robot_request(robot: str) -> RegisterRequest:
+    return RegisterRequest(
+        role="robot",
+        id=robot,
+        protocol_version=PROTOCOL_VERSION,
+        capabilities=(CAP_LOCAL_FALLBACK,),
+        service=SERVICE,
+        model_digest=DIGEST,
+    )
+
+
+def test_a_robot_left_local_for_capacity_is_told_why_when_it_registers(rib: Rib) -> None:
+    # Regression: the reply said `current`, so a robot that registered again after the
+    # registry refused it for capacity did not know why it computes locally.
+    registrar = Registrar("f", rib, SERVICE, DIGEST)
+    rib.set_route("robot-1", None, rib.reserve_epoch("robot-1"), NO_CAPACITY_REASON)
+    reply = registrar.reply_to(robot_request("robot-1"))
+    assert reply.accepted and reply.route is not None
+    assert (reply.route.deployment, reply.route.reason) == (None, NO_CAPACITY_REASON)
+
+
+def test_a_robot_with_a_deployment_gets_its_current_route(rib: Rib) -> None:
+    registrar = Registrar("f", rib, SERVICE, DIGEST)
+    rib.set_route("robot-1", None, rib.reserve_epoch("robot-1"), NO_CAPACITY_REASON)
+    rib.set_route("robot-1", "edge-1", rib.reserve_epoch("robot-1"), "initial")
+    reply = registrar.reply_to(robot_request("robot-1"))
+    assert reply.route is not None
+    assert (reply.route.deployment, reply.route.reason) == ("edge-1", "current")
+    assert registrar.reply_to(robot_request("robot-2")).route is None, "never routed"
