@@ -71,7 +71,7 @@ from cloudd.probe import ProbeResponder
 from cloudd.refusals import Refusals
 from cloudd.registry_link import DRAIN_TIMEOUT_S, RegistryLink
 from cloudd.replies import Replier
-from cloudd.robot_book import RobotBook
+from cloudd.robot_book import RobotBook, ServiceQueryables
 from cloudd.state import RobotState
 from cloudd.suffixes import open_split_model, warm_suffixes
 from cloudd.workers import BatchWorkers
@@ -367,18 +367,29 @@ class CloudDaemon(Daemon):
 
     # -- service keys ----------------------------------------------------------------------
     def _declare_service(self, robot: str) -> None:
-        """Declare `robot`'s service key (the Controller calls this before acking service)."""
+        """Declare `robot`'s service key and this deployment's pool member key for it (the
+        Controller calls this before acking service). A robot of an anycast fleet queries the
+        first; one in a round-robin pool sends each frame to one member's key."""
         session, admission = self._session, self._admission
         if session is None or admission is None:
             raise RuntimeError("no session")
-        key = keys.svc_infer(self.cfg.fleet, self.cfg.service, robot)
-        handler = self.guarded(
-            functools.partial(admission.on_query, robot, key),
-            what=f"a query on {key}",
-            on_error=functools.partial(self._replies.internal_error, key),
-        )
-        queryable = session.declare_queryable(key, handler, complete=True)
-        old = self._book.put_service(robot, queryable)
+        fleet, service = self.cfg.fleet, self.cfg.service
+        declared: list[zenoh.Queryable[None]] = []
+        try:
+            for key in (
+                keys.svc_infer(fleet, service, robot),
+                keys.svc_infer_at(fleet, service, robot, self.deployment),
+            ):
+                handler = self.guarded(
+                    functools.partial(admission.on_query, robot, key),
+                    what=f"a query on {key}",
+                    on_error=functools.partial(self._replies.internal_error, key),
+                )
+                declared.append(session.declare_queryable(key, handler, complete=True))
+        except zenoh.ZError:
+            ServiceQueryables(tuple(declared)).undeclare()
+            raise
+        old = self._book.put_service(robot, ServiceQueryables(tuple(declared)))
         if old is not None:
             old.undeclare()
 

@@ -23,13 +23,32 @@ STOPPING_REASON = "this deployment is stopping"
 
 
 @dataclass(frozen=True)
+class ServiceQueryables:
+    """The queryables a robot in service has here: its anycast service key and this deployment's
+    pool member key (`common.keys.svc_infer_at`), declared and undeclared together."""
+
+    queryables: tuple[zenoh.Queryable[None], ...]
+
+    def undeclare(self) -> None:
+        """Undeclare every one; the first failure is raised after the others were tried."""
+        failure: zenoh.ZError | None = None
+        for queryable in self.queryables:
+            try:
+                queryable.undeclare()
+            except zenoh.ZError as exc:
+                failure = failure or exc
+        if failure is not None:
+            raise failure
+
+
+@dataclass(frozen=True)
 class CtlDecision:
     """A verdict on a service or standby request, and what carrying it out needs: the robot's
     service key to undeclare before the ack (`undeclare`), or none. `stopping`: refused
     because the daemon is shutting down (not a disagreement worth a log line)."""
 
     verdict: Verdict
-    undeclare: zenoh.Queryable[None] | None = None
+    undeclare: ServiceQueryables | None = None
     stopping: bool = False
 
 
@@ -42,7 +61,7 @@ class RobotBook:
         self._states = StateTable(robots)
         self._served: dict[str, int] = {}
         self._unanswered: set[str] = set()  # robots in service not answered since they entered
-        self._services: dict[str, zenoh.Queryable[None]] = {}
+        self._services: dict[str, ServiceQueryables] = {}
 
     # -- views -----------------------------------------------------------------------------
     def states(self) -> dict[str, RobotState]:
@@ -109,17 +128,15 @@ class RobotBook:
             return self._states.drain_all()
 
     # -- service keys ----------------------------------------------------------------------
-    def put_service(
-        self, robot: str, queryable: zenoh.Queryable[None]
-    ) -> zenoh.Queryable[None] | None:
-        """Keep `robot`'s newly declared service queryable; returns the one it replaces."""
+    def put_service(self, robot: str, queryables: ServiceQueryables) -> ServiceQueryables | None:
+        """Keep `robot`'s newly declared service queryables; returns those they replace."""
         with self._lock:
             old = self._services.pop(robot, None)
-            self._services[robot] = queryable
+            self._services[robot] = queryables
         return old
 
-    def take_services(self) -> list[zenoh.Queryable[None]]:
-        """Every service queryable, forgotten here (to undeclare them)."""
+    def take_services(self) -> list[ServiceQueryables]:
+        """Every robot's service queryables, forgotten here (to undeclare them)."""
         with self._lock:
             services = list(self._services.values())
             self._services.clear()

@@ -13,11 +13,13 @@ What each host may send (ingress on every other host), with keys from `common.ke
 - registry: everything under `ef/<fleet>/**`. It is the fleet's router, so it relays the other
   hosts' declarations and, for clients, their data; those were filtered when they entered it.
 - cloud `<d>`: declare and answer the service queryables of its fleet and service
-  (`svc/<service>/*/infer`), its own `dep/<d>/{probe,ctl}`; its own liveliness token; query the
+  (`svc/<service>/*/infer`) and its own pool member keys (`svc/<service>/*/infer/<d>`), its own
+  `dep/<d>/{probe,ctl}`; its own liveliness token; query the
   registry's drain key; follow the fleet's liveliness tokens.
-- robot `<r>`: query its own service key, the registry's register/reroute keys and the
-  deployments' probes (`dep/*/probe`, how it measures them); publish its own telemetry and probe
-  reports; subscribe to its own route; its own liveliness token; follow liveliness tokens.
+- robot `<r>`: query its own service key and pool member keys, the registry's register/reroute
+  keys and the deployments' probes (`dep/*/probe`, how it measures them); publish its own
+  telemetry and probe reports; subscribe to its own route; its own liveliness token; follow
+  liveliness tokens.
 - cli: query the registry's views (`rib/*`) and nothing else.
 
 Egress is open within the fleet's prefix for every known host: what a host can receive follows
@@ -76,11 +78,13 @@ def cloud_grants(cfg: FleetConfig, deployment: str) -> list[Grant]:
     fleet = cfg.fleet
     own = (keys.dep_probe(fleet, deployment), keys.dep_ctl(fleet, deployment))
     service = keys.svc_infer_all(fleet, cfg.service)
+    member = keys.svc_infer_at_all(fleet, cfg.service, deployment)
     return [
         Grant(
             (Message.DECLARE_QUERYABLE, Message.REPLY),
-            (service, *own),
-            "serve its fleet's service; answer its own probe and ctl",
+            (service, member, *own),
+            "serve its fleet's service (and its own pool member keys); answer its own probe "
+            "and ctl",
         ),
         Grant((Message.LIVELINESS_TOKEN,), (keys.alive_cloud(fleet, deployment),), "its own token"),
         Grant((Message.QUERY,), (keys.reg_drain(fleet),), "ask the registry to drain it"),
@@ -96,11 +100,12 @@ def robot_grants(cfg: FleetConfig, robot: str) -> list[Grant]:
             (Message.QUERY,),
             (
                 keys.svc_infer(fleet, cfg.service, robot),
+                keys.svc_infer_pool(fleet, cfg.service, robot),
                 keys.reg_register(fleet),
                 keys.reg_reroute(fleet),
                 keys.dep_probe_all(fleet),
             ),
-            "its own service key, register/reroute, probe the deployments",
+            "its own service and pool member keys, register/reroute, probe the deployments",
         ),
         Grant(
             (Message.PUT,),

@@ -117,6 +117,41 @@ class CutsConfig(_Model):
     )
 
 
+class DispatchConfig(_Model):
+    """How the deployments serving one robot share its frames."""
+
+    mode: Literal["anycast", "round_robin"] = Field(
+        default="anycast",
+        description="anycast: one deployment serves each robot; round_robin: a pool of "
+        "deployments serves it together, each frame computed by exactly one member, in turn "
+        "(the robot needs max_in_flight > 1 for the members to overlap).",
+    )
+    pool_size: int | None = Field(
+        default=None,
+        ge=1,
+        description="round_robin: deployments per pool (the serving one and up to this many "
+        "minus one more); null: every live deployment of the service.",
+    )
+
+    @model_validator(mode="before")
+    @classmethod
+    def _shorthand(cls, value: Any) -> Any:
+        # `dispatch: round_robin` (the mode alone) is the short form.
+        return {"mode": value} if isinstance(value, str) else value
+
+    @model_validator(mode="after")
+    def _pool_needs_round_robin(self) -> DispatchConfig:
+        if self.pool_size is not None and self.mode != "round_robin":
+            raise ValueError(f"pool_size: only for mode round_robin (mode is {self.mode})")
+        return self
+
+    def pool_limit(self) -> int:
+        """How many deployments may serve one robot (1 in anycast; 0: no limit)."""
+        if self.mode == "anycast":
+            return 1
+        return self.pool_size or 0
+
+
 class RegistryConfig(_Model):
     """Where the registry is and how it runs."""
 
@@ -569,6 +604,10 @@ class FleetConfig(_Model):
         description="Input shape, fixing the model's dynamic dimensions.",
     )
     cuts: CutsConfig = Field(default_factory=CutsConfig, description="Candidate cuts.")
+    dispatch: DispatchConfig = Field(
+        default_factory=DispatchConfig,
+        description="anycast (one deployment per robot) or round_robin (a pool per robot).",
+    )
     registry: RegistryConfig = Field(default_factory=RegistryConfig, description="The registry.")
     machines: dict[Id, MachineConfig] = Field(
         default_factory=dict, description="Cloud deployments and robots, by id."

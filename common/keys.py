@@ -178,6 +178,24 @@ def svc_infer_all(fleet: str, service: str) -> str:
     return _join(prefix(fleet), "svc", validate_id(service, "service name"), "*", "infer")
 
 
+def svc_infer_at(fleet: str, service: str, robot: str, deployment: str) -> str:
+    """`ef/<fleet>/svc/<service>/<robot>/infer/<deployment>`: one member of the robot's round-robin
+    pool (`dispatch: round_robin`). Declared beside the service key by every deployment in service
+    for the robot, so a robot addresses one member and each frame is computed exactly once."""
+    return _join(svc_infer(fleet, service, robot), validate_id(deployment, "deployment id"))
+
+
+def svc_infer_pool(fleet: str, service: str, robot: str) -> str:
+    """`ef/<fleet>/svc/<service>/<robot>/infer/*`: the member keys of one robot's pool."""
+    return _join(svc_infer(fleet, service, robot), "*")
+
+
+def svc_infer_at_all(fleet: str, service: str, deployment: str) -> str:
+    """`ef/<fleet>/svc/<service>/*/infer/<deployment>`: one deployment's member key of every
+    robot."""
+    return _join(svc_infer_all(fleet, service), validate_id(deployment, "deployment id"))
+
+
 # -- dep: per-deployment probe and control ---------------------------------------------------------
 def dep_probe(fleet: str, deployment: str) -> str:
     """`ef/<fleet>/dep/<deployment>/probe`: answered in every state."""
@@ -241,6 +259,7 @@ class KeyKind(str, enum.Enum):
     REG_DRAIN = "reg_drain"
     ALIVE = "alive"
     SVC_INFER = "svc_infer"
+    SVC_INFER_AT = "svc_infer_at"
     DEP_PROBE = "dep_probe"
     DEP_CTL = "dep_ctl"
     TELE = "tele"
@@ -253,7 +272,8 @@ class KeyParts:
     """A concrete key taken apart.
 
     `id` is the machine the key is about (deployment, robot or registry); `role` is set for
-    liveliness keys, `service` for service keys, `view` for RIB keys.
+    liveliness keys, `service` for service keys, `view` for RIB keys; `member` is the deployment
+    of a pool member key (`id` its robot).
     """
 
     fleet: str
@@ -262,6 +282,7 @@ class KeyParts:
     role: str | None = None
     service: str | None = None
     view: str | None = None
+    member: str | None = None
 
 
 def parse_key(key: str) -> KeyParts | None:
@@ -288,6 +309,8 @@ def parse_key(key: str) -> KeyParts | None:
             return KeyParts(fleet, KeyKind.ALIVE, id=machine, role=role)
         case "svc", [service, robot, "infer"]:
             return KeyParts(fleet, KeyKind.SVC_INFER, id=robot, service=service)
+        case "svc", [service, robot, "infer", member]:
+            return KeyParts(fleet, KeyKind.SVC_INFER_AT, id=robot, service=service, member=member)
         case "dep", [deployment, "probe"]:
             return KeyParts(fleet, KeyKind.DEP_PROBE, id=deployment)
         case "dep", [deployment, "ctl"]:

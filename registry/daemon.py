@@ -73,6 +73,7 @@ from common.wire import registry as msg
 from common.wire.telemetry import ProbeReport, TelemetryRecord
 from registry.latency import LatencyBound
 from registry.measurements import Measurements
+from registry.pools import pool_planner
 from registry.prober import Probed, Prober
 from registry.publications import PublicationReader
 from registry.refusals import Refusals
@@ -111,6 +112,8 @@ RESTORE_GRACE_S = 5.0
 # How long the membership's seeding get waits for replies (it returns earlier once every peer
 # answered; tokens it misses still come through the subscriber's history).
 MEMBERSHIP_SEED_TIMEOUT_S = 0.5
+# Round robin: a robot's pool is rebuilt at most this often (a member that keeps refusing).
+POOL_RETRY_S = 2.0
 
 
 # -- events for the control loop (besides MemberChange and Probed) ------------------------------
@@ -187,6 +190,7 @@ class RegistryDaemon(Daemon):
         )
         # Control-loop state (only the control loop touches these).
         self._confirmed: set[str] = set()  # robots whose route was confirmed in this run
+        self._repool_after: dict[str, float] = {}  # robot -> monotonic time of its next repool
         self._started_at = 0.0
         self._started: _Started | None = None  # made in startup, dropped after shutdown
 
@@ -244,7 +248,13 @@ class RegistryDaemon(Daemon):
             session=session,
             rib=rib,
             transport=transport,
-            switcher=Switcher(rib, transport, ctl_timeout_s=self.ctl_timeout_s, sender=self.id),
+            switcher=Switcher(
+                rib,
+                transport,
+                ctl_timeout_s=self.ctl_timeout_s,
+                sender=self.id,
+                pools=pool_planner(cfg, rib),
+            ),
             registrar=registrar,
             views=RibViews(
                 fleet,
@@ -443,6 +453,8 @@ class RegistryDaemon(Daemon):
         for route in rib.routes():
             if route.deployment == deployment:
                 self._evaluate(route.robot)
+            elif deployment in route.pool:
+                self._repool(route.robot, "pool member gone")
 
     def _on_probed(self, event: Probed) -> None:
         deployment, reply = event.deployment, event.reply
@@ -462,6 +474,8 @@ class RegistryDaemon(Daemon):
             if state is not msg.DeploymentState.SERVICE:
                 continue
             routed_to, epoch = self.measurements.route(robot)
+            if deployment in self._parts.rib.pool(robot):
+                continue  # a member of the robot's round-robin pool serves it by design
             if routed_to != deployment and (routed_to is not None or epoch > 0):
                 log.warning(
                     "deployment %s serves %s, routed to %s: putting it in standby",
@@ -482,7 +496,7 @@ class RegistryDaemon(Daemon):
                 self.measurements.set_route(result.robot, result.deployment, result.epoch)
                 if not result.changed:
                     # Tell the robot again (receivers ignore an epoch they hold already).
-                    self._publish(route.robot, deployment, result.epoch, "restore")
+                    self._publish(route.robot, deployment, result.epoch, "restore", pool=route.pool)
                 log.info(
                     "restored route %s -> %s (epoch %d)", route.robot, deployment, result.epoch
                 )
@@ -506,9 +520,37 @@ class RegistryDaemon(Daemon):
         # One read of the RIB for the round (live robots with their routes, the deployments as
         # one table), not three per robot (`registry.round_inputs`).
         rib = self._parts.rib
-        deployments = deployment_table(rib.deployments())
+        rows = rib.deployments()
+        deployments = deployment_table(rows)
         for robot_row, route_row in rib.live_robots():
-            self._evaluate(robot_row.id, read=(robot_row, route_row, deployments))
+            result = self._evaluate(robot_row.id, read=(robot_row, route_row, deployments))
+            pools = self._parts.switcher.pools
+            if (
+                pools is not None
+                and route_row is not None
+                and (result is None or not result.changed)
+                and pools.needs_repool(route_row, rows)
+            ):
+                self._repool(robot_row.id, "pool")
+
+    def _repool(self, robot: str, reason: str) -> None:
+        """Round robin: rebuild `robot`'s pool (a member died, or a short pool can grow), at
+        most once per `POOL_RETRY_S` for a robot, so a member that keeps refusing cannot turn
+        every round into a switch."""
+        now = time.monotonic()
+        if now < self._repool_after.get(robot, 0.0):
+            return
+        self._repool_after[robot] = now + POOL_RETRY_S
+        result = self._parts.switcher.repool(robot, reason=reason)
+        if result.changed:
+            route = self._parts.rib.route(robot)
+            log.info(
+                "route %s: pool %s (epoch %d, %s)",
+                robot,
+                ", ".join(route.pool) if route is not None else "-",
+                result.epoch,
+                reason,
+            )
 
     def _evaluate(
         self,
@@ -583,9 +625,19 @@ class RegistryDaemon(Daemon):
             log.warning("route %s not moved (%s): %s", result.robot, decision.reason.value, tried)
         return result
 
-    def _publish(self, robot: str, deployment: str | None, epoch: int, reason: str) -> None:
+    def _publish(
+        self,
+        robot: str,
+        deployment: str | None,
+        epoch: int,
+        reason: str,
+        *,
+        pool: tuple[str, ...] = (),
+    ) -> None:
         try:
-            self._parts.transport.publish_route(route_change(robot, deployment, epoch, reason))
+            self._parts.transport.publish_route(
+                route_change(robot, deployment, epoch, reason, pool=pool)
+            )
         except TransportError as exc:
             log.warning("%s", exc)
 

@@ -128,11 +128,15 @@ def reroute(
         now.deployment if now else None,
         now.epoch if now else 0,
         "rerouted" if moved else "current route",
+        pool=now.pool if now else (),
     )
 
 
-def route_change(robot: str, deployment: str | None, epoch: int, reason: str) -> msg.RouteChange:
-    """A robot's route as of now, for a reroute's reply or a publication on its route key."""
+def route_change(
+    robot: str, deployment: str | None, epoch: int, reason: str, *, pool: tuple[str, ...] = ()
+) -> msg.RouteChange:
+    """A robot's route as of now, for a reroute's reply, a registration reply or a publication
+    on its route key."""
     return msg.RouteChange(
-        robot=robot, deployment=deployment, epoch=epoch, reason=reason, at=time.time()
+        robot=robot, deployment=deployment, epoch=epoch, reason=reason, at=time.time(), pool=pool
     )

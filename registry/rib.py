@@ -95,12 +95,15 @@ class RobotRow:
 
 @dataclass(frozen=True)
 class RouteRow:
-    """Which deployment serves a robot (None: the robot computes locally), under which epoch."""
+    """Which deployment serves a robot (None: the robot computes locally), under which epoch;
+    `pool`: in a round-robin fleet every deployment serving it, `deployment` first (empty in an
+    anycast fleet)."""
 
     robot: str
     deployment: str | None
     epoch: int
     since: float
+    pool: tuple[str, ...] = ()
 
     def to_dict(self) -> dict[str, Any]:
         """Plain data for a JSON view."""
@@ -387,14 +390,16 @@ class Rib(RibStore):
         """Every live robot with its route (None when it never had one), by robot: what a
         scheduling round reads, in one query rather than two per robot."""
         rows = self._query(
-            "SELECT r.id, r.service, r.alive, r.last_seen, t.deployment, t.epoch, t.since"
+            "SELECT r.id, r.service, r.alive, r.last_seen, t.deployment, t.epoch, t.since, t.pool"
             " FROM robots AS r LEFT JOIN routes AS t ON t.robot = r.id AND t.epoch > 0"
             " WHERE r.alive ORDER BY r.id"
         )
         return [
             (
                 _robot_row(r),
-                RouteRow(r["id"], r["deployment"], r["epoch"], r["since"])
+                RouteRow(
+                    r["id"], r["deployment"], r["epoch"], r["since"], tuple(json.loads(r["pool"]))
+                )
                 if r["epoch"] is not None
                 else None,
             )
@@ -480,15 +485,24 @@ class Rib(RibStore):
             return issued
 
     def set_route(
-        self, robot: str, deployment: str | None, epoch: int, reason: str = ""
+        self,
+        robot: str,
+        deployment: str | None,
+        epoch: int,
+        reason: str = "",
+        *,
+        pool: Sequence[str] = (),
     ) -> RouteRow:
         """Persist a route (None: the robot computes locally) under an epoch from `reserve_epoch`.
 
         Epochs only grow: an epoch not newer than the current route's is refused. The new
-        deployment's state for the robot becomes `service` in the same transaction.
+        deployment's state for the robot becomes `service` in the same transaction, and so does
+        every member of `pool` (round robin: the deployments serving it, `deployment` first).
         """
         _check_id("robot id", robot)
         _check_count("epoch", epoch)
+        if pool and (deployment is None or pool[0] != deployment):
+            raise ValueError(f"pool {list(pool)} of robot {robot!r} must start with {deployment}")
         now = self._clock()
         with self._tx() as conn:
             row = conn.execute(
@@ -501,20 +515,22 @@ class Rib(RibStore):
                     f" {current}"
                 )
             conn.execute(
-                "INSERT INTO routes (robot, deployment, epoch, since, issued_epoch)"
-                " VALUES (?,?,?,?,?) ON CONFLICT (robot) DO UPDATE SET"
+                "INSERT INTO routes (robot, deployment, epoch, since, issued_epoch, pool)"
+                " VALUES (?,?,?,?,?,?) ON CONFLICT (robot) DO UPDATE SET"
                 " deployment=excluded.deployment, epoch=excluded.epoch, since=excluded.since,"
-                " issued_epoch=excluded.issued_epoch",
-                (robot, deployment, epoch, now, max(issued, epoch)),
+                " issued_epoch=excluded.issued_epoch, pool=excluded.pool",
+                (robot, deployment, epoch, now, max(issued, epoch), json.dumps(list(pool))),
             )
-            if deployment is not None:
-                conn.execute(
-                    "INSERT INTO deployment_states (deployment, robot, state, epoch)"
-                    " VALUES (?,?,'service',?) ON CONFLICT (deployment, robot) DO UPDATE SET"
-                    " state='service', epoch=excluded.epoch",
-                    (deployment, robot, epoch),
-                )
+            serving = list(pool) or ([deployment] if deployment is not None else [])
+            conn.executemany(
+                "INSERT INTO deployment_states (deployment, robot, state, epoch)"
+                " VALUES (?,?,'service',?) ON CONFLICT (deployment, robot) DO UPDATE SET"
+                " state='service', epoch=excluded.epoch",
+                [(member, robot, epoch) for member in serving],
+            )
             moved = f"{previous or 'local'} -> {deployment or 'local'}"
+            if len(pool) > 1:
+                moved += f" (pool {', '.join(pool)})"
             self._event(
                 conn,
                 EventKind.ROUTE,
@@ -523,7 +539,9 @@ class Rib(RibStore):
                 epoch,
                 f"{reason}: {moved}" if reason else moved,
             )
-        return RouteRow(robot=robot, deployment=deployment, epoch=epoch, since=now)
+        return RouteRow(
+            robot=robot, deployment=deployment, epoch=epoch, since=now, pool=tuple(pool)
+        )
 
     def route(self, robot: str) -> RouteRow | None:
         """A robot's route, or None when it never had one (a reserved epoch alone is no route)."""
@@ -536,6 +554,11 @@ class Rib(RibStore):
             _route_row(r)
             for r in self._query("SELECT * FROM routes WHERE epoch > 0 ORDER BY robot")
         ]
+
+    def pool(self, robot: str) -> tuple[str, ...]:
+        """The deployments of a robot's round-robin pool (empty in an anycast fleet)."""
+        route = self.route(robot)
+        return route.pool if route is not None else ()
 
     def issued_epoch(self, robot: str) -> int:
         """The highest epoch ever issued for a robot (0 when none)."""
@@ -637,5 +660,9 @@ def _robot_row(r: sqlite3.Row) -> RobotRow:
 
 def _route_row(r: sqlite3.Row) -> RouteRow:
     return RouteRow(
-        robot=r["robot"], deployment=r["deployment"], epoch=r["epoch"], since=r["since"]
+        robot=r["robot"],
+        deployment=r["deployment"],
+        epoch=r["epoch"],
+        since=r["since"],
+        pool=tuple(json.loads(r["pool"])),
     )

@@ -17,7 +17,7 @@ from typing import Any, TypeVar
 
 from common.errors import UserError
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 BUSY_TIMEOUT_MS = 2_000
 MEMORY = ":memory:"
 
@@ -53,7 +53,8 @@ CREATE TABLE routes (
     deployment    TEXT,
     epoch         INTEGER NOT NULL,
     since         REAL NOT NULL,
-    issued_epoch  INTEGER NOT NULL
+    issued_epoch  INTEGER NOT NULL,
+    pool          TEXT NOT NULL DEFAULT '[]'
 );
 CREATE TABLE profiles (
     robot      TEXT NOT NULL,
@@ -74,6 +75,11 @@ CREATE TABLE events (
 );
 CREATE INDEX events_robot ON events (robot, seq);
 """
+# Statements that bring a file of the version before to the next one (a file is migrated in one
+# transaction when it is opened). 1 -> 2: round-robin pools (`routes.pool`, a JSON list).
+_MIGRATIONS: dict[int, tuple[str, ...]] = {
+    1: ("ALTER TABLE routes ADD COLUMN pool TEXT NOT NULL DEFAULT '[]'",),
+}
 _TABLES = frozenset({"deployments", "deployment_states", "robots", "routes", "profiles", "events"})
 
 
@@ -116,6 +122,14 @@ class RibStore:
             with self._tx():
                 for statement in _SCHEMA.split(";"):
                     if statement.strip():
+                        conn.execute(statement)
+                conn.execute(f"PRAGMA user_version = {SCHEMA_VERSION}")
+        elif version in _MIGRATIONS:
+            if missing := sorted(_TABLES - tables):
+                raise UserError(f"{self.path}: RIB tables are missing ({', '.join(missing)})")
+            with self._tx():
+                for old in range(version, SCHEMA_VERSION):
+                    for statement in _MIGRATIONS[old]:
                         conn.execute(statement)
                 conn.execute(f"PRAGMA user_version = {SCHEMA_VERSION}")
         elif version != SCHEMA_VERSION:

@@ -11,6 +11,12 @@ Order of operations (the anycast invariant: each request is computed by exactly 
    candidates that did not ack get `standby` too, so a late `service` cannot leave two deployments
    serving.
 
+Round robin (`dispatch: round_robin`, `registry.pools`): step 2 is followed by `service(robot,
+e+1)` to every other member the pool planner names; those that acknowledge form the pool that
+step 3 persists and step 4 publishes (the deployment first); a member that does not is left out
+and fenced; members of the old pool that are not in the new one get `standby` in step 5.
+`repool` rebuilds a pool around the same deployment under a new epoch when a member dies.
+
 Epochs only grow. A deployment refuses a request whose epoch is lower than the one it holds for
 the robot and answers with its state and epoch; the same epoch again is idempotent, which is how a
 restarted registry re-asserts a restored route (`reassert`). A reply whose epoch, robot,
@@ -34,6 +40,7 @@ from enum import Enum
 from typing import Protocol
 
 from common.wire.registry import CtlOp, CtlReply, CtlRequest, DeploymentState, RouteChange
+from registry.pools import PoolPlanner
 from registry.rib import EventKind, Rib
 from registry.scheduler import RouteDecision, Scheduler
 
@@ -115,6 +122,7 @@ class Switcher:
         ctl_timeout_s: float = CTL_TIMEOUT_S,
         sender: str = DEFAULT_SENDER,
         clock: Callable[[], float] = time.time,
+        pools: PoolPlanner | None = None,
     ) -> None:
         if not ctl_timeout_s > 0:
             raise ValueError(f"ctl_timeout_s must be > 0, got {ctl_timeout_s!r}")
@@ -124,6 +132,8 @@ class Switcher:
         self.sender = sender
         # Wall clock of published route changes (`RouteChange.at`), like the RIB's times.
         self._clock = clock
+        # Round-robin fleets: who joins a robot's pool (None: anycast, one deployment each).
+        self.pools = pools
 
     def apply(self, decision: RouteDecision) -> SwitchResult:
         """Carry out a scheduler decision; a decision about a route that changed meanwhile is
@@ -264,12 +274,69 @@ class Switcher:
         failed: list[str],
         attempts: list[Attempt],
     ) -> SwitchResult:
-        self.rib.set_route(robot, deployment, epoch, reason)
-        self._publish(self._change(robot, deployment, epoch, reason))
-        for old in [previous, *failed]:
-            if old is not None and old != deployment:
+        old_pool = self._pool_of(robot)
+        pool = self._enlist(robot, deployment, epoch, reason, attempts)
+        self.rib.set_route(robot, deployment, epoch, reason, pool=pool)
+        self._publish(self._change(robot, deployment, epoch, reason, pool))
+        for old in dict.fromkeys([previous, *failed, *old_pool]):
+            if old is not None and old != deployment and old not in pool:
                 self._standby(robot, old, epoch)
         return SwitchResult(robot, previous, deployment, epoch, True, reason, tuple(attempts))
+
+    def repool(self, robot: str, *, reason: str = "pool") -> SwitchResult:
+        """Round robin: rebuild `robot`'s pool around its deployment under a new epoch (a member
+        died or a usable deployment is outside a short pool). The deployment is asked first; if
+        it does not acknowledge, nothing changes (moving the robot is the scheduler's part)."""
+        route = self.rib.route(robot)
+        if self.pools is None or route is None or route.deployment is None:
+            epoch = route.epoch if route else 0
+            current = route.deployment if route else None
+            return SwitchResult(robot, current, current, epoch, False, "no pool to rebuild")
+        deployment = route.deployment
+        epoch = self.rib.reserve_epoch(robot)
+        answer = self._request(deployment, self._ctl(CtlOp.SERVICE, robot, epoch, reason))
+        attempts = [Attempt(deployment, epoch, answer.outcome, answer.detail)]
+        if answer.outcome is not SwitchOutcome.ACKED:
+            self.rib.record_event(
+                EventKind.ACK_FAILED,
+                robot=robot,
+                deployment=deployment,
+                epoch=epoch,
+                reason=f"{reason}: {answer.outcome.value}: {answer.detail}",
+            )
+            return SwitchResult(
+                robot, deployment, deployment, route.epoch, False, reason, tuple(attempts)
+            )
+        return self._commit(robot, deployment, deployment, epoch, reason, [], attempts)
+
+    def _enlist(
+        self, robot: str, deployment: str, epoch: int, reason: str, attempts: list[Attempt]
+    ) -> tuple[str, ...]:
+        """Round robin: put the planner's other members in service at `epoch` beside
+        `deployment`; the pool of those that acknowledged (`deployment` first), or () in an
+        anycast fleet. A member that does not acknowledge is left out (and fenced)."""
+        if self.pools is None:
+            return ()
+        pool = [deployment]
+        for member in self.pools.members(robot, deployment)[1:]:
+            answer = self._request(member, self._ctl(CtlOp.SERVICE, robot, epoch, reason))
+            attempts.append(Attempt(member, epoch, answer.outcome, answer.detail))
+            if answer.outcome is SwitchOutcome.ACKED:
+                pool.append(member)
+                continue
+            self.rib.record_event(
+                EventKind.ACK_FAILED,
+                robot=robot,
+                deployment=member,
+                epoch=epoch,
+                reason=f"{reason} (pool member): {answer.outcome.value}: {answer.detail}",
+            )
+            self._standby(robot, member, epoch)
+        return tuple(pool)
+
+    def _pool_of(self, robot: str) -> tuple[str, ...]:
+        route = self.rib.route(robot)
+        return route.pool if route is not None else ()
 
     def _no_taker(
         self,
@@ -285,9 +352,10 @@ class Switcher:
             # The old deployment is gone and nobody took over: the robot computes locally.
             epoch = self.rib.reserve_epoch(robot)
             why = f"{reason}: no deployment acknowledged" if attempts else reason
+            old_pool = self._pool_of(robot)
             self.rib.set_route(robot, None, epoch, why)
             self._publish(self._change(robot, None, epoch, why))
-            for dep in [previous, *failed]:
+            for dep in dict.fromkeys([previous, *failed, *old_pool]):
                 self._standby(robot, dep, epoch)
             return SwitchResult(robot, previous, None, epoch, True, why, tuple(attempts))
         if attempts:
@@ -338,9 +406,21 @@ class Switcher:
     def _ctl(self, op: CtlOp, robot: str, epoch: int, reason: str) -> CtlRequest:
         return CtlRequest(op=op, robot=robot, epoch=epoch, sender=self.sender, reason=reason)
 
-    def _change(self, robot: str, deployment: str | None, epoch: int, reason: str) -> RouteChange:
+    def _change(
+        self,
+        robot: str,
+        deployment: str | None,
+        epoch: int,
+        reason: str,
+        pool: tuple[str, ...] = (),
+    ) -> RouteChange:
         return RouteChange(
-            robot=robot, deployment=deployment, epoch=epoch, reason=reason, at=self._clock()
+            robot=robot,
+            deployment=deployment,
+            epoch=epoch,
+            reason=reason,
+            at=self._clock(),
+            pool=pool,
         )
 
     def _request(self, deployment: str, request: CtlRequest) -> _Answer:

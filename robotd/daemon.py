@@ -50,6 +50,7 @@ file records each frame's phase).
 
 from __future__ import annotations
 
+import functools
 import logging
 import threading
 import time
@@ -84,6 +85,7 @@ from robotd.offload import FINISH_GRACE_S, STOP_POLL_S, LocalRunner
 from robotd.pacing import FramePacer, TokenBucket
 from robotd.pipeline import FramePipeline, InFlight, ResultOrder
 from robotd.policies import PURE_ROBOT, FrameContext, Objective, Policy
+from robotd.pool_turns import PoolTurns
 from robotd.probes import PROBE_INTERVAL_S, CloudTime, Prober, probe_padding_bytes
 from robotd.registry_link import REGISTRY_RETRY_INITIAL_S, RegistryLink
 from robotd.request_sender import RequestSender
@@ -189,6 +191,7 @@ class RobotDaemon(Daemon):
         self._cloud_time = CloudTime()
         self._pending: Frame | None = None
         self._failures = FailureRuns(robot_id)
+        self._turns = PoolTurns()  # round robin: the pool member of the next offloaded frame
         # Offloaded frames in flight (`robotd.pipeline`); results applied in frame order.
         self.max_in_flight = self.options.max_in_flight or self.machine.max_in_flight
         self._order = ResultOrder()
@@ -288,6 +291,7 @@ class RobotDaemon(Daemon):
             deadline_s=self.deadline_s,
             max_reply_bytes=cfg.max_payload_bytes,
             uplink=None if self.uplink_mbit is None else TokenBucket.from_mbit(self.uplink_mbit),
+            member_key=functools.partial(keys.svc_infer_at, self.fleet, cfg.service, self.robot),
         )
         self._emulation = Emulation(
             self.options.phases, self._slowdown, self._set_uplink, robot=self.robot
@@ -404,7 +408,8 @@ class RobotDaemon(Daemon):
         feeds = self._robot_model.feeds(frame)
         entropy = frame_entropy(first_view(frame))
         decision = self.policy.decide(FrameContext(index=n, entropy=entropy))
-        epoch = self.link.epoch
+        held = self.link.held
+        epoch = held.epoch
         f = Frame(n, decision, entropy, feeds, started, cpu_started, epoch)
         model = self.model
         if decision.action == PURE_ROBOT:
@@ -423,7 +428,13 @@ class RobotDaemon(Daemon):
         # In flight beside other frames, the request is handed to Zenoh from a thread of its own.
         background = decision.hedge or self.max_in_flight > 1
         f.call = call = self._requests.send(
-            n, cut.index, encoded, epoch, background=background, end=decision.end
+            n,
+            cut.index,
+            encoded,
+            epoch,
+            background=background,
+            end=decision.end,
+            member=self._turns.next(held.pool),
         )
         f.bytes_up = call.bytes_up
         if decision.hedge:

@@ -87,6 +87,8 @@ class Route:
     known: bool = False
     # Held without a deployment because every deployment is full (the registry's admission).
     no_capacity: bool = False
+    # Round robin: every deployment serving the robot at this epoch (empty: anycast).
+    pool: tuple[str, ...] = ()
 
 
 class RegistryLink:
@@ -137,6 +139,12 @@ class RegistryLink:
         with self._changed:
             return self._route.epoch
 
+    @property
+    def held(self) -> Route:
+        """The whole route held (deployment, epoch and pool read together)."""
+        with self._changed:
+            return self._route
+
     def on_route(self, sample: zenoh.Sample) -> None:
         """Subscriber callback on `route/<robot>`."""
         try:
@@ -156,9 +164,10 @@ class RegistryLink:
             if held.known and change.epoch < held.epoch:
                 return False  # older than what we hold: epochs only grow
             moved = not held.known or change.deployment != held.deployment
+            pooled = change.pool != held.pool and len(change.pool) > 1
             no_capacity = change.deployment is None and change.reason == NO_CAPACITY_REASON
             refused = no_capacity and not held.no_capacity
-            self._route = Route(change.deployment, change.epoch, True, no_capacity)
+            self._route = Route(change.deployment, change.epoch, True, no_capacity, change.pool)
             self._changed.notify_all()
         if refused:
             # Logged once per change, not for every repetition of the same refusal (a restarted
@@ -169,11 +178,13 @@ class RegistryLink:
                 change.epoch,
                 change.reason,
             )
-        elif moved:
+        elif moved or pooled:
             log.info(
                 "%s: route -> %s (epoch %d, %s)",
                 self.robot,
-                change.deployment or "local (no deployment)",
+                f"pool {', '.join(change.pool)}"
+                if len(change.pool) > 1
+                else change.deployment or "local (no deployment)",
                 change.epoch,
                 change.reason,
             )

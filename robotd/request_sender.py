@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from collections.abc import Callable
 
 import zenoh
 
@@ -24,7 +25,8 @@ from robotd.pacing import TokenBucket
 
 class RequestSender:
     """`RequestSender(session, key, robot=..., model_digest=..., deadline_s=...)`; `uplink`
-    paces requests (None: sent at once)."""
+    paces requests (None: sent at once); `member_key(deployment)` is the key of one member of
+    the robot's round-robin pool (None: only the anycast key is used)."""
 
     def __init__(
         self,
@@ -36,9 +38,11 @@ class RequestSender:
         deadline_s: float,
         max_reply_bytes: int,
         uplink: TokenBucket | None = None,
+        member_key: Callable[[str], str] | None = None,
     ) -> None:
         self._session = session
         self.key = key
+        self._member_key = member_key
         self._robot = robot
         self._model_digest = model_digest
         self._deadline_s = deadline_s
@@ -54,10 +58,12 @@ class RequestSender:
         *,
         background: bool = False,
         end: int | None = None,
+        member: str | None = None,
     ) -> CloudCall:
         """Send frame `frame`'s tensors after cut index `cut`; the call is under way on return
         (`background`: handed to Zenoh from a thread of its own, see `CloudCall.start`). `end`:
-        the cloud runs only the segment up to that cut and replies with its tensors."""
+        the cloud runs only the segment up to that cut and replies with its tensors. `member`:
+        the pool member that computes it (round robin); None: the anycast key."""
         request = InferRequest(
             robot=self._robot,
             frame=frame,
@@ -83,9 +89,12 @@ class RequestSender:
             if 0 < delay < self._deadline_s:
                 budget = self._deadline_s - delay
                 payload = dataclasses.replace(request, deadline_s=budget).to_wire()
+        key = self.key
+        if member is not None and self._member_key is not None:
+            key = self._member_key(member)
         call = CloudCall(
             self._session,
-            self.key,
+            key,
             payload,
             frame=frame,
             budget_s=self._deadline_s,

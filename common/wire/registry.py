@@ -25,6 +25,7 @@ import enum
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Literal
 
+from common.keys import InvalidIdError, validate_id
 from common.wire.codec import Message, Struct, register
 from common.wire.telemetry import FallbackReason, fallback_reason
 
@@ -79,7 +80,11 @@ class CtlOp(str, enum.Enum):
 class RouteChange(Message):
     """`robot` is now served by `deployment` (None: no deployment, compute locally) from `epoch`
     on. Epochs only grow: a receiver ignores a change older than the one it holds. `at` is the
-    registry's wall clock."""
+    registry's wall clock.
+
+    `pool` (extension, `dispatch: round_robin`): every deployment in service for the robot at this
+    epoch, `deployment` first; the robot sends each frame to one of them in turn. Empty in an
+    anycast fleet (older registries never send it), where `deployment` alone serves."""
 
     TYPE: ClassVar[str] = "route"
     robot: str
@@ -87,11 +92,21 @@ class RouteChange(Message):
     epoch: int
     reason: str
     at: float
+    pool: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         self._check_ids("robot", "deployment")
         self._check_non_negative("epoch")
         self._check_finite("at")
+        for member in self.pool:
+            try:
+                validate_id(member, "pool member")
+            except InvalidIdError as exc:
+                raise self._invalid("pool", str(exc)) from None
+        if self.pool and (self.deployment is None or self.pool[0] != self.deployment):
+            raise self._invalid("pool", "must start with the route's deployment")
+        if len(set(self.pool)) != len(self.pool):
+            raise self._invalid("pool", f"lists a deployment twice: {list(self.pool)}")
 
 
 # -- registration ----------------------------------------------------------------------------------
