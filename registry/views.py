@@ -200,6 +200,7 @@ class RibViews:
                 epoch=route.epoch,
                 since=route.since,
                 reason=last[0].reason if last else "",
+                pool=route.pool,
             )
 
     def _event_rows(self, q: msg.RibQuery) -> Iterable[msg.EventRow]:

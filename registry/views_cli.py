@@ -210,12 +210,16 @@ def _table(title: str, *columns: str) -> Table:
 
 
 def routes_table(rows: Sequence[RouteRow], now: float) -> Table:
-    """Robot → deployment, epoch, since when and why."""
-    table = _table("routes", "robot", "deployment", "epoch", "since", "reason")
+    """Robot → deployment (and its round-robin pool, if any), epoch, since when and why."""
+    pooled = any(len(r.pool) > 1 for r in rows)
+    columns = ["robot", "deployment", *(["pool"] if pooled else []), "epoch", "since", "reason"]
+    table = _table("routes", *columns)
     for r in rows:
+        pool = [", ".join(r.pool) or "-"] if pooled else []
         table.add_row(
             r.robot,
             r.deployment or Text("local", style="yellow"),
+            *pool,
             str(r.epoch),
             f"{_clock(r.since)} ({_ago(r.since, now)})",
             r.reason,

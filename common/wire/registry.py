@@ -393,13 +393,15 @@ class RobotRow(Struct):
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class RouteRow(Struct):
-    """One robot's current route (`deployment` None: computing locally)."""
+    """One robot's current route (`deployment` None: computing locally); `pool` (extension): its
+    round-robin pool, the deployment first (empty in an anycast fleet)."""
 
     robot: str
     deployment: str | None
     epoch: int
     since: float
     reason: str = ""
+    pool: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)

@@ -4,7 +4,9 @@ member is dropped and a standby joins, no frame is lost and none is computed twi
 
 from __future__ import annotations
 
+import json
 import signal
+import subprocess
 import time
 from collections import Counter
 from pathlib import Path
@@ -16,6 +18,7 @@ from common import keys
 from common.wire import decode
 from common.wire.registry import ProbeReply, ProbeRequest
 from deploy.demo_summary import answered_by, read_telemetry
+from deploy.procs import elasticfog_argv
 
 pytestmark = [pytest.mark.e2e, pytest.mark.usefixtures("e2e_watchdog")]
 
@@ -96,3 +99,13 @@ def test_a_pool_shares_frames_survives_a_killed_member_and_computes_each_frame_o
         assert by[member] <= served <= by[member] + fallbacks.get("timeout", 0), (member, served)
     registry_log = lf.latest("registry").log_text()
     assert "pool edge-1, edge-3" in registry_log, registry_log[-2000:]
+    # The routing-state CLI shows the pool.
+    routes = subprocess.run(
+        [*elasticfog_argv(), "routes", "--config", str(lf.config), "--json"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert routes.returncode == 0, routes.stderr
+    [route] = [r for r in json.loads(routes.stdout) if r["robot"] == ROBOT]
+    assert (route["deployment"], route["pool"]) == ("edge-1", ["edge-1", "edge-3"]), route
