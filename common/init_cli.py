@@ -50,6 +50,11 @@ model: {model}
 cuts:
   max_cut_tensors: 2
   names: null
+# anycast: one deployment serves each robot. round_robin: a pool of deployments serves it
+# together, each frame computed by one member in turn (robots need max_in_flight > 1 to overlap
+# them); pool_size: deployments per pool (left out: every live one).
+dispatch:
+  mode: anycast
 
 registry:
   # Where every daemon and CLI connects to meet the fleet. For several hosts, use an address
