@@ -189,13 +189,7 @@ class Switcher:
             if answer.outcome is SwitchOutcome.ACKED:
                 return self._commit(robot, previous, deployment, epoch, reason, failed, attempts)
             failed.append(deployment)
-            self.rib.record_event(
-                EventKind.ACK_FAILED,
-                robot=robot,
-                deployment=deployment,
-                epoch=epoch,
-                reason=f"{reason}: {answer.outcome.value}: {answer.detail}",
-            )
+            self._ack_failed(robot, deployment, epoch, reason, answer)
         return self._no_taker(
             robot, route.epoch if route else 0, previous, reason, failed, attempts
         )
@@ -246,13 +240,7 @@ class Switcher:
             return SwitchResult(
                 robot, deployment, deployment, epoch, False, reason, tuple(attempts)
             )
-        self.rib.record_event(
-            EventKind.ACK_FAILED,
-            robot=robot,
-            deployment=deployment,
-            epoch=epoch,
-            reason=f"{reason}: {answer.outcome.value}: {answer.detail}",
-        )
+        self._ack_failed(robot, deployment, epoch, reason, answer)
         return SwitchResult(
             robot, deployment, deployment, route.epoch, False, reason, tuple(attempts)
         )
@@ -297,13 +285,7 @@ class Switcher:
         answer = self._request(deployment, self._ctl(CtlOp.SERVICE, robot, epoch, reason))
         attempts = [Attempt(deployment, epoch, answer.outcome, answer.detail)]
         if answer.outcome is not SwitchOutcome.ACKED:
-            self.rib.record_event(
-                EventKind.ACK_FAILED,
-                robot=robot,
-                deployment=deployment,
-                epoch=epoch,
-                reason=f"{reason}: {answer.outcome.value}: {answer.detail}",
-            )
+            self._ack_failed(robot, deployment, epoch, reason, answer)
             return SwitchResult(
                 robot, deployment, deployment, route.epoch, False, reason, tuple(attempts)
             )
@@ -324,13 +306,7 @@ class Switcher:
             if answer.outcome is SwitchOutcome.ACKED:
                 pool.append(member)
                 continue
-            self.rib.record_event(
-                EventKind.ACK_FAILED,
-                robot=robot,
-                deployment=member,
-                epoch=epoch,
-                reason=f"{reason} (pool member): {answer.outcome.value}: {answer.detail}",
-            )
+            self._ack_failed(robot, member, epoch, f"{reason} (pool member)", answer)
             self._standby(robot, member, epoch)
         return tuple(pool)
 
@@ -371,6 +347,17 @@ class Switcher:
         for dep in failed:
             self._standby(robot, dep, fence)
         return SwitchResult(robot, previous, previous, route_epoch, False, reason, tuple(attempts))
+
+    def _ack_failed(
+        self, robot: str, deployment: str, epoch: int, why: str, answer: _Answer
+    ) -> None:
+        self.rib.record_event(
+            EventKind.ACK_FAILED,
+            robot=robot,
+            deployment=deployment,
+            epoch=epoch,
+            reason=f"{why}: {answer.outcome.value}: {answer.detail}",
+        )
 
     def _standby(self, robot: str, deployment: str, epoch: int) -> None:
         row = self.rib.deployment(deployment)
