@@ -437,6 +437,58 @@ def nav(
     )
 
 
+@bench_app.command("pool")
+def pool(
+    sizes: str = typer.Option("1,2,3", "--sizes", help="Pool sizes P, comma-separated."),
+    resolution: str = typer.Option("320x240", "--resolution", help="Camera resolution WxH."),
+    cloud_cpu: float = typer.Option(
+        0.5, "--cloud-cpu", help="Each cloud host's CPU quota, in cores (one thread per host)."
+    ),
+    fps: float = typer.Option(10.0, "--fps", help="The robot's camera rate (T_f = 1 / fps)."),
+    uplink_mbit: float = typer.Option(
+        100.0, "--uplink-mbit", help="The robot's uplink cap, Mbit/s (as bench nav's)."
+    ),
+    no_kill: bool = typer.Option(
+        False, "--no-kill", help="Skip the run that kills a pool member beside a standby."
+    ),
+    quick: bool = QUICK_OPTION,
+    frames: int | None = FRAMES_OPTION,
+    robot_cpu: float = ROBOT_CPU_OPTION,
+    workdir: Path | None = WORKDIR_OPTION,
+    name: str | None = NAME_OPTION,
+    as_json: bool = JSON_OPTION,
+) -> None:
+    """The navigation assistant's round-robin scale-out: update frequency with P deployments
+    sharing one robot's frames (option 1), and a pool member killed."""
+    from deploy.experiments import nav_pool as npl
+    from deploy.experiments.fleet import CLOUD_HOSTS
+    from deploy.experiments.nav_pool_rows import parse_resolution, parse_sizes
+
+    chosen = _guard(lambda: parse_sizes(sizes, hosts=len(CLOUD_HOSTS), standby=not no_kill))
+    size = _guard(lambda: parse_resolution(resolution))
+    settings = npl.PoolSettings(tuple(chosen), size, cloud_cpu, fps, uplink_mbit, not no_kill)
+    _guard(settings.check)
+    options = _options(
+        quick=quick,
+        frames=frames,
+        robot_cpu=robot_cpu,
+        model=npl.MODEL,
+        input_shape=f"3x{size[1]}x{size[0]}",
+        plots_dir=DEFAULT_PLOTS_DIR,
+        no_plots=True,
+        workdir=workdir,
+        name=name,
+    )
+    _run(
+        options,
+        lambda: npl.run(options, settings),
+        npl.markdown,
+        lambda result, out_dir: [],
+        as_json,
+        tls_key=False,
+    )
+
+
 @bench_app.command("scale")
 def scale(
     robots: str = typer.Option(
