@@ -522,14 +522,15 @@ class RegistryDaemon(Daemon):
         rib = self._parts.rib
         rows = rib.deployments()
         deployments = deployment_table(rows)
+        pools = self._parts.switcher.pools
+        usable = pools.usable(rows) if pools is not None else set()
         for robot_row, route_row in rib.live_robots():
             result = self._evaluate(robot_row.id, read=(robot_row, route_row, deployments))
-            pools = self._parts.switcher.pools
             if (
                 pools is not None
                 and route_row is not None
                 and (result is None or not result.changed)
-                and pools.needs_repool(route_row, rows)
+                and pools.needs_repool(route_row, usable)
             ):
                 self._repool(robot_row.id, "pool")
 

@@ -44,19 +44,19 @@ class PoolPlanner:
 
     def members(self, robot: str, primary: str) -> list[str]:
         """The pool for `robot` around `primary`: `primary` first, then the best ranked others."""
-        usable = self._usable(self._rib.deployments())
+        usable = self.usable(self._rib.deployments())
         routes = self._rib.routes()
         pools = Counter(m for r in routes if r.robot != robot for m in _serving(r))
         others = sorted((d for d in usable if d != primary), key=lambda d: (pools[d], d))
         size = self.limit or len(usable) + 1
         return [primary, *others[: max(0, size - 1)]]
 
-    def needs_repool(self, route: RouteRow, deployments: Iterable[DeploymentRow]) -> bool:
+    def needs_repool(self, route: RouteRow, usable: set[str]) -> bool:
         """Whether `route`'s pool should change: a member is gone or draining, or the pool is
-        short of its size while a usable deployment is outside it."""
+        short of its size while a usable deployment (of `usable(...)`, read once a round) is
+        outside it."""
         if route.deployment is None:
             return False
-        usable = self._usable(deployments)
         pool = route.pool or (route.deployment,)
         if route.deployment not in usable:
             return False  # the primary's failure is the scheduler's to handle
@@ -65,7 +65,8 @@ class PoolPlanner:
         size = self.limit or len(usable)
         return len(pool) < size and any(d not in pool for d in usable)
 
-    def _usable(self, deployments: Iterable[DeploymentRow]) -> set[str]:
+    def usable(self, deployments: Iterable[DeploymentRow]) -> set[str]:
+        """The deployments that may be pool members: alive, not draining, of the service."""
         return {
             d.id for d in deployments if d.alive and not d.draining and d.service == self._service
         }

@@ -84,10 +84,12 @@ def test_a_dead_member_is_dropped_and_a_standby_joins(rib: Rib) -> None:
     switcher.switch(ROBOT, ["a"], reason="initial")
     route = rib.route(ROBOT)
     assert route is not None and route.pool == ("a", "b")
-    assert not planner.needs_repool(route, rib.deployments())  # full and alive: left alone
+    assert not planner.needs_repool(
+        route, planner.usable(rib.deployments())
+    )  # full and alive: left alone
 
     rib.set_deployment_alive("b", False, "token gone")
-    assert planner.needs_repool(route, rib.deployments())
+    assert planner.needs_repool(route, planner.usable(rib.deployments()))
     result = switcher.repool(ROBOT, reason="pool member gone")
     after = rib.route(ROBOT)
     assert result.changed and after is not None
@@ -97,7 +99,7 @@ def test_a_dead_member_is_dropped_and_a_standby_joins(rib: Rib) -> None:
     assert deps["c"].states[ROBOT] is DeploymentState.SERVICE
     # b was dead: recorded as standby, not asked.
     assert _states(rib)["b"] == (DeploymentState.STANDBY, after.epoch)
-    assert not planner.needs_repool(after, rib.deployments())
+    assert not planner.needs_repool(after, planner.usable(rib.deployments()))
 
 
 def test_a_short_pool_grows_when_a_deployment_comes(rib: Rib) -> None:
@@ -111,7 +113,7 @@ def test_a_short_pool_grows_when_a_deployment_comes(rib: Rib) -> None:
     rib.upsert_deployment(
         "c", service=SERVICE, model_digest="sha256:aa", capacity=4, version="0.1.0"
     )
-    assert planner.needs_repool(route, rib.deployments())
+    assert planner.needs_repool(route, planner.usable(rib.deployments()))
     switcher.repool(ROBOT)
     after = rib.route(ROBOT)
     assert after is not None and after.pool == ("a", "b", "c")
