@@ -18,7 +18,7 @@ Each step hands what it made to the lifecycle (`Daemon.hold`, `on_release`, `ann
 releases it all at shutdown in reverse order, the token first, also after a failed startup; the
 session is closed explicitly (a session still holding callbacks at exit hangs the process).
 Every Zenoh callback is `guarded`: bad input is one throttled line, never a traceback into Zenoh.
-`main_loop` runs frames until `--frames` or a signal.
+`main_loop` runs frames until `--frames`, the source's end or a signal.
 
 A frame (DESIGN.md, "A frame's life"): grab → entropy → `policy.decide` → prefix (or the whole
 model for P) → encoded `InferRequest` → (emulated uplink) → `get` on the service key with the
@@ -92,7 +92,7 @@ from robotd.request_sender import RequestSender
 from robotd.robot_model import RobotModel, open_split_model
 from robotd.robot_profile import build_policy, robot_profile, warm_up
 from robotd.service_match import ServiceMatch
-from robotd.sources import FrameSource
+from robotd.sources import EndOfStream, FrameSource
 from robotd.stereo_frame import CameraFrame, first_view
 from robotd.telemetry import SERVED_BY_CLOUD, RemoteTimes, RunSummary, TelemetryFile
 from robotd.telemetry_sink import TelemetrySink
@@ -391,7 +391,11 @@ class RobotDaemon(Daemon):
                 break
             self._settle_pending(block=False)
             self._emulation.enter(n)
-            frame = self._source.read()
+            try:
+                frame = self._source.read()
+            except EndOfStream:
+                log.info("%s: %s ended after %d frames", self.robot, self._source.description, n)
+                break
             self.run_frame(n, frame)
             n += 1
         self._pipeline.drain()
@@ -591,7 +595,8 @@ class RobotDaemon(Daemon):
 
     # -- after a frame ---------------------------------------------------------------------
     def _emit(self, f: Frame) -> None:
-        """Feed the policy, publish and record the frame, and act on a run of cloud failures."""
+        """Feed the policy, publish and record the frame, act on a run of cloud failures, and
+        hand an applied frame's result to `on_result`, then to the source."""
         res = f.result
         remote = RemoteTimes.of(res)
         compute_s = f.prefix_s + (f.local_s or 0.0)
@@ -608,8 +613,11 @@ class RobotDaemon(Daemon):
             reroute = self._failures.note(f.n, res)
             if reroute is not None:
                 self.link.request_reroute(reroute, self._failures.streak)
-        if self._on_result is not None and not f.stale:
-            self._on_result(FrameResult(f.n, f.feeds, f.outputs, record, f.served_by, f.hedged))
+        if not f.stale:
+            result = FrameResult(f.n, f.feeds, f.outputs, record, f.served_by, f.hedged)
+            if self._on_result is not None:
+                self._on_result(result)
+            self._source.on_result(result)
 
 
 def _wait_until(

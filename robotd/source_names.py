@@ -18,3 +18,5 @@ STEREO_PREFIX = "stereo:"
 # `stereo:world`: pairs rendered in nav's world; `stereo:motorcycle`: Middlebury's real pair.
 STEREO_WORLD = "world"
 STEREO_MOTORCYCLE = "motorcycle"
+# `stereo:maneuver:N`: maneuver N of the navigation circuit, driven live (`robotd.maneuver_source`).
+STEREO_MANEUVER = "maneuver"

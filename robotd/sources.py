@@ -19,10 +19,13 @@ A source yields uint8 BGR frames (H×W×3, OpenCV's layout) one at a time, or st
   so `--frames N` is honoured whatever the file's length).
 - `camera:N`: the camera with index N through OpenCV.
 - `stereo:...`: a stereo pair a frame (`robotd.stereo_sources`: a rendered world, the Motorcycle
-  pair, two image files); its frames are `robotd.stereo_frame.StereoFrame`s of named views.
+  pair, two image files, a scripted maneuver); its frames are `robotd.stereo_frame.StereoFrame`s
+  of named views.
 
-A source that cannot be opened is a `UserError` naming it. `common.image_input.InputAdapter` turns
-a frame into the model's input; the photographs themselves are `common.photos`.
+A source that cannot be opened is a `UserError` naming it. A source may end (`EndOfStream`) and
+may take each served frame's result (`on_result`, after the daemon's own).
+`common.image_input.InputAdapter` turns a frame into the model's input; the photographs
+themselves are `common.photos`.
 """
 
 from __future__ import annotations
@@ -32,7 +35,7 @@ import contextlib
 import enum
 import math
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
@@ -42,6 +45,9 @@ from common.image_input import ImageInputs
 from common.photos import PHOTOS, photo_bgr
 from robotd.source_names import CAMERA_PREFIX, PHOTO, STEREO_PREFIX, SYNTHETIC, VIDEO_PREFIX
 from robotd.stereo_frame import CameraFrame
+
+if TYPE_CHECKING:
+    from robotd.frame import FrameResult
 
 DEFAULT_KEY_FRACTION = 0.25
 # Flat frames: one grey level, moving slowly, with noise of this amplitude (grey levels): a few
@@ -76,6 +82,11 @@ class SourceError(UserError):
     """A frame source that cannot be opened or read."""
 
 
+class EndOfStream(Exception):
+    """Raised by `read()` of a source that has no more frames: the robot's frame loop ends as
+    it does after `--frames` (frames in flight finish, the daemon stops cleanly)."""
+
+
 class FrameSource(abc.ABC):
     """Yields uint8 BGR frames (H×W×3), or stereo frames of named views; `close()` releases the
     device or file."""
@@ -87,6 +98,10 @@ class FrameSource(abc.ABC):
     @abc.abstractmethod
     def read(self) -> CameraFrame:
         """The next frame; SourceError when none can be read."""
+
+    def on_result(self, result: FrameResult) -> None:  # noqa: B027 - most sources ignore it
+        """Frame `result.frame` (the n-th frame read, from 0) was served and applied: a source
+        whose frames depend on what the robot computed (`robotd.maneuver_source`) takes it."""
 
     def close(self) -> None:  # noqa: B027 - sources without resources need nothing
         """Release what the source holds."""
@@ -495,7 +510,8 @@ def open_source(spec: str, *, height: int, width: int, seed: int = 0) -> FrameSo
     raise SourceError(
         f"unknown frame source {spec!r}; expected synthetic[:key=F,every=N], "
         "photo[:NAME][,motion=pan|zoom|shake|mixed][,speed=F], video:PATH, camera:INDEX, "
-        "stereo:world[,speed=F], stereo:motorcycle[,OPTIONS] or stereo:LEFT,RIGHT[,OPTIONS]"
+        "stereo:world[,speed=F], stereo:motorcycle[,OPTIONS], stereo:LEFT,RIGHT[,OPTIONS] or "
+        "stereo:maneuver:N[:OPTIONS]"
     )
 
 

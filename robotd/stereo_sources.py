@@ -16,6 +16,8 @@ the wall clock when the pair was taken.
   ships (`nav.stereo_eval.stereo_motorcycle`, nothing is downloaded).
 - `stereo:LEFT,RIGHT[,motion=M][,speed=F]`: two image files of one size (paths without commas),
   e.g. a pair saved from a stereo camera.
+- `stereo:maneuver:N[:lap=L][:assist=off][:out=PATH]`: maneuver N of the navigation circuit,
+  driven live by the daemon's own d_coll results until it ends (`robotd.maneuver_source`).
 
 A pair is repeated: without `motion` or `speed` each frame is the whole pair resized to the
 frame size; with them both views move through the `photo` source's virtual camera
@@ -36,7 +38,8 @@ import numpy as np
 from nav.camera import CameraModel
 from nav.render import Pose, StereoRenderer
 from nav.world import World
-from robotd.source_names import STEREO_MOTORCYCLE, STEREO_PREFIX, STEREO_WORLD
+from robotd.maneuver_source import MANEUVER_FORM, open_maneuver_source
+from robotd.source_names import STEREO_MANEUVER, STEREO_MOTORCYCLE, STEREO_PREFIX, STEREO_WORLD
 from robotd.sources import (
     MAX_PHOTO_SPEED,
     CameraMotion,
@@ -63,8 +66,8 @@ WORLD_FRAME_PERIOD_S = 0.1
 DEFAULT_WORLD_SPEED_MPS = 0.3
 MAX_WORLD_SPEED_MPS = 2.0
 STEREO_FORMS = (
-    "stereo:world[,speed=F], stereo:motorcycle[,motion=M][,speed=F] or "
-    "stereo:LEFT,RIGHT[,motion=M][,speed=F]"
+    "stereo:world[,speed=F], stereo:motorcycle[,motion=M][,speed=F], "
+    f"stereo:LEFT,RIGHT[,motion=M][,speed=F] or {MANEUVER_FORM}"
 )
 
 
@@ -188,6 +191,9 @@ class StereoPairSource(FrameSource):
 def open_stereo_source(spec: str, *, height: int, width: int, seed: int = 0) -> FrameSource:
     """The stereo source named by `spec` (`stereo:...`, see the module docstring)."""
     text = spec.strip()[len(STEREO_PREFIX) :]
+    if text.split(":", 1)[0].strip() == STEREO_MANEUVER:
+        rest = text.strip()[len(STEREO_MANEUVER) :]
+        return open_maneuver_source(spec, rest, height=height, width=width, seed=seed)
     items = [item.strip() for item in text.split(",")]
     if not items[0]:
         raise SourceError(f"source {spec!r}: expected {STEREO_FORMS}")

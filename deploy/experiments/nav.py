@@ -9,8 +9,11 @@ second, t_o / t_p / t_c / t_f the means of its telemetry's transfer, cloud, robo
 whole-frame times (`nav_rows`). `elastic` is the runtime's learner: it chooses among the whole
 suffixes (options 1, 2 and 4 are among them), not option 3's segment, which is a fixed action.
 
-Table V runs afterwards in the in-process closed loop (`nav_loop`), in simulated time, each
-frame's latency drawn from the t_f samples just measured for its option and resolution.
+Table V (`--table5`): `sim` (the default) runs afterwards in the in-process closed loop
+(`nav_loop`), in simulated time, each frame's latency drawn from the t_f samples just measured
+for its option and resolution; `live` drives the maneuvers with the robot daemon itself on the
+same fleet, one run per maneuver in real time, after the option runs of each resolution
+(`nav_live`).
 """
 
 from __future__ import annotations
@@ -20,12 +23,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from . import nav_live
 from .fleet import ROBOT_ID, FleetSpec
-from .nav_loop import table5
+from .nav_loop import LoopResult, fig8, table5
 from .nav_rows import (
     ELASTIC,
     NO_TIMING,
     OFF,
+    TABLE5_LIVE,
+    TABLE5_SIM,
     Option,
     Timing,
     contract_row,
@@ -75,6 +81,8 @@ class NavSettings:
     uplink_mbit: float = DEFAULT_UPLINK_MBIT
     laps: int | None = None
     """Laps of the 7-maneuver circuit; None: 10, 1 with --quick."""
+    table5: str = TABLE5_SIM
+    """Table V in the in-process loop (`sim`) or driven by the robot daemon (`live`)."""
 
 
 def _fleet_spec(fleet: str, size: tuple[int, int]) -> FleetSpec:
@@ -93,14 +101,24 @@ def _fleet_spec(fleet: str, size: tuple[int, int]) -> FleetSpec:
     )
 
 
+Measured = dict[tuple[Option, str], dict[str, Any]]
+"""Tables III-IV per (option, resolution label): {"timing", "lost", "actions", "fallbacks"}."""
+Driven = dict[tuple[Option, str], nav_live.LiveRuns]
+"""Table V driven by the robot daemon per (option, resolution label)."""
+
+
 def measure(
-    options: BenchOptions, settings: NavSettings, frames: int, warmup: int
-) -> dict[tuple[Option, str], dict[str, Any]]:
-    """Tables III-IV on the testbed: {(option, resolution): {"timing", "lost", "actions"}}."""
+    options: BenchOptions, settings: NavSettings, frames: int, warmup: int, laps: int
+) -> tuple[Measured, Driven]:
+    """Tables III-IV on the testbed: {(option, resolution): {"timing", "lost", "actions"}};
+    with `--table5 live` also Table V driven by the robot daemon, {(option, resolution):
+    LiveRuns}."""
     measured = [o for o in settings.options if o != OFF]
-    out: dict[tuple[Option, str], dict[str, Any]] = {}
-    if not measured:
-        return out
+    driven = _loop_options(settings) if settings.table5 == TABLE5_LIVE else []
+    out: Measured = {}
+    live: Driven = {}
+    if not measured and not driven:
+        return out, live
     with open_fleet(options, hosts=HOSTS) as tf:
         for size in settings.resolutions:
             label = resolution_label(size)
@@ -118,7 +136,16 @@ def measure(
                     "actions": dict(Counter(str(r["action"]) for r in window).most_common()),
                     "fallbacks": sum(1 for r in window if r.get("fallback")),
                 }
-    return out
+            for option in driven:
+                live[(option, label)] = nav_live.drive(
+                    tf, option, size, laps, options.robot_cpu, options.log
+                )
+    return out, live
+
+
+def _loop_options(settings: NavSettings) -> list[Option]:
+    """The options Table V drives (the paper's 1 and 4, elastic, off), in the asked order."""
+    return [o for o in settings.options if o in LOOP_OPTIONS]
 
 
 def run(options: BenchOptions, settings: NavSettings) -> dict[str, Any]:
@@ -127,10 +154,14 @@ def run(options: BenchOptions, settings: NavSettings) -> dict[str, Any]:
     frames = options.frames_or(FULL_FRAMES, QUICK_FRAMES)
     warmup = min(QUICK_WARMUP if options.quick else FULL_WARMUP, max(0, frames - 3))
     laps = settings.laps or (QUICK_LAPS if options.quick else FULL_LAPS)
-    measured = measure(options, settings, frames, warmup)
-    latencies = {key: m["timing"].frame_latencies_s for key, m in measured.items()}
-    loop_options = [o for o in settings.options if o in LOOP_OPTIONS]
-    loop = table5(settings.resolutions, loop_options, latencies, laps, options.log)
+    measured, live = measure(options, settings, frames, warmup, laps)
+    if settings.table5 == TABLE5_LIVE:
+        # Fig. 9 needs a speed trace, which the robot's outcome files do not carry.
+        loop = LoopResult({key: runs.figures for key, runs in live.items()})
+        loop.dcoll = fig8(settings.resolutions[-1])
+    else:
+        latencies = {key: m["timing"].frame_latencies_s for key, m in measured.items()}
+        loop = table5(settings.resolutions, _loop_options(settings), latencies, laps, options.log)
     rows: list[dict[str, Any]] = []
     details: list[dict[str, Any]] = []
     for size in settings.resolutions:
@@ -139,13 +170,19 @@ def run(options: BenchOptions, settings: NavSettings) -> dict[str, Any]:
             m = measured.get((option, label), {})
             figures: Timing = m.get("timing", NO_TIMING)
             loop_figures = loop.figures.get((option, label))
-            row = contract_row(option, size, figures, loop_figures, m.get("lost", 0))
+            driven = live.get((option, label))
+            lost = m.get("lost", 0) + (driven.lost if driven is not None else 0)
+            row = contract_row(option, size, figures, loop_figures, lost)
             rows.append(row)
-            details.append(
-                {"option": option, "resolution": label, "actions": m.get("actions", {}),
-                 "fallbacks": m.get("fallbacks", 0), "frames": len(figures.frame_latencies_s),
-                 "distance_m": loop_figures.distance_m if loop_figures else None}
-            )  # fmt: skip
+            detail = {
+                "option": option, "resolution": label, "actions": m.get("actions", {}),
+                "fallbacks": m.get("fallbacks", 0), "frames": len(figures.frame_latencies_s),
+                "distance_m": loop_figures.distance_m if loop_figures else None,
+                "min_clearance_m": loop_figures.min_clearance_m if loop_figures else None,
+            }  # fmt: skip
+            if driven is not None:
+                detail["maneuvers"] = driven.maneuvers
+            details.append(detail)
     return {
         "settings": {
             "model": MODEL,
@@ -156,6 +193,7 @@ def run(options: BenchOptions, settings: NavSettings) -> dict[str, Any]:
             "warmup_frames": warmup,
             "laps": laps,
             "cloud_threads": CLOUD_THREADS,
+            "table5": settings.table5,
         },
         "results": rows,
         "details": details,
@@ -221,13 +259,21 @@ def markdown(result: dict[str, Any]) -> str:
             table5_rows.append(
                 [label, str(row["option"]), f"{row['collisions']} / {row['maneuvers']}",
                  fmt(ratio, 2), fmt(detail["distance_m"], 2),
+                 fmt(detail.get("min_clearance_m"), 3),
                  f"{paper} / 70 ({paper / 70:.2f})" if paper is not None else "—"]
             )  # fmt: skip
     if table5_rows:
-        header = ["resolution", "option", "collisions", "ratio", "driven (m)", "paper"]
+        header = [
+            "resolution", "option", "collisions", "ratio", "driven (m)", "min clearance (m)",
+            "paper",
+        ]  # fmt: skip
+        how = (
+            "the robot daemon over Zenoh, one run per maneuver in real time, 10 fps camera"
+            if s.get("table5") == TABLE5_LIVE
+            else "closed loop in simulated time, latencies drawn from the measured t_f"
+        )
         out.append(
-            "**Table V: collisions per maneuvers** (closed loop in simulated time, latencies "
-            "drawn from the measured t_f)\n\n" + md_table(header, table5_rows)
+            f"**Table V: collisions per maneuvers** ({how})\n\n" + md_table(header, table5_rows)
         )
     return "\n\n".join(out) + "\n"
 

@@ -7,6 +7,8 @@ drawn from the t_f samples MEASURED for that option and resolution on the daemon
 keeps one frame in flight, so the update rate follows those latencies too. The pipeline's output
 is the same whichever option computes it (every cut and segment verifies with error 0), which is
 why it runs here rather than on the daemons. "off" passes the joystick straight to the robot.
+The maneuvers driven by the robot daemon itself, in real time, are `nav_live` (`--table5 live`);
+Fig. 8 comes from here in both modes.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from nav.closed_loop import StereoPerception, run_maneuver
+from nav.live_drive import maneuver_params
 from nav.maneuvers import circuit_lap
 from nav.render import Pose
 from nav.shared_control import AssistantParams
@@ -27,9 +30,6 @@ from .nav_rows import OFF, LoopFigures, Option, resolution_label
 
 LOOP_THREADS = 2
 """onnxruntime threads of the closed loop's pipeline (the testbed is down by then)."""
-STOP_MARGIN_BEYOND_CAMERA_M = 0.35
-"""Free distance kept in front of the camera: beyond the nearest depth the disparity range sees
-(0.27 m at any resolution), as in the closed-loop tests."""
 WALL_AHEAD_M = 2.5
 WALL_APPROACH_M = (0.0, 0.6, 1.2, 1.6)
 """Fig. 8: d_coll(K) seen from these distances driven toward a wall WALL_AHEAD_M ahead."""
@@ -45,10 +45,6 @@ class LoopResult:
     """Fig. 8: [{"ahead_m", "curvatures", "distances"}] at the largest resolution."""
     speeds: dict[str, Any] = field(default_factory=dict)
     """Fig. 9: {"option", "resolution", "t_s", "joystick_mps", "sent_mps"} over one lap."""
-
-
-def _params(perception: StereoPerception) -> AssistantParams:
-    return AssistantParams(stop_margin_m=perception.camera.forward_m + STOP_MARGIN_BEYOND_CAMERA_M)
 
 
 def drive_laps(
@@ -68,6 +64,7 @@ def drive_laps(
 
     collisions = maneuvers = 0
     distance_m = 0.0
+    clearances: list[float] = []
     for lap in range(laps):
         results = []
         for step in circuit_lap(lap):
@@ -81,10 +78,14 @@ def drive_laps(
             collisions += int(result.collided)
             maneuvers += 1
             distance_m += result.distance_m
+            if not result.collided:
+                clearances.append(result.min_clearance_m)
             results.append(result)
         if on_lap is not None:
             on_lap(lap, results)
-    return LoopFigures(collisions, maneuvers, distance_m / max(maneuvers, 1))
+    return LoopFigures(
+        collisions, maneuvers, distance_m / max(maneuvers, 1), min(clearances, default=None)
+    )
 
 
 def _speed_trace(option: Option, label: str, results: list[Any]) -> dict[str, Any]:
@@ -119,6 +120,11 @@ def wall_profiles(perception: StereoPerception) -> list[dict[str, Any]]:
     return out
 
 
+def fig8(size: tuple[int, int]) -> list[dict[str, Any]]:
+    """Fig. 8's data at `size` (the wall approach, rendered and run in this process)."""
+    return wall_profiles(StereoPerception(size[0], size[1], threads=LOOP_THREADS))
+
+
 def table5(
     sizes: Sequence[tuple[int, int]],
     options: Sequence[Option],
@@ -134,7 +140,7 @@ def table5(
     for size in sizes:
         label = resolution_label(size)
         perception = StereoPerception(size[0], size[1], threads=LOOP_THREADS)
-        params = _params(perception)
+        params = maneuver_params(perception.camera)
         for option in options:
             if option == OFF:
                 if unassisted is None:  # the camera plays no part: the same at any resolution

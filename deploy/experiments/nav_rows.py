@@ -5,7 +5,8 @@ as fast as it can), its Table IV the delays: t_o the offload (the network's shar
 trip, `transfer_s`), t_p the cloud's processing (`cloud_s`: its queue and compute), t_c the
 robot's own compute (`prefix_s` + `suffix_local_s`: the stages before the cut and the tail after
 it) and t_f the whole frame (`latency_s`, capture to d_coll). Table V's collisions come from the
-closed loop (`nav_loop`). A row of the JSON contract joins them per option and resolution.
+closed loop (`nav_loop`, simulated time) or from the maneuvers driven by the robot daemon
+(`nav_live`). A row of the JSON contract joins them per option and resolution.
 """
 
 from __future__ import annotations
@@ -36,6 +37,11 @@ OFF = "off"
 """The assistant off: the joystick passed straight to the robot (closed loop only)."""
 ELASTIC = "elastic"
 NAV_OPTIONS: tuple[int | str, ...] = (1, 2, 3, 4, ELASTIC, OFF)
+TABLE5_SIM = "sim"
+"""Table V in the in-process closed loop, latencies drawn from the measured t_f."""
+TABLE5_LIVE = "live"
+"""Table V driven by the robot daemon on the testbed, one run per maneuver, in real time."""
+TABLE5_MODES = (TABLE5_SIM, TABLE5_LIVE)
 MIN_SIZE_PX = (64, 48)
 MAX_SIZE_PX = (1920, 1080)
 
@@ -57,6 +63,14 @@ def parse_options(text: str) -> list[Option]:
     if not found:
         raise UserError("--options: expected at least one of 1, 2, 3, 4, elastic, off")
     return found
+
+
+def parse_table5(text: str) -> str:
+    """`--table5`: 'sim' or 'live' (any case); anything else is one line."""
+    mode = text.strip().lower()
+    if mode not in TABLE5_MODES:
+        raise UserError(f"--table5: expected {' or '.join(TABLE5_MODES)}, got {text!r}")
+    return mode
 
 
 def parse_resolutions(text: str) -> list[tuple[int, int]]:
@@ -143,6 +157,9 @@ class LoopFigures:
     distance_m: float = 0.0
     """Mean distance driven per maneuver: an assistant that stops the robot far from every
     obstacle (or never lets it start) has no collisions either."""
+    min_clearance_m: float | None = None
+    """The smallest clearance (robot's edge to a face) of the maneuvers without a collision;
+    None when every one collided."""
 
 
 def contract_row(

@@ -50,6 +50,7 @@ FRAMES = 16
         (["--resolutions", "16x12"], "outside"),
         (["--uplink-mbit", "0"], "must be a positive number"),
         (["--laps", "0"], "--laps 0: expected at least 1"),
+        (["--table5", "real"], "--table5: expected sim or live"),
         (["--robot-cpu", "0"], "--robot-cpu 0: expected 0.01 to 16"),
     ],
 )
