@@ -393,6 +393,18 @@ def nav(
     laps: int | None = typer.Option(
         None, "--laps", help="Laps of the 7-maneuver circuit (default 10, 1 with --quick)."
     ),
+    table5: str = typer.Option(
+        "sim",
+        "--table5",
+        help="Table V in the in-process closed loop (sim) or driven by the robot daemon on the "
+        "testbed, one run per maneuver in real time (live).",
+    ),
+    t_dead: float | None = typer.Option(
+        None,
+        "--t-dead",
+        help="The assistant's T_dead in Table V, seconds: d_coll older than this is not trusted "
+        "and the robot brakes to rest (default 1, the assistant's; the paper gives none).",
+    ),
     quick: bool = QUICK_OPTION,
     frames: int | None = FRAMES_OPTION,
     robot_cpu: float = ROBOT_CPU_OPTION,
@@ -405,10 +417,18 @@ def nav(
     """The navigation assistant paper's Tables III-V (update rate, delays, collisions per
     option and resolution) and Figs. 8-9, on the testbed and in the closed loop."""
     from deploy.experiments import nav as nv
-    from deploy.experiments.nav_rows import parse_options, parse_resolutions
+    from deploy.experiments.nav_rows import (
+        DEFAULT_T_DEAD_S,
+        check_t_dead,
+        parse_options,
+        parse_resolutions,
+        parse_table5,
+    )
 
     sizes = _guard(lambda: parse_resolutions(resolutions))
     chosen = _guard(lambda: parse_options(nav_options))
+    mode = _guard(lambda: parse_table5(table5))
+    deadline_s = _guard(lambda: check_t_dead(DEFAULT_T_DEAD_S if t_dead is None else t_dead))
     uplink = nv.DEFAULT_UPLINK_MBIT if uplink_mbit is None else uplink_mbit
     if not (math.isfinite(uplink) and uplink > 0):
         _fail(UserError(f"--uplink-mbit {uplink:g}: must be a positive number"))
@@ -425,7 +445,7 @@ def nav(
         workdir=workdir,
         name=name,
     )
-    settings = nv.NavSettings(tuple(sizes), tuple(chosen), uplink, laps)
+    settings = nv.NavSettings(tuple(sizes), tuple(chosen), uplink, laps, mode, deadline_s)
     _run(
         options,
         lambda: nv.run(options, settings),
@@ -545,6 +565,12 @@ def scale(
         help="Instead: one robot beside a polite neighbour and beside one sending as fast as it "
         "can, with the --max-in-flight limit and without one.",
     ),
+    pin_cloud: bool = typer.Option(
+        False,
+        "--pin-cloud",
+        help="Pin the cloud daemons to CPUs of their own (one per worker, all but one CPU at "
+        "most) and the registry and load generators to the others (Linux, 2 CPUs or more).",
+    ),
     quick: bool = QUICK_OPTION,
     model: str = typer.Option(scale_defaults.MODEL, "--model", help="zoo:NAME or an ONNX file."),
     input_shape: str = typer.Option(
@@ -558,6 +584,7 @@ def scale(
     """Many robots on this host (loopback, no root): what the cloud serves, with and without
     batching, as robots and deployments are added (emulated robots, real cloud daemons)."""
     from common.zoo import parse_shape
+    from deploy.experiments import fairness as fair
     from deploy.experiments import scale as sc
 
     err = Console(stderr=True)
@@ -586,6 +613,7 @@ def scale(
             max_queue_delay_ms=max_queue_delay_ms,
             batch_sizes=sc.parse_counts(batch_sizes, "--batch-sizes"),
             max_in_flight_per_robot=max_in_flight,
+            pin_cloud=pin_cloud,
             workdir=workdir,
             log=lambda message: err.print(f"[dim]bench:[/dim] {message}", highlight=False),
         )
@@ -594,14 +622,14 @@ def scale(
 
     options = _guard(build)
     try:
-        result = sc.run_fairness(options) if fairness else sc.run(options)
+        result = fair.run_fairness(options) if fairness else sc.run(options)
     except UserError as exc:
         _fail(exc)
     except KeyboardInterrupt:
         err.print("interrupted; every daemon is gone", highlight=False)
         raise typer.Exit(INTERRUPTED_EXIT_CODE) from None
     if fairness:
-        typer.echo(json.dumps(result) if as_json else sc.fairness_markdown(result))
+        typer.echo(json.dumps(result) if as_json else fair.fairness_markdown(result))
         return
     if not no_plots and result["results"]:
         for path in sc.plot(result, plots_dir):

@@ -351,8 +351,8 @@ class LoadGenerator:
 
 
 def summarize(records: Sequence[FrameRecord], seconds: float) -> dict[str, Any]:
-    """Figures of a window of `seconds`: frames and rates by outcome, served frames per second,
-    the served frames' latency (median, p95) and each deployment's share of them."""
+    """Figures of a window of `seconds`: frames and rates by outcome, frames sent and served per
+    second, the served frames' latency (median, p95) and each deployment's share of them."""
     frames = len(records)
     counts = {outcome: 0 for outcome in FrameOutcome}
     for rec in records:
@@ -369,6 +369,7 @@ def summarize(records: Sequence[FrameRecord], seconds: float) -> dict[str, Any]:
     return {
         "frames": frames,
         "served": len(served),
+        "sent_fps": frames / seconds if seconds > 0 else 0.0,
         "served_fps": len(served) / seconds if seconds > 0 else 0.0,
         "p50_latency_s": statistics.median(latency) if latency else None,
         "p95_latency_s": percentile(latency, 95),

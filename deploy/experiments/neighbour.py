@@ -78,6 +78,12 @@ class NeighbourProcess:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
+    @property
+    def pid(self) -> int:
+        """The child's process id (its CPU time is read per phase)."""
+        assert self._proc.pid is not None  # started in __init__
+        return self._proc.pid
+
     def start_phase(self, fps: float | None, in_flight: int, seed: int) -> None:
         """Start sending; returns once a frame of the neighbour was served."""
         self._conn.send(("run", fps, in_flight, seed))

@@ -19,14 +19,17 @@ the cloud part of a frame), the rates of busy and timeout replies, each deployme
 the served frames, and the cloud daemons' CPU seconds (user + system, read from /proc through
 psutil) per served frame, hence frames per second per core. Each configuration's daemons are
 started once and serve its robot counts in turn.
+
+With `pin_cloud` (`--pin-cloud`) the cloud daemons run on CPUs of their own and the registry and
+the load generators on the others (`pinned`), so that the robots' load does not take the
+deployments' CPUs. One robot beside a hog on one deployment (`--fairness`) is in `fairness`.
 """
 
 from __future__ import annotations
 
 import contextlib
-import dataclasses
+import os
 import shutil
-import statistics
 import tempfile
 import threading
 import time
@@ -40,11 +43,11 @@ import psutil
 
 from common.config import FleetConfig, load_fleet
 from common.errors import UserError
+from deploy.cpu_pinning import CpuSplit, off_set_threads, pin_process, split_for_cloud, usable_cpus
 from deploy.load_generator import LoadGenerator, summarize
 from deploy.procs import DaemonProc, LocalFleet, write_local_fleet
 
 from . import scale_defaults as defaults
-from .neighbour import NeighbourProcess
 from .report import fmt, md_table, save_plot, use_agg
 
 LOAD_KIND = "load generator (emulated robots; real Zenoh requests to real cloud daemons)"
@@ -78,6 +81,8 @@ class ScaleOptions:
     max_queue_delay_ms: float = defaults.MAX_QUEUE_DELAY_MS
     batch_sizes: Sequence[int] = defaults.BATCH_SIZES
     max_in_flight_per_robot: int = defaults.MAX_IN_FLIGHT_PER_ROBOT
+    pin_cloud: bool = False
+    """Pin the cloud daemons to CPUs of their own, the rest of the bench to the others."""
     workdir: Path | None = None
     log: Callable[[str], None] = field(default=lambda message: None)
 
@@ -98,6 +103,12 @@ class ScaleOptions:
             raise UserError(f"--warmup-s {self.warmup_s:g}: expected >= 0")
         if self.workers < 1 or self.queue < 0 or self.threads < 0:
             raise UserError("--workers >= 1, --queue >= 0 and --threads >= 0 are expected")
+        if self.pin_cloud:
+            self.cpu_split(max(self.deployments))  # refused here, before any daemon starts
+
+    def cpu_split(self, deployments: int) -> CpuSplit:
+        """With `pin_cloud`: a CPU per worker of the deployments, at most all CPUs but one."""
+        return split_for_cloud(usable_cpus(), deployments * self.workers)
 
 
 def parse_counts(text: str, what: str) -> list[int]:
@@ -164,11 +175,29 @@ def fleet_changes(options: ScaleOptions, deployments: int, batching: bool) -> di
     }
 
 
+@dataclass
+class RunningFleet:
+    """A started fleet: its config, registry and cloud daemons, and the CPUs they are pinned to
+    (None: not pinned)."""
+
+    cfg: FleetConfig
+    registry: DaemonProc
+    clouds: list[DaemonProc]
+    cpus: CpuSplit | None = None
+
+    def threads_off_cpus(self) -> int:
+        """Cloud daemon threads not on the cloud's CPUs now (0 unless pinning failed)."""
+        if self.cpus is None:
+            return 0
+        return sum(len(off_set_threads(c.pid, self.cpus.cloud)) for c in self.clouds)
+
+
 @contextlib.contextmanager
 def running_fleet(
     options: ScaleOptions, workdir: Path, deployments: int, batching: bool, label: str = ""
-) -> Iterator[tuple[FleetConfig, list[DaemonProc]]]:
-    """A registry and `deployments` cloud daemons of a fresh fleet, ready, stopped on exit."""
+) -> Iterator[RunningFleet]:
+    """A registry and `deployments` cloud daemons of a fresh fleet, ready, stopped on exit;
+    pinned with `options.pin_cloud` (`pinned`)."""
     label = label or f"d{deployments}-{'on' if batching else 'off'}"
     directory = workdir / label
     path = write_local_fleet(
@@ -180,9 +209,41 @@ def running_fleet(
     cfg = load_fleet(path)
     with LocalFleet(path, directory, startup_timeout_s=ROUTED_TIMEOUT_S) as lf:
         options.log(f"{label}: starting the registry and {deployments} cloud daemon(s)")
-        lf.start_registry()
+        registry = lf.start_registry()
         clouds = lf.start_clouds(cloud_ids(deployments))
-        yield cfg, clouds
+        fleet = RunningFleet(cfg, registry, clouds)
+        if not options.pin_cloud:
+            yield fleet
+            return
+        fleet.cpus = options.cpu_split(deployments)
+        with pinned(fleet, deployments * options.workers, options.log):
+            yield fleet
+
+
+@contextlib.contextmanager
+def pinned(fleet: RunningFleet, workers: int, log: Callable[[str], None]) -> Iterator[None]:
+    """The cloud daemons on `fleet.cpus.cloud`; the registry and this process (the load
+    generators: the robots emulated here, and the processes started from here meanwhile, which
+    inherit it) on `fleet.cpus.rest`. This process gets its CPUs back on exit."""
+    assert fleet.cpus is not None
+    own_before = sorted(os.sched_getaffinity(0))
+    pin_process(os.getpid(), fleet.cpus.rest, children=False)
+    try:
+        pin_process(fleet.registry.pid, fleet.cpus.rest)
+        threads = sum(pin_process(c.pid, fleet.cpus.cloud) for c in fleet.clouds)
+        shared = "" if workers <= len(fleet.cpus.cloud) else f"; {workers} workers share them"
+        log(
+            f"pinned: {', '.join(c.name for c in fleet.clouds)} ({threads} threads) on CPU(s) "
+            f"{_cpu_list(fleet.cpus.cloud)}{shared}; the registry and the load generators on "
+            f"CPU(s) {_cpu_list(fleet.cpus.rest)}"
+        )
+        yield
+    finally:
+        pin_process(os.getpid(), own_before, children=False)
+
+
+def _cpu_list(cpus: Sequence[int]) -> str:
+    return ",".join(map(str, cpus))
 
 
 def cpu_seconds(procs: Sequence[DaemonProc]) -> dict[str, float]:
@@ -250,9 +311,11 @@ def run(options: ScaleOptions) -> dict[str, Any]:
     try:
         for deployments in options.deployments:
             for batching in options.batching:
-                with running_fleet(options, workdir, deployments, batching) as (cfg, clouds):
+                with running_fleet(options, workdir, deployments, batching) as fleet:
                     for robots in options.robots:
-                        cell = run_cell(options, cfg, clouds, robots, deployments, batching)
+                        cell = run_cell(
+                            options, fleet.cfg, fleet.clouds, robots, deployments, batching
+                        )
                         options.log(_progress(cell))
                         results.append(cell)
         ok = True
@@ -261,162 +324,10 @@ def run(options: ScaleOptions) -> dict[str, Any]:
             shutil.rmtree(workdir, ignore_errors=True)
         elif own:
             options.log(f"logs kept in {workdir}")
-    return {"load": LOAD_KIND, "settings": _settings(options), "results": results}
+    return {"load": LOAD_KIND, "settings": settings_of(options), "results": results}
 
 
-# -- fairness ------------------------------------------------------------------------------------
-def measure_fairness(
-    cfg: FleetConfig,
-    victim: str,
-    neighbour: str,
-    *,
-    fps: float,
-    rounds: int = defaults.FAIRNESS_ROUNDS,
-    phase_s: float = defaults.FAIRNESS_PHASE_S,
-    hog_in_flight: int = defaults.FAIRNESS_HOG_IN_FLIGHT,
-    cut: int = 0,
-    codec: str = "raw",
-    log: Callable[[str], None] = lambda message: None,
-) -> dict[str, Any]:
-    """The victim's latency beside a polite neighbour and beside a hog, on one deployment.
-
-    The victim sends at `fps` all along, from this process; the neighbour runs in a process of
-    its own (`neighbour`). Phases alternate, `rounds` times: the neighbour sends at `fps` too
-    (polite), then as fast as it can with `hog_in_flight` frames in flight (hog). Alternating
-    short phases and taking the median of each kind's p95 keeps a drifting load on the host
-    (other processes) from deciding the comparison."""
-    if cfg.source_path is None:
-        raise ValueError("the fleet must come from a file (the neighbour process loads it)")
-    pause = threading.Event()  # timed measurement windows, not waits for readiness
-    phases: list[tuple[str, float, float, dict[str, Any]]] = []
-    with (
-        LoadGenerator(cfg, [victim], fps=fps, cut=cut, codec=codec) as victim_gen,
-        NeighbourProcess(str(cfg.source_path), neighbour, cut=cut, codec=codec) as other,
-    ):
-        victim_gen.wait_served(ROUTED_TIMEOUT_S)
-        for round_ in range(rounds):
-            for kind in ("polite", "hog"):
-                hog = kind == "hog"
-                other.start_phase(None if hog else fps, hog_in_flight if hog else 1, round_)
-                t0 = time.monotonic()
-                pause.wait(phase_s)
-                t1 = time.monotonic()
-                phases.append((kind, t0, t1, other.stop_phase()))
-    rows = []
-    for kind, t0, t1, theirs in phases:
-        mine = summarize(victim_gen.records(t0, t1), t1 - t0)
-        rows.append(
-            {
-                "phase": kind,
-                "victim_p50_latency_s": mine["p50_latency_s"],
-                "victim_p95_latency_s": mine["p95_latency_s"],
-                "victim_p95_queue_s": mine["p95_queue_s"],
-                "victim_p95_compute_s": mine["p95_compute_s"],
-                "victim_busy_rate": mine["busy_rate"],
-                "victim_frames": mine["frames"],
-                "neighbour_served_fps": theirs["served_fps"],
-                "neighbour_busy_rate": theirs["busy_rate"],
-            }
-        )
-        log(
-            f"fairness {kind}: victim p95 {fmt(mine['p95_latency_s'], 4)} s (queue "
-            f"{fmt(mine['p95_queue_s'], 4)}, compute {fmt(mine['p95_compute_s'], 4)}), neighbour "
-            f"{theirs['served_fps']:.0f} frames/s served, busy {100 * theirs['busy_rate']:.0f}%"
-        )
-
-    def median_of(kind: str, key: str) -> float | None:
-        values = [r[key] for r in rows if r["phase"] == kind and r[key] is not None]
-        return statistics.median(values) if values else None
-
-    polite = median_of("polite", "victim_p95_latency_s")
-    hogged = median_of("hog", "victim_p95_latency_s")
-    return {
-        "phases": rows,
-        "polite_p95_s": polite,
-        "hog_p95_s": hogged,
-        "ratio": hogged / polite if polite and hogged is not None else None,
-        "hog_busy_rate": median_of("hog", "neighbour_busy_rate"),
-        "hog_served_fps": median_of("hog", "neighbour_served_fps"),
-        "victim_busy_rate": max(r["victim_busy_rate"] for r in rows),
-    }
-
-
-def run_fairness(options: ScaleOptions) -> dict[str, Any]:
-    """The victim beside a polite neighbour and a hog on one deployment, with the per-robot
-    in-flight limit (`options.max_in_flight_per_robot`) and without one (every slot)."""
-    options.check()
-    own = options.workdir is None
-    workdir = options.workdir or Path(tempfile.mkdtemp(prefix="elasticfog-fairness-"))
-    unlimited = options.workers * max(options.batch_sizes) + options.queue
-    results = []
-    ok = False
-    try:
-        for batching in options.batching:
-            for limit in (options.max_in_flight_per_robot, unlimited):
-                limited = dataclasses.replace(options, robots=(2,), max_in_flight_per_robot=limit)
-                label = f"fairness-{'on' if batching else 'off'}-limit{limit}"
-                with running_fleet(limited, workdir, 1, batching, label) as (cfg, _):
-                    figures = measure_fairness(
-                        cfg,
-                        "robot-1",
-                        "robot-2",
-                        fps=options.fps,
-                        cut=options.cut,
-                        codec=options.codec,
-                        log=options.log,
-                    )
-                results.append(
-                    {
-                        "batching": "on" if batching else "off",
-                        "max_in_flight_per_robot": limit,
-                        **figures,
-                    }
-                )
-        ok = True
-    finally:
-        if own and ok:
-            shutil.rmtree(workdir, ignore_errors=True)
-        elif own:
-            options.log(f"logs kept in {workdir}")
-    return {"load": LOAD_KIND, "settings": _settings(options), "fairness": results}
-
-
-def fairness_markdown(result: dict[str, Any]) -> str:
-    settings = result["settings"]
-    header = [
-        "batching",
-        "per-robot limit",
-        "victim p95, polite neighbour (s)",
-        "victim p95, hog (s)",
-        "ratio",
-        "hog served frames/s",
-        "hog busy",
-        "victim busy",
-    ]
-    rows = [
-        [
-            r["batching"],
-            r["max_in_flight_per_robot"],
-            fmt(r["polite_p95_s"], 4),
-            fmt(r["hog_p95_s"], 4),
-            fmt(r["ratio"], 2),
-            fmt(r["hog_served_fps"], 0),
-            f"{100 * (r['hog_busy_rate'] or 0):.0f}%",
-            f"{100 * r['victim_busy_rate']:.0f}%",
-        ]
-        for r in result["fairness"]
-    ]
-    return (
-        f"Load: {result['load']}; {settings['model']} at "
-        f"{'x'.join(map(str, settings['input_shape']))}; the victim and the polite neighbour "
-        f"send {settings['fps_per_robot']:g} fps, the hog as fast as it can with "
-        f"{defaults.FAIRNESS_HOG_IN_FLIGHT} frames in flight; medians of "
-        f"{defaults.FAIRNESS_ROUNDS} alternating phases of {defaults.FAIRNESS_PHASE_S:g} s; "
-        f"{settings['workers']} workers.\n\n" + md_table(header, rows) + "\n"
-    )
-
-
-def _settings(options: ScaleOptions) -> dict[str, Any]:
+def settings_of(options: ScaleOptions) -> dict[str, Any]:
     return {
         "model": options.model,
         "input_shape": list(options.input_shape),
@@ -435,7 +346,16 @@ def _settings(options: ScaleOptions) -> dict[str, Any]:
         "max_in_flight_per_robot": options.max_in_flight_per_robot,
         "routing": "initial_policy: robot i on deployment i mod D, placed by the registry",
         "host_cpus": psutil.cpu_count(),
+        "pin_cloud": _pinning(options),
     }
+
+
+def _pinning(options: ScaleOptions) -> dict[str, list[int]] | None:
+    """Where the daemons of the largest deployment count run, when pinned."""
+    if not options.pin_cloud:
+        return None
+    split = options.cpu_split(max(options.deployments))
+    return {"cloud": list(split.cloud), "rest": list(split.rest)}
 
 
 def _progress(cell: dict[str, Any]) -> str:

@@ -20,7 +20,7 @@ from typing import Any
 
 import pytest
 
-from deploy.experiments.scale import measure_fairness
+from deploy.experiments.fairness import measure_fairness
 from deploy.load_generator import FrameOutcome, LoadGenerator, summarize
 from deploy.procs import elasticfog_argv
 from tests.e2e.conftest import TEST_DEADLINE_S, TEST_INPUT_SHAPE, TEST_MODEL
