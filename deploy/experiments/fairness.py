@@ -20,13 +20,10 @@ from __future__ import annotations
 
 import dataclasses
 import os
-import shutil
 import statistics
-import tempfile
 import threading
 import time
 from collections.abc import Callable, Collection, Mapping, Sequence
-from pathlib import Path
 from typing import Any
 
 from common.config import FleetConfig
@@ -35,6 +32,7 @@ from deploy.load_generator import FrameOutcome, FrameRecord, LoadGenerator, summ
 from . import scale_defaults as defaults
 from .cpu_share import CpuMeter
 from .neighbour import NeighbourProcess
+from .options import bench_workdir
 from .report import fmt, md_table
 from .scale import LOAD_KIND, ROUTED_TIMEOUT_S, ScaleOptions, running_fleet, settings_of
 from .stats import percentile
@@ -174,12 +172,9 @@ def run_fairness(options: ScaleOptions) -> dict[str, Any]:
     """The victim beside a polite neighbour and a hog on one deployment, with the per-robot
     in-flight limit (`options.max_in_flight_per_robot`) and without one (every slot)."""
     options.check()
-    own = options.workdir is None
-    workdir = options.workdir or Path(tempfile.mkdtemp(prefix="elasticfog-fairness-"))
     unlimited = options.workers * max(options.batch_sizes) + options.queue
     results = []
-    ok = False
-    try:
+    with bench_workdir(options.workdir, "elasticfog-fairness-", options.log) as workdir:
         for batching in options.batching:
             for limit in (options.max_in_flight_per_robot, unlimited):
                 limited = dataclasses.replace(options, robots=(2,), max_in_flight_per_robot=limit)
@@ -204,12 +199,6 @@ def run_fairness(options: ScaleOptions) -> dict[str, Any]:
                         **figures,
                     }
                 )
-        ok = True
-    finally:
-        if own and ok:
-            shutil.rmtree(workdir, ignore_errors=True)
-        elif own:
-            options.log(f"logs kept in {workdir}")
     return {"load": LOAD_KIND, "settings": settings_of(options), "fairness": results}
 
 

@@ -100,21 +100,33 @@ def open_fleet(options: BenchOptions, hosts: Sequence[str] | None = None) -> Ite
     """A testbed fleet in `options.workdir` (or a temporary folder), always torn down.
 
     A temporary folder is removed after a clean run and kept (and named) after a failure."""
-    own = options.workdir is None
-    workdir = options.workdir or Path(tempfile.mkdtemp(prefix="elasticfog-bench-"))
-    ok = False
-    try:
-        with TestbedFleet(
+    with (
+        bench_workdir(options.workdir, "elasticfog-bench-", options.log) as workdir,
+        TestbedFleet(
             workdir,
             name=options.name,
             hosts=hosts or DEFAULT_HOSTS,
             log=options.log,
             tls=options.tls,
-        ) as tf:
-            yield tf
+        ) as tf,
+    ):
+        yield tf
+
+
+@contextlib.contextmanager
+def bench_workdir(workdir: Path | None, prefix: str, log: Callable[[str], None]) -> Iterator[Path]:
+    """`workdir`, or a temporary folder (named by `prefix`) that is removed after a clean run
+    and kept, its path logged, after a failure (its daemon logs say why)."""
+    if workdir is not None:
+        yield workdir
+        return
+    own = Path(tempfile.mkdtemp(prefix=prefix))
+    ok = False
+    try:
+        yield own
         ok = True
     finally:
-        if own and ok:
-            shutil.rmtree(workdir, ignore_errors=True)
-        elif own:
-            options.log(f"logs kept in {workdir}")
+        if ok:
+            shutil.rmtree(own, ignore_errors=True)
+        else:
+            log(f"logs kept in {own}")

@@ -29,8 +29,6 @@ from __future__ import annotations
 
 import contextlib
 import os
-import shutil
-import tempfile
 import threading
 import time
 import uuid
@@ -48,6 +46,7 @@ from deploy.load_generator import LoadGenerator, summarize
 from deploy.procs import DaemonProc, LocalFleet, write_local_fleet
 
 from . import scale_defaults as defaults
+from .options import bench_workdir
 from .report import fmt, md_table, save_plot, use_agg
 
 LOAD_KIND = "load generator (emulated robots; real Zenoh requests to real cloud daemons)"
@@ -304,11 +303,8 @@ def run_cell(
 def run(options: ScaleOptions) -> dict[str, Any]:
     """Every cell; batching modes side by side for each deployment count."""
     options.check()
-    own = options.workdir is None
-    workdir = options.workdir or Path(tempfile.mkdtemp(prefix="elasticfog-scale-"))
     results: list[dict[str, Any]] = []
-    ok = False
-    try:
+    with bench_workdir(options.workdir, "elasticfog-scale-", options.log) as workdir:
         for deployments in options.deployments:
             for batching in options.batching:
                 with running_fleet(options, workdir, deployments, batching) as fleet:
@@ -318,12 +314,6 @@ def run(options: ScaleOptions) -> dict[str, Any]:
                         )
                         options.log(_progress(cell))
                         results.append(cell)
-        ok = True
-    finally:
-        if own and ok:
-            shutil.rmtree(workdir, ignore_errors=True)
-        elif own:
-            options.log(f"logs kept in {workdir}")
     return {"load": LOAD_KIND, "settings": settings_of(options), "results": results}
 
 
