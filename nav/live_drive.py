@@ -43,7 +43,13 @@ from nav.closed_loop import DEFAULT_CONTROL_PERIOD_S, DEFAULT_ROBOT_RADIUS_M, Ma
 from nav.curvature import DcollProfile
 from nav.render import Pose
 from nav.robot import UnicycleRobot
-from nav.shared_control import AssistantParams, Command, RobotLimits, SharedControl
+from nav.shared_control import (
+    DEFAULT_DEADLINE_S,
+    AssistantParams,
+    Command,
+    RobotLimits,
+    SharedControl,
+)
 from nav.world import World
 
 log = logging.getLogger(__name__)
@@ -59,10 +65,13 @@ STOP_JOIN_S = 5.0
 Clock = Callable[[], float]
 
 
-def maneuver_params(camera: CameraModel) -> AssistantParams:
+def maneuver_params(camera: CameraModel, deadline_s: float = DEFAULT_DEADLINE_S) -> AssistantParams:
     """The assistant's parameters for the circuit: the stop margin keeps the camera
-    `STOP_MARGIN_BEYOND_CAMERA_M` from a face (the in-process loop uses the same)."""
-    return AssistantParams(stop_margin_m=camera.forward_m + STOP_MARGIN_BEYOND_CAMERA_M)
+    `STOP_MARGIN_BEYOND_CAMERA_M` from a face (the in-process loop uses the same); `deadline_s`
+    is T_dead, the age past which d_coll is no longer trusted (the paper gives no value)."""
+    return AssistantParams(
+        deadline_s=deadline_s, stop_margin_m=camera.forward_m + STOP_MARGIN_BEYOND_CAMERA_M
+    )
 
 
 @dataclass(frozen=True)

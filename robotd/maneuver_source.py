@@ -1,5 +1,5 @@
-"""`stereo:maneuver:N[:lap=L][:assist=off][:out=PATH]`: a maneuver of the navigation circuit,
-driven live by the robot daemon's own results.
+"""`stereo:maneuver:N[:lap=L][:assist=off][:t_dead=S][:out=PATH]`: a maneuver of the navigation
+circuit, driven live by the robot daemon's own results.
 
 Maneuver N (0-6) of lap L (default 0) of the paper's test 2 (`nav.maneuvers.circuit_lap`: its
 world, start pose and joystick script) runs in wall-clock time (`nav.live_drive.LiveDrive`: a
@@ -9,6 +9,8 @@ notes the frame's capture time; each frame the daemon serves comes back through 
 and its `d_coll` output, with that capture time, reaches the assistant
 (`nav.shared_control.SharedControl`), which filters the joystick (`assist=off`: the joystick
 drives the robot directly, the results are ignored). The first result starts the maneuver.
+`t_dead` is the assistant's T_dead in seconds (default 1): a d_coll older than that is no
+longer trusted and the robot is braked to rest.
 
 At a collision or at the script's end the maneuver is over: `read()` raises `EndOfStream`, so
 the daemon finishes the frames in flight and stops, and the outcome (collision and when, minimum
@@ -21,6 +23,7 @@ at start and never hands it results) writes nothing. Paths hold no colons.
 from __future__ import annotations
 
 import logging
+import math
 import time
 from pathlib import Path
 
@@ -39,6 +42,7 @@ from nav.live_drive import (
 )
 from nav.maneuvers import MANEUVERS_PER_LAP, circuit_lap
 from nav.render import StereoRenderer
+from nav.shared_control import DEFAULT_DEADLINE_S
 from nav.stereo_graph import Stage
 from robotd.frame import FrameResult
 from robotd.sources import EndOfStream, FrameSource, SourceError
@@ -46,7 +50,8 @@ from robotd.stereo_frame import LEFT_VIEW, RIGHT_VIEW, STEREO_VIEWS, StereoFrame
 
 log = logging.getLogger(__name__)
 
-MANEUVER_FORM = "stereo:maneuver:N[:lap=L][:assist=on|off][:out=PATH]"
+MANEUVER_FORM = "stereo:maneuver:N[:lap=L][:assist=on|off][:t_dead=S][:out=PATH]"
+MANEUVER_OPTIONS = ("lap", "assist", "out", "t_dead")
 DCOLL_OUTPUT = Stage.DCOLL.value
 """zoo:stereo's output; its bins are the pipeline's defaults (`nav.curvature.CurvatureBins`)."""
 
@@ -68,6 +73,7 @@ class StereoManeuverSource(FrameSource):
         out: Path | None = None,
         seed: int = 0,
         clock: Clock = time.monotonic,
+        deadline_s: float = DEFAULT_DEADLINE_S,
     ) -> None:
         if not 0 <= maneuver < MANEUVERS_PER_LAP:
             raise SourceError(
@@ -76,6 +82,11 @@ class StereoManeuverSource(FrameSource):
             )
         if lap < 0:
             raise SourceError(f"stereo maneuver source: lap must be >= 0, got {lap}")
+        if not (math.isfinite(deadline_s) and deadline_s > 0):
+            raise SourceError(
+                f"stereo maneuver source: t_dead must be a positive number of seconds, "
+                f"got {deadline_s}"
+            )
         if out is not None and not out.parent.is_dir():
             raise SourceError(f"stereo maneuver source: no directory {out.parent} for out={out}")
         step = circuit_lap(lap)[maneuver]
@@ -85,15 +96,19 @@ class StereoManeuverSource(FrameSource):
         self._bins = CurvatureBins()
         self._renderer = StereoRenderer(camera, width, height, seed)
         drive = ManeuverDrive(
-            step.world, step.maneuver, assisted=assist, params=maneuver_params(camera)
+            step.world,
+            step.maneuver,
+            assisted=assist,
+            params=maneuver_params(camera, deadline_s),
         )
         self.drive = LiveDrive(drive, self._report, clock=clock)
         # Capture time (the drive's clock) of each frame read and not yet served, by frame index.
         self._captured: dict[int, float] = {}
         self._read = 0
+        assistant = f"assistant on, T_dead {deadline_s:g} s" if assist else "assistant off"
         self.description = (
-            f"stereo maneuver {maneuver} of lap {lap} ({step.maneuver.name}, assistant "
-            f"{'on' if assist else 'off'}) {width}x{height}"
+            f"stereo maneuver {maneuver} of lap {lap} ({step.maneuver.name}, {assistant}) "
+            f"{width}x{height}"
         )
 
     def read(self) -> StereoFrame:
@@ -157,8 +172,9 @@ def open_maneuver_source(
         name, sep, value = (part.strip() for part in item.partition("="))
         if not sep or not value:
             raise SourceError(f"source {spec!r}: expected name=value options, got {item!r}")
-        if name not in ("lap", "assist", "out"):
-            raise SourceError(f"source {spec!r}: unknown option {name!r}; known: lap, assist, out")
+        if name not in MANEUVER_OPTIONS:
+            known = ", ".join(MANEUVER_OPTIONS)
+            raise SourceError(f"source {spec!r}: unknown option {name!r}; known: {known}")
         options[name] = value
     lap_text = options.get("lap", "0")
     if not lap_text.isdigit():
@@ -175,4 +191,18 @@ def open_maneuver_source(
         assist=assist == "on",
         out=None if out is None else Path(out).expanduser(),
         seed=seed,
+        deadline_s=_t_dead(spec, options.get("t_dead")),
     )
+
+
+def _t_dead(spec: str, text: str | None) -> float:
+    """`t_dead=S`: a positive, finite number of seconds; absent: the assistant's default."""
+    if text is None:
+        return DEFAULT_DEADLINE_S
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise SourceError(f"source {spec!r}: t_dead={text!r} is not a positive number of seconds")
+    return value

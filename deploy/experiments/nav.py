@@ -13,11 +13,17 @@ Table V (`--table5`): `sim` (the default) runs afterwards in the in-process clos
 (`nav_loop`), in simulated time, each frame's latency drawn from the t_f samples just measured
 for its option and resolution; `live` drives the maneuvers with the robot daemon itself on the
 same fleet, one run per maneuver in real time, after the option runs of each resolution
-(`nav_live`).
+(`nav_live`). Both take the assistant's T_dead from `--t-dead` (default the assistant's 1 s):
+past it d_coll is not trusted and the robot is braked to rest, so a T_dead under the measured
+latencies keeps the assisted robot still and its zero collisions say nothing.
+
+The JSON contract (`public`) is the result rows only; with `--workdir` the whole result
+(settings, rows, details with each maneuver's outcome) is also kept there as `RESULT_FILE`.
 """
 
 from __future__ import annotations
 
+import json
 from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,6 +33,7 @@ from . import nav_live
 from .fleet import ROBOT_ID, FleetSpec
 from .nav_loop import LoopResult, fig8, table5
 from .nav_rows import (
+    DEFAULT_T_DEAD_S,
     ELASTIC,
     NO_TIMING,
     OFF,
@@ -34,6 +41,7 @@ from .nav_rows import (
     TABLE5_SIM,
     Option,
     Timing,
+    check_t_dead,
     contract_row,
     resolution_label,
     robot_policy,
@@ -70,6 +78,8 @@ PAPER_TABLE3_HZ = {
 }  # fmt: skip
 PAPER_TABLE5 = {(1, "640x480"): 7, (4, "640x480"): 32, (1, "320x240"): 38, (4, "320x240"): 31}
 """Collisions over 70 maneuvers."""
+RESULT_FILE = "nav-result.json"
+"""The whole result in `--workdir` (the JSON contract prints the rows only)."""
 
 
 @dataclass(frozen=True)
@@ -83,6 +93,8 @@ class NavSettings:
     """Laps of the 7-maneuver circuit; None: 10, 1 with --quick."""
     table5: str = TABLE5_SIM
     """Table V in the in-process loop (`sim`) or driven by the robot daemon (`live`)."""
+    t_dead_s: float = DEFAULT_T_DEAD_S
+    """The assistant's T_dead in Table V, both modes (`--t-dead`)."""
 
 
 def _fleet_spec(fleet: str, size: tuple[int, int]) -> FleetSpec:
@@ -138,7 +150,7 @@ def measure(
                 }
             for option in driven:
                 live[(option, label)] = nav_live.drive(
-                    tf, option, size, laps, options.robot_cpu, options.log
+                    tf, option, size, laps, options.robot_cpu, options.log, settings.t_dead_s
                 )
     return out, live
 
@@ -151,6 +163,7 @@ def _loop_options(settings: NavSettings) -> list[Option]:
 def run(options: BenchOptions, settings: NavSettings) -> dict[str, Any]:
     """The whole experiment: {"settings", "results" (contract rows), "details", "plots"}."""
     options.check()
+    check_t_dead(settings.t_dead_s)
     frames = options.frames_or(FULL_FRAMES, QUICK_FRAMES)
     warmup = min(QUICK_WARMUP if options.quick else FULL_WARMUP, max(0, frames - 3))
     laps = settings.laps or (QUICK_LAPS if options.quick else FULL_LAPS)
@@ -161,7 +174,14 @@ def run(options: BenchOptions, settings: NavSettings) -> dict[str, Any]:
         loop.dcoll = fig8(settings.resolutions[-1])
     else:
         latencies = {key: m["timing"].frame_latencies_s for key, m in measured.items()}
-        loop = table5(settings.resolutions, _loop_options(settings), latencies, laps, options.log)
+        loop = table5(
+            settings.resolutions,
+            _loop_options(settings),
+            latencies,
+            laps,
+            options.log,
+            deadline_s=settings.t_dead_s,
+        )
     rows: list[dict[str, Any]] = []
     details: list[dict[str, Any]] = []
     for size in settings.resolutions:
@@ -182,8 +202,10 @@ def run(options: BenchOptions, settings: NavSettings) -> dict[str, Any]:
             }  # fmt: skip
             if driven is not None:
                 detail["maneuvers"] = driven.maneuvers
+            elif (option, label) in loop.maneuvers:
+                detail["maneuvers"] = loop.maneuvers[(option, label)]
             details.append(detail)
-    return {
+    result = {
         "settings": {
             "model": MODEL,
             "source": SOURCE,
@@ -194,11 +216,26 @@ def run(options: BenchOptions, settings: NavSettings) -> dict[str, Any]:
             "laps": laps,
             "cloud_threads": CLOUD_THREADS,
             "table5": settings.table5,
+            "t_dead_s": settings.t_dead_s,
         },
         "results": rows,
         "details": details,
         "plots": {"dcoll": loop.dcoll, "speeds": loop.speeds},
     }
+    if options.workdir is not None:
+        keep_result(result, options.workdir)
+    return result
+
+
+def keep_result(result: dict[str, Any], workdir: Path) -> Path:
+    """Write the result less the plots' data to `workdir`/RESULT_FILE: the JSON contract
+    carries the rows only, and Table V's distances, clearances and per-maneuver outcomes are
+    in `details`."""
+    workdir.mkdir(parents=True, exist_ok=True)
+    path = workdir / RESULT_FILE
+    kept = {key: value for key, value in result.items() if key != "plots"}
+    path.write_text(json.dumps(kept, indent=1) + "\n", encoding="utf-8")
+    return path
 
 
 def public(result: dict[str, Any]) -> dict[str, Any]:
@@ -272,6 +309,7 @@ def markdown(result: dict[str, Any]) -> str:
             if s.get("table5") == TABLE5_LIVE
             else "closed loop in simulated time, latencies drawn from the measured t_f"
         )
+        how += f", T_dead {s.get('t_dead_s', DEFAULT_T_DEAD_S):g} s"
         out.append(
             f"**Table V: collisions per maneuvers** ({how})\n\n" + md_table(header, table5_rows)
         )

@@ -1,17 +1,17 @@
 """`bench nav --table5 live`: Table V's maneuvers driven by the real robot daemon, in real time.
 
-For each option and resolution every maneuver of every lap (`nav.maneuvers`: 7 a lap) is one
-run of the robot daemon on the fleet `bench nav` launched for that resolution, on the testbed:
-the robot host at `robot_cpu` of a core, its uplink shaped by `tc`, the camera at the paper's
-10 fps with one frame in flight, and the frame source `stereo:maneuver:N:lap=L`
-(`robotd.maneuver_source`): each frame is rendered at the robot's pose when it is taken, the
-d_coll the runtime computes for it (where the option says, over Zenoh) reaches the assistant
-with the frame's capture time, a control thread on the robot steps the unicycle every 20 ms, and
-the run ends with the maneuver. The outcome file (collision, minimum clearance, distance,
-frames applied, mean age of d_coll at use, the control thread's worst lag) is read back from the
-run's folder (the testbed's hosts share the filesystem). "off" runs the daemon as option 1 and
-ignores its results: the joystick drives the robot. A frame read without a telemetry record is
-lost.
+For each option and resolution every maneuver of every lap (`nav.maneuvers`: 7 a lap) is one run
+of the robot daemon on the fleet `bench nav` launched for that resolution, on the testbed: the
+robot host at `robot_cpu` of a core, its uplink shaped by `tc`, the camera at the paper's 10 fps
+with one frame in flight, and the frame source `stereo:maneuver:N:lap=L:t_dead=S`
+(`robotd.maneuver_source`; S is `--t-dead`, the assistant's T_dead): each frame is rendered at
+the robot's pose when it is taken, the d_coll the runtime computes for it (where the option says,
+over Zenoh) reaches the assistant with the frame's capture time, a control thread on the robot
+steps the unicycle every 20 ms, and the run ends with the maneuver. The outcome file (collision,
+minimum clearance, distance, frames applied, mean age of d_coll at use, the control thread's
+worst lag) is read back from the run's folder (the testbed's hosts share the filesystem). "off"
+runs the daemon as option 1 and ignores its results: the joystick drives the robot. A frame read
+without a telemetry record is lost.
 """
 
 from __future__ import annotations
@@ -27,7 +27,14 @@ from nav.live_drive import read_outcome
 from nav.maneuvers import MANEUVERS_PER_LAP, circuit_lap
 from robotd.source_names import STEREO_MANEUVER, STEREO_PREFIX
 
-from .nav_rows import OFF, LoopFigures, Option, resolution_label, robot_policy
+from .nav_rows import (
+    DEFAULT_T_DEAD_S,
+    OFF,
+    LoopFigures,
+    Option,
+    resolution_label,
+    robot_policy,
+)
 from .runner import TestbedFleet
 from .stats import by_frame, lost_frames
 
@@ -64,12 +71,19 @@ class LiveRuns:
     lost: int = 0
 
 
-def maneuver_spec(index: int, lap: int, assist: bool, out: Path) -> str:
-    """The robot's `--source` for maneuver `index` of `lap` writing its outcome to `out`."""
+def maneuver_spec(
+    index: int, lap: int, assist: bool, out: Path, t_dead_s: float = DEFAULT_T_DEAD_S
+) -> str:
+    """The robot's `--source` for maneuver `index` of `lap` with the assistant's T_dead
+    `t_dead_s`, writing its outcome to `out`."""
     if ":" in str(out):
         raise UserError(f"--workdir: the maneuver outcome path {out} must not contain ':'")
     state = "on" if assist else "off"
-    return f"{STEREO_PREFIX}{STEREO_MANEUVER}:{index}:lap={lap}:assist={state}:out={out}"
+    # repr: the shortest text that reads back as the same float.
+    return (
+        f"{STEREO_PREFIX}{STEREO_MANEUVER}:{index}:lap={lap}:assist={state}"
+        f":t_dead={float(t_dead_s)!r}:out={out}"
+    )
 
 
 def figures(outcomes: Sequence[dict[str, Any]]) -> LoopFigures:
@@ -91,8 +105,10 @@ def drive(
     laps: int,
     robot_cpu: float,
     log: Callable[[str], None] = lambda message: None,
+    t_dead_s: float = DEFAULT_T_DEAD_S,
 ) -> LiveRuns:
-    """Drive `laps` laps of the circuit with `option` on the fleet `tf` launched for `size`."""
+    """Drive `laps` laps of the circuit with `option` on the fleet `tf` launched for `size`,
+    the assistant's T_dead `t_dead_s`."""
     assert tf.config is not None, "launch the fleet first"
     label = resolution_label(size)
     folder = tf.config.parent / "maneuvers"
@@ -104,7 +120,7 @@ def drive(
         for step_index, step in enumerate(circuit_lap(lap)):
             out = folder / f"{option}-{label}-lap{lap}-{step_index}.json"
             out.unlink(missing_ok=True)
-            spec = maneuver_spec(step_index, lap, option != OFF, out)
+            spec = maneuver_spec(step_index, lap, option != OFF, out, t_dead_s)
             log(f"{label}, option {option}: lap {lap}, maneuver {step_index}: {step.maneuver.name}")
             tf.start_robot(
                 policy,

@@ -7,6 +7,8 @@ drawn from the t_f samples MEASURED for that option and resolution on the daemon
 keeps one frame in flight, so the update rate follows those latencies too. The pipeline's output
 is the same whichever option computes it (every cut and segment verifies with error 0), which is
 why it runs here rather than on the daemons. "off" passes the joystick straight to the robot.
+The assistant's T_dead is the bench's `--t-dead`: with latencies past it the assisted robot is
+held at rest, so Table V needs it above them to say anything about collisions.
 The maneuvers driven by the robot daemon itself, in real time, are `nav_live` (`--table5 live`);
 Fig. 8 comes from here in both modes.
 """
@@ -19,14 +21,14 @@ from typing import Any
 
 import numpy as np
 
-from nav.closed_loop import StereoPerception, run_maneuver
+from nav.closed_loop import ManeuverResult, StereoPerception, run_maneuver
 from nav.live_drive import maneuver_params
 from nav.maneuvers import circuit_lap
 from nav.render import Pose
 from nav.shared_control import AssistantParams
 from nav.world import corridor_with_wall
 
-from .nav_rows import OFF, LoopFigures, Option, resolution_label
+from .nav_rows import DEFAULT_T_DEAD_S, OFF, LoopFigures, Option, resolution_label
 
 LOOP_THREADS = 2
 """onnxruntime threads of the closed loop's pipeline (the testbed is down by then)."""
@@ -45,6 +47,22 @@ class LoopResult:
     """Fig. 8: [{"ahead_m", "curvatures", "distances"}] at the largest resolution."""
     speeds: dict[str, Any] = field(default_factory=dict)
     """Fig. 9: {"option", "resolution", "t_s", "joystick_mps", "sent_mps"} over one lap."""
+    maneuvers: dict[tuple[Option, str], list[dict[str, Any]]] = field(default_factory=dict)
+    """Each maneuver's outcome per (option, resolution label) (`maneuver_outcome`)."""
+
+
+def maneuver_outcome(lap: int, index: int, result: ManeuverResult) -> dict[str, Any]:
+    """What `details` keeps of one maneuver driven in the loop (as `nav_live` keeps of a live
+    one, where the loop has the figure)."""
+    return {
+        "lap": lap,
+        "maneuver_index": index,
+        "collided": result.collided,
+        "collision_s": result.collision_s,
+        "min_clearance_m": result.min_clearance_m,
+        "distance_m": result.distance_m,
+        "frames": result.frames,
+    }
 
 
 def drive_laps(
@@ -86,6 +104,15 @@ def drive_laps(
     return LoopFigures(
         collisions, maneuvers, distance_m / max(maneuvers, 1), min(clearances, default=None)
     )
+
+
+def _collect(into: list[dict[str, Any]]) -> Callable[[int, list[Any]], None]:
+    """An `on_lap` that appends each maneuver's outcome of the lap to `into`."""
+
+    def on_lap(lap: int, results: list[Any]) -> None:
+        into.extend(maneuver_outcome(lap, i, r) for i, r in enumerate(results))
+
+    return on_lap
 
 
 def _speed_trace(option: Option, label: str, results: list[Any]) -> dict[str, Any]:
@@ -131,31 +158,41 @@ def table5(
     latencies: dict[tuple[Option, str], Sequence[float]],
     laps: int,
     log: Callable[[str], None] = lambda message: None,
+    deadline_s: float = DEFAULT_T_DEAD_S,
 ) -> LoopResult:
     """Drive the circuit for each option in `options` (those with measured latencies, and
-    "off") at each resolution."""
+    "off") at each resolution, the assistant's T_dead `deadline_s`."""
     out = LoopResult()
-    unassisted: LoopFigures | None = None
+    unassisted: tuple[LoopFigures, list[dict[str, Any]]] | None = None
     traces: dict[tuple[Option, str], dict[str, Any]] = {}
     for size in sizes:
         label = resolution_label(size)
         perception = StereoPerception(size[0], size[1], threads=LOOP_THREADS)
-        params = maneuver_params(perception.camera)
+        params = maneuver_params(perception.camera, deadline_s)
         for option in options:
             if option == OFF:
                 if unassisted is None:  # the camera plays no part: the same at any resolution
                     log(f"closed loop: assistant off, {laps} lap(s)")
-                    unassisted = drive_laps(None, params, laps)
-                out.figures[(OFF, label)] = unassisted
+                    outcomes: list[dict[str, Any]] = []
+                    figures = drive_laps(None, params, laps, on_lap=_collect(outcomes))
+                    unassisted = (figures, outcomes)
+                out.figures[(OFF, label)], out.maneuvers[(OFF, label)] = unassisted
                 continue
             samples = latencies.get((option, label), ())
             if not samples:
                 continue
-            log(f"closed loop: option {option} at {label}, {laps} lap(s)")
+            log(f"closed loop: option {option} at {label}, {laps} lap(s), T_dead {deadline_s:g} s")
+            outcomes = out.maneuvers.setdefault((option, label), [])
+            collect = _collect(outcomes)
 
             def keep_first_lap(
-                lap: int, results: list[Any], option: Option = option, label: str = label
+                lap: int,
+                results: list[Any],
+                option: Option = option,
+                label: str = label,
+                collect: Callable[[int, list[Any]], None] = collect,
             ) -> None:
+                collect(lap, results)
                 if lap == 0:
                     traces[(option, label)] = _speed_trace(option, label, results)
 

@@ -11,12 +11,14 @@ closed loop (`nav_loop`, simulated time) or from the maneuvers driven by the rob
 
 from __future__ import annotations
 
+import math
 import statistics
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
 from common.errors import UserError
+from nav.shared_control import DEFAULT_DEADLINE_S
 
 from .stats import Record
 
@@ -42,6 +44,8 @@ TABLE5_SIM = "sim"
 TABLE5_LIVE = "live"
 """Table V driven by the robot daemon on the testbed, one run per maneuver, in real time."""
 TABLE5_MODES = (TABLE5_SIM, TABLE5_LIVE)
+DEFAULT_T_DEAD_S = DEFAULT_DEADLINE_S
+"""`--t-dead`'s default: the assistant's own T_dead (the paper gives none)."""
 MIN_SIZE_PX = (64, 48)
 MAX_SIZE_PX = (1920, 1080)
 
@@ -71,6 +75,13 @@ def parse_table5(text: str) -> str:
     if mode not in TABLE5_MODES:
         raise UserError(f"--table5: expected {' or '.join(TABLE5_MODES)}, got {text!r}")
     return mode
+
+
+def check_t_dead(seconds: float) -> float:
+    """`--t-dead`: the assistant's T_dead in seconds, positive and finite; else one line."""
+    if not (math.isfinite(seconds) and seconds > 0):
+        raise UserError(f"--t-dead {seconds:g}: must be a positive number of seconds")
+    return seconds
 
 
 def parse_resolutions(text: str) -> list[tuple[int, int]]:

@@ -1,6 +1,6 @@
 """`bench nav --table5 live`'s pieces that need no testbed: the option's check, the robot's
-`--source` for a maneuver (read back by the source itself), and Table V's figures from the
-maneuvers' outcome lines."""
+`--source` for a maneuver (read back by the source itself, `--t-dead` included), and Table V's
+figures from the maneuvers' outcome lines."""
 
 from __future__ import annotations
 
@@ -12,8 +12,9 @@ import pytest
 from common.errors import UserError
 from deploy.experiments.nav_live import figures, maneuver_spec
 from deploy.experiments.nav_rows import TABLE5_LIVE, TABLE5_SIM, parse_table5
+from nav.shared_control import DEFAULT_DEADLINE_S
 from robotd.maneuver_source import StereoManeuverSource
-from robotd.sources import open_source
+from robotd.sources import SourceError, open_source
 
 
 def outcome(collided: bool, clearance: float, distance: float) -> dict[str, Any]:
@@ -30,14 +31,35 @@ def test_table5_mode_is_sim_or_live() -> None:
 def test_the_maneuver_spec_opens_that_maneuver(tmp_path: Path) -> None:
     out = tmp_path / "o.json"
     spec = maneuver_spec(3, 2, False, out)
-    assert spec == f"stereo:maneuver:3:lap=2:assist=off:out={out}"
+    assert spec == f"stereo:maneuver:3:lap=2:assist=off:t_dead=1.0:out={out}"
     source = open_source(spec, height=48, width=64)
     try:
         assert isinstance(source, StereoManeuverSource)
         assert (source.index, source.lap, source.out) == (3, 2, out)
         assert not source.drive.drive.assisted
+        assert source.drive.drive.control.params.deadline_s == DEFAULT_DEADLINE_S
     finally:
         source.close()
+
+
+def test_the_benchs_t_dead_reaches_the_robots_assistant(tmp_path: Path) -> None:
+    """`--t-dead` crosses to the robot daemon in its `--source`; a value that does not read
+    back as the same float would drive the live Table V at another T_dead than the sim's."""
+    spec = maneuver_spec(0, 0, True, tmp_path / "o.json", 2.7)
+    assert ":t_dead=2.7:" in spec
+    source = open_source(spec, height=48, width=64)
+    try:
+        assert isinstance(source, StereoManeuverSource)
+        assert source.drive.drive.control.params.deadline_s == 2.7
+        assert "T_dead 2.7 s" in source.description
+    finally:
+        source.close()
+
+
+@pytest.mark.parametrize("value", ["0", "-1", "nan", "inf", "soon"])
+def test_a_bad_t_dead_in_the_source_is_one_line(value: str) -> None:
+    with pytest.raises(SourceError, match=f"t_dead='{value}' is not a positive number"):
+        open_source(f"stereo:maneuver:0:t_dead={value}", height=48, width=64)
 
 
 def test_an_outcome_path_with_a_colon_is_refused() -> None:

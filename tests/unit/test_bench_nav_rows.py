@@ -1,16 +1,23 @@
 """`bench nav`'s result rows from synthetic telemetry: the JSON contract's keys and the
 Tables III-IV figures (update rate from completion times, t_o / t_p / t_c / t_f from the
-record's transfer, cloud, prefix + tail and latency), and its option checks."""
+record's transfer, cloud, prefix + tail and latency), and its option checks (`--t-dead` among
+them)."""
 
 from __future__ import annotations
 
-import pytest
+import math
 
+import pytest
+from typer.testing import CliRunner
+
+from common.cli import app
 from common.errors import UserError
 from deploy.experiments.nav_rows import (
+    DEFAULT_T_DEAD_S,
     NO_TIMING,
     ROW_KEYS,
     LoopFigures,
+    check_t_dead,
     contract_row,
     parse_options,
     parse_resolutions,
@@ -18,6 +25,7 @@ from deploy.experiments.nav_rows import (
     timing,
     update_hz,
 )
+from nav.shared_control import DEFAULT_DEADLINE_S
 
 CONTRACT = {
     "option",
@@ -90,3 +98,20 @@ def test_options_and_resolutions_parse_and_bad_ones_are_named() -> None:
         parse_resolutions("16x12")
     with pytest.raises(ValueError, match="not run on the daemons"):
         robot_policy("off")
+
+
+def test_t_dead_must_be_a_positive_finite_number_of_seconds() -> None:
+    assert check_t_dead(3.0) == 3.0
+    assert DEFAULT_T_DEAD_S == DEFAULT_DEADLINE_S  # the assistant's own unless asked
+    for bad in (0.0, -1.0, math.nan, math.inf):
+        with pytest.raises(UserError, match=r"--t-dead .*: must be a positive number of seconds"):
+            check_t_dead(bad)
+
+
+@pytest.mark.parametrize("value", ["0", "-0.5", "nan", "inf"])
+def test_a_bad_t_dead_is_one_line_before_anything_runs(value: str) -> None:
+    """Checked before the root check, so anyone sees it, and without a traceback."""
+    result = CliRunner().invoke(app, ["bench", "nav", "--t-dead", value])
+    assert result.exit_code == 2, result.output
+    assert f"--t-dead {value}: must be a positive number of seconds" in result.output
+    assert "Traceback" not in result.output
