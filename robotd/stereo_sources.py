@@ -16,8 +16,8 @@ the wall clock when the pair was taken.
   ships (`nav.stereo_eval.stereo_motorcycle`, nothing is downloaded).
 - `stereo:LEFT,RIGHT[,motion=M][,speed=F]`: two image files of one size (paths without commas),
   e.g. a pair saved from a stereo camera.
-- `stereo:maneuver:N[:lap=L][:assist=off][:t_dead=S][:out=PATH]`: maneuver N of the navigation circuit,
-  driven live by the daemon's own d_coll results until it ends (`robotd.maneuver_source`).
+- `stereo:maneuver:N[:lap=L][:assist=off][:t_dead=S][:out=PATH]`: maneuver N of the navigation
+  circuit, driven live by the daemon's own d_coll results until it ends (`robotd.maneuver_source`).
 
 A pair is repeated: without `motion` or `speed` each frame is the whole pair resized to the
 frame size; with them both views move through the `photo` source's virtual camera
