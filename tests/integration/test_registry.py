@@ -52,6 +52,7 @@ from common.wire.registry import (
     RouteChange,
 )
 from common.wire.telemetry import ProbeReport, TelemetryRecord
+from deploy.procs import wait_until
 from registry.daemon import RegistryDaemon
 from registry.scheduler import SchedulerParams
 from tests.integration.conftest import find_free_port, loopback_endpoint
@@ -557,7 +558,11 @@ def test_a_lost_token_switches_to_the_standby_at_once(routed: Fleet) -> None:
     assert (change.epoch, change.reason) == (2, "deployment_lost")
     assert took_ms < 2000, f"reroute after the token loss took {took_ms:.0f} ms"
     routed.edges["edge-2"].wait_ctl("service(2)", lambda r: r.op is CtlOp.SERVICE and r.epoch == 2)
-    assert routed.robot.infer() == ["edge-2"]
+    # edge-2 declared the key before its ack; the declaration reaches the robot's session
+    # asynchronously, so the first query may still find no queryable.
+    wait_until(
+        lambda: routed.robot.infer() == ["edge-2"], timeout_s=WAIT_S, what="edge-2 answering"
+    )
     [route] = view(routed.observer, routed.cfg, "routes")
     assert (route.deployment, route.epoch) == ("edge-2", 2)
     edge1 = {d.id: d for d in view(routed.observer, routed.cfg, "deployments")}["edge-1"]
