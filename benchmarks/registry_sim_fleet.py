@@ -458,6 +458,7 @@ class RegistrySim:
                 FLEET, rib, daemon.measurements, registrar, daemon.bound, fleet_cfg.deadline_s
             ),
             prober=cast(Any, self.prober),
+            pools=None,  # an anycast fleet
         )
         return daemon
 

@@ -73,7 +73,7 @@ from common.wire import registry as msg
 from common.wire.telemetry import ProbeReport, TelemetryRecord
 from registry.latency import LatencyBound
 from registry.measurements import Measurements
-from registry.pools import pool_planner
+from registry.pools import PoolKeeper, pool_keeper, pool_planner
 from registry.prober import Probed, Prober
 from registry.publications import PublicationReader
 from registry.refusals import Refusals
@@ -112,8 +112,6 @@ RESTORE_GRACE_S = 5.0
 # How long the membership's seeding get waits for replies (it returns earlier once every peer
 # answered; tokens it misses still come through the subscriber's history).
 MEMBERSHIP_SEED_TIMEOUT_S = 0.5
-# Round robin: a robot's pool is rebuilt at most this often (a member that keeps refusing).
-POOL_RETRY_S = 2.0
 
 
 # -- events for the control loop (besides MemberChange and Probed) ------------------------------
@@ -136,6 +134,7 @@ class _Started:
     registrar: Registrar
     views: RibViews
     prober: Prober
+    pools: PoolKeeper | None  # round robin only
 
 
 class RegistryDaemon(Daemon):
@@ -190,7 +189,6 @@ class RegistryDaemon(Daemon):
         )
         # Control-loop state (only the control loop touches these).
         self._confirmed: set[str] = set()  # robots whose route was confirmed in this run
-        self._repool_after: dict[str, float] = {}  # robot -> monotonic time of its next repool
         self._started_at = 0.0
         self._started: _Started | None = None  # made in startup, dropped after shutdown
 
@@ -244,17 +242,18 @@ class RegistryDaemon(Daemon):
         self.on_release(prober.close, what="probe pool")
         # After the queryables are gone: what they queued gets a refusal instead of a timeout.
         self.on_release(refuse_queued, self._events, what="queued requests")
+        switcher = Switcher(
+            rib,
+            transport,
+            ctl_timeout_s=self.ctl_timeout_s,
+            sender=self.id,
+            pools=pool_planner(cfg, rib),
+        )
         self._started = _Started(
             session=session,
             rib=rib,
             transport=transport,
-            switcher=Switcher(
-                rib,
-                transport,
-                ctl_timeout_s=self.ctl_timeout_s,
-                sender=self.id,
-                pools=pool_planner(cfg, rib),
-            ),
+            switcher=switcher,
             registrar=registrar,
             views=RibViews(
                 fleet,
@@ -266,6 +265,7 @@ class RegistryDaemon(Daemon):
                 max_request_bytes=self.max_request_bytes,
             ),
             prober=prober,
+            pools=pool_keeper(switcher),
         )
         self._declare(session)
         self.hold(
@@ -453,8 +453,8 @@ class RegistryDaemon(Daemon):
         for route in rib.routes():
             if route.deployment == deployment:
                 self._evaluate(route.robot)
-            elif deployment in route.pool:
-                self._repool(route.robot, "pool member gone")
+            elif deployment in route.pool and self._parts.pools is not None:
+                self._parts.pools.rebuild(route.robot, "pool member gone")
 
     def _on_probed(self, event: Probed) -> None:
         deployment, reply = event.deployment, event.reply
@@ -522,36 +522,16 @@ class RegistryDaemon(Daemon):
         rib = self._parts.rib
         rows = rib.deployments()
         deployments = deployment_table(rows)
-        pools = self._parts.switcher.pools
-        usable = pools.usable(rows) if pools is not None else set()
+        pools = self._parts.pools
+        usable = pools.planner.usable(rows) if pools is not None else set()
         for robot_row, route_row in rib.live_robots():
             result = self._evaluate(robot_row.id, read=(robot_row, route_row, deployments))
             if (
                 pools is not None
                 and route_row is not None
                 and (result is None or not result.changed)
-                and pools.needs_repool(route_row, usable)
             ):
-                self._repool(robot_row.id, "pool")
-
-    def _repool(self, robot: str, reason: str) -> None:
-        """Round robin: rebuild `robot`'s pool (a member died, or a short pool can grow), at
-        most once per `POOL_RETRY_S` for a robot, so a member that keeps refusing cannot turn
-        every round into a switch."""
-        now = time.monotonic()
-        if now < self._repool_after.get(robot, 0.0):
-            return
-        self._repool_after[robot] = now + POOL_RETRY_S
-        result = self._parts.switcher.repool(robot, reason=reason)
-        if result.changed:
-            route = self._parts.rib.route(robot)
-            log.info(
-                "route %s: pool %s (epoch %d, %s)",
-                robot,
-                ", ".join(route.pool) if route is not None else "-",
-                result.epoch,
-                reason,
-            )
+                pools.tend(route_row, usable)
 
     def _evaluate(
         self,

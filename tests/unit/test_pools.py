@@ -14,7 +14,7 @@ from common.errors import UserError
 from common.wire import decode
 from common.wire.codec import InvalidValue
 from common.wire.registry import DeploymentState, RouteChange
-from registry.pools import PoolPlanner, pool_planner
+from registry.pools import PoolKeeper, PoolPlanner, pool_planner
 from registry.rib import SCHEMA_VERSION, Rib
 from registry.switch import Switcher
 from robotd.pool_turns import PoolTurns
@@ -222,3 +222,22 @@ def test_the_robot_takes_the_members_in_turn() -> None:
     pool = ("a", "b", "c")
     assert [turns.next(pool) for _ in range(7)] == ["a", "b", "c", "a", "b", "c", "a"]
     assert turns.next(("a",)) is None and turns.next(()) is None  # the anycast key
+
+
+def test_the_keeper_rebuilds_a_robot_s_pool_at_most_once_per_retry_interval(rib: Rib) -> None:
+    transport, _ = _fleet(rib)
+    switcher = _switcher(rib, transport, 2)
+    switcher.switch(ROBOT, ["a"], reason="initial")
+    now = [0.0]
+    keeper = PoolKeeper(switcher, retry_s=2.0, clock=lambda: now[0])
+    rib.set_deployment_alive("b", False, "token gone")
+    keeper.rebuild(ROBOT, "pool member gone")
+    first = rib.route(ROBOT)
+    assert first is not None and first.pool == ("a", "c")
+    rib.set_deployment_alive("c", False, "token gone")
+    keeper.tend(first, keeper.planner.usable(rib.deployments()))
+    assert rib.route(ROBOT) == first  # within the interval: not rebuilt again
+    now[0] = 2.0
+    keeper.tend(first, keeper.planner.usable(rib.deployments()))
+    after = rib.route(ROBOT)
+    assert after is not None and after.pool == ("a",)
