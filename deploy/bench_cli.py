@@ -482,7 +482,8 @@ def pool(
     sharing one robot's frames (option 1), and a pool member killed."""
     from deploy.experiments import nav_pool as npl
     from deploy.experiments.fleet import CLOUD_HOSTS
-    from deploy.experiments.nav_pool_rows import parse_resolution, parse_sizes
+    from deploy.experiments.nav_pool_rows import parse_sizes
+    from deploy.experiments.nav_rows import parse_resolution
 
     chosen = _guard(lambda: parse_sizes(sizes, hosts=len(CLOUD_HOSTS), standby=not no_kill))
     size = _guard(lambda: parse_resolution(resolution))

@@ -25,7 +25,7 @@ from typing import Any
 from common.errors import UserError
 from common.wire.telemetry import ACTION_ROBOT
 
-from .nav_rows import MAX_SIZE_PX, MIN_SIZE_PX, resolution_label, timing, update_hz
+from .nav_rows import resolution_label, timing, update_hz
 from .stats import Record, between, by_frame, lost_frames
 
 ROW_KEYS = (
@@ -77,20 +77,6 @@ def parse_sizes(text: str, *, hosts: int, standby: bool) -> list[int]:
         )
         raise UserError(f"--sizes {max(sizes)}: at most {most}: {why}")
     return sorted(sizes)
-
-
-def parse_resolution(text: str) -> tuple[int, int]:
-    """'320x240' -> (320, 240) as (width, height)."""
-    width_text, _, height_text = text.strip().lower().partition("x")
-    if not (width_text.isdigit() and height_text.isdigit()):
-        raise UserError(f"--resolution: {text!r} is not WIDTHxHEIGHT (e.g. 320x240)")
-    size = (int(width_text), int(height_text))
-    if not all(lo <= v <= hi for v, lo, hi in zip(size, MIN_SIZE_PX, MAX_SIZE_PX, strict=True)):
-        raise UserError(
-            f"--resolution: {text} is outside {MIN_SIZE_PX[0]}x{MIN_SIZE_PX[1]} to "
-            f"{MAX_SIZE_PX[0]}x{MAX_SIZE_PX[1]}"
-        )
-    return size
 
 
 def p_needed(t_p_s: float | None, fps: float) -> int | None:

@@ -84,21 +84,27 @@ def check_t_dead(seconds: float) -> float:
     return seconds
 
 
+def parse_resolution(text: str, option: str = "--resolution") -> tuple[int, int]:
+    """'320x240' -> (320, 240) as (width, height); errors name `option`."""
+    width_text, _, height_text = text.strip().lower().partition("x")
+    if not (width_text.isdigit() and height_text.isdigit()):
+        raise UserError(f"{option}: {text.strip()!r} is not WIDTHxHEIGHT (e.g. 640x480)")
+    size = (int(width_text), int(height_text))
+    if not all(lo <= v <= hi for v, lo, hi in zip(size, MIN_SIZE_PX, MAX_SIZE_PX, strict=True)):
+        raise UserError(
+            f"{option}: {text.strip()} is outside {MIN_SIZE_PX[0]}x{MIN_SIZE_PX[1]} to "
+            f"{MAX_SIZE_PX[0]}x{MAX_SIZE_PX[1]}"
+        )
+    return size
+
+
 def parse_resolutions(text: str) -> list[tuple[int, int]]:
     """'320x240,640x480' -> [(320, 240), (640, 480)] as (width, height)."""
     found: list[tuple[int, int]] = []
     for part in (p.strip().lower() for p in text.split(",")):
         if not part:
             continue
-        width_text, _, height_text = part.partition("x")
-        if not (width_text.isdigit() and height_text.isdigit()):
-            raise UserError(f"--resolutions: {part!r} is not WIDTHxHEIGHT (e.g. 640x480)")
-        size = (int(width_text), int(height_text))
-        if not all(lo <= v <= hi for v, lo, hi in zip(size, MIN_SIZE_PX, MAX_SIZE_PX, strict=True)):
-            raise UserError(
-                f"--resolutions: {part} is outside {MIN_SIZE_PX[0]}x{MIN_SIZE_PX[1]} to "
-                f"{MAX_SIZE_PX[0]}x{MAX_SIZE_PX[1]}"
-            )
+        size = parse_resolution(part, "--resolutions")
         if size not in found:
             found.append(size)
     if not found:

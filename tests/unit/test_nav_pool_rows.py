@@ -18,11 +18,11 @@ from deploy.experiments.nav_pool_rows import (
     kill_summary,
     p_needed,
     parse_computed,
-    parse_resolution,
     parse_sizes,
     pool_row,
     reference_t_p,
 )
+from deploy.experiments.nav_rows import parse_resolution
 
 
 def record(
