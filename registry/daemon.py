@@ -474,16 +474,17 @@ class RegistryDaemon(Daemon):
             if state is not msg.DeploymentState.SERVICE:
                 continue
             routed_to, epoch = self.measurements.route(robot)
+            if routed_to == deployment or (routed_to is None and epoch == 0):
+                continue
             if deployment in self._parts.rib.pool(robot):
                 continue  # a member of the robot's round-robin pool serves it by design
-            if routed_to != deployment and (routed_to is not None or epoch > 0):
-                log.warning(
-                    "deployment %s serves %s, routed to %s: putting it in standby",
-                    deployment,
-                    robot,
-                    routed_to or "local",
-                )
-                self._parts.switcher.fence(robot, deployment, at_least=reply.epochs.get(robot, 0))
+            log.warning(
+                "deployment %s serves %s, routed to %s: putting it in standby",
+                deployment,
+                robot,
+                routed_to or "local",
+            )
+            self._parts.switcher.fence(robot, deployment, at_least=reply.epochs.get(robot, 0))
 
     def _restore_routes(self, deployment: str) -> None:
         """Re-assert every restored route to this deployment that this run has not confirmed."""
