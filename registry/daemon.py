@@ -494,7 +494,10 @@ class RegistryDaemon(Daemon):
             result = self._parts.switcher.reassert(route.robot)
             if result.attempts and result.attempts[-1].outcome is SwitchOutcome.ACKED:
                 self._confirmed.add(route.robot)
-                self.measurements.set_route(result.robot, result.deployment, result.epoch)
+                row = self._parts.rib.robot(route.robot)
+                # A robot not back yet holds no room there: a round counts it once it is.
+                pool = route.pool if row is not None and row.alive else None
+                self.measurements.set_route(result.robot, result.deployment, result.epoch, pool)
                 if not result.changed:
                     # Tell the robot again (receivers ignore an epoch they hold already).
                     self._publish(route.robot, deployment, result.epoch, "restore", pool=route.pool)
@@ -560,7 +563,9 @@ class RegistryDaemon(Daemon):
                 is not None
             ):
                 return None
-        measures = self.measurements.for_scheduler(robot, current)
+        measures = self.measurements.for_scheduler(
+            robot, current, route_row.pool if route_row else ()
+        )
         view = robot_view(
             robot,
             robot_row,
@@ -593,7 +598,9 @@ class RegistryDaemon(Daemon):
             )
         elif result.changed:
             self._confirmed.add(decision.robot)
-            self.measurements.set_route(result.robot, result.deployment, result.epoch)
+            self.measurements.set_route(
+                result.robot, result.deployment, result.epoch, self._parts.rib.pool(result.robot)
+            )
             log.info(
                 "route %s: %s -> %s (epoch %d, %s)",
                 result.robot,

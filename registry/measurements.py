@@ -35,7 +35,7 @@ import math
 import threading
 import time
 from collections import Counter, deque
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 from common.wire.telemetry import FallbackReason, ProbeReport, TelemetryRecord
@@ -130,8 +130,9 @@ class Measurements:
         self._loads: dict[str, tuple[int, int | None]] = {}  # from probe reports, not yet saved
         # robot -> its last frames offloaded to its route, True for a `busy` refusal.
         self._busy: dict[str, deque[bool]] = {}
-        # Robots present with a route: robot -> its deployment, and how many per deployment.
-        self._counted: dict[str, str] = {}
+        # Robots present with a route: robot -> its deployments (a round-robin pool's every
+        # member: each holds the robot's requests), and how many robots per deployment.
+        self._counted: dict[str, tuple[str, ...]] = {}
         self._routed: Counter[str] = Counter()
 
     # -- feeding (Zenoh callback threads) --------------------------------------------------------
@@ -227,14 +228,18 @@ class Measurements:
         with self._lock:
             return self._routes.get(robot, NO_ROUTE)
 
-    def set_route(self, robot: str, deployment: str | None, epoch: int) -> None:
-        """The robot's route changed or was confirmed. On a change of deployment its failures
-        are forgotten and the new deployment's telemetry window cleared: samples from an earlier
-        stay there must not count now."""
+    def set_route(
+        self, robot: str, deployment: str | None, epoch: int, pool: Sequence[str] | None = ()
+    ) -> None:
+        """The robot's route changed or was confirmed (`pool`: a round-robin pool's members,
+        `deployment` first; None: a restored route of a robot not back yet, counted on no
+        deployment until a round sees it). On a change of deployment its failures are forgotten
+        and the new deployment's telemetry window cleared: samples from an earlier stay there
+        must not count now."""
         with self._lock:
             before = self._routes.get(robot)
             self._routes[robot] = (deployment, epoch)
-            self._count(robot, deployment)
+            self._count(robot, None if pool is None else deployment, pool or ())
             if before is None or before[0] != deployment:
                 if deployment is not None:
                     self._windows.window(robot, deployment, Source.TELEMETRY).clear()
@@ -242,16 +247,17 @@ class Measurements:
                 self._reroute_asked.discard(robot)
                 self._busy.pop(robot, None)
 
-    def _count(self, robot: str, deployment: str | None) -> None:
-        """Count `robot` on `deployment` from now on, on none for None (the lock is held)."""
-        before = self._counted.pop(robot, None)
-        if before is not None:
+    def _count(self, robot: str, deployment: str | None, pool: Sequence[str] = ()) -> None:
+        """Count `robot` on `deployment` (on every member of its `pool`) from now on, on none
+        for None (the lock is held)."""
+        for before in self._counted.pop(robot, ()):
             self._routed[before] -= 1
             if self._routed[before] <= 0:
                 del self._routed[before]
         if deployment is not None:
-            self._counted[robot] = deployment
-            self._routed[deployment] += 1
+            members = tuple(dict.fromkeys((deployment, *pool)))
+            self._counted[robot] = members
+            self._routed.update(members)
 
     def force_timeouts(self, robot: str, deployment: str, reported: int) -> None:
         """The robot asked to leave `deployment` after `reported` consecutive timeouts: count at
@@ -280,12 +286,14 @@ class Measurements:
         self._dirty = {wkey for wkey in self._dirty if not dropped(wkey)}
 
     # -- reading ---------------------------------------------------------------------------------
-    def for_scheduler(self, robot: str, route: str | None) -> RobotMeasures:
-        """The robot's measures as the scheduler takes them, `route` being its deployment (the
-        RIB's: the robot is counted there from now on, so a robot that came back counts again).
-        """
+    def for_scheduler(
+        self, robot: str, route: str | None, pool: Sequence[str] = ()
+    ) -> RobotMeasures:
+        """The robot's measures as the scheduler takes them, `route` being its deployment and
+        `pool` its round-robin pool (the RIB's: the robot is counted there from now on, so a
+        robot that came back counts again)."""
         with self._lock:
-            self._count(robot, route)
+            self._count(robot, route, pool)
             # Copied only for a robot to be placed: the others' decisions do not read it.
             routed = dict(self._routed) if route is None else {}
             telemetry = self._windows.stats(robot, route, Source.TELEMETRY) if route else None

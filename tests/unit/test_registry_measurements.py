@@ -335,3 +335,22 @@ def test_callback_threads_and_the_control_loop_at_once(f: Fixture) -> None:
     assert not errors and not any(t.is_alive() for t in threads)
     stats = f.m.for_scheduler(ROBOT, "edge-2").telemetry
     assert stats is not None and stats.count == 5, "edge-2's window is full (size 5)"
+
+
+def test_a_robot_in_a_pool_counts_on_every_member_for_the_next_placement(f: Fixture) -> None:
+    f.m.set_route("robot-a", "edge-1", 1, ("edge-1", "edge-2"))
+    f.m.for_scheduler("robot-b", "edge-1")
+    assert f.m.for_scheduler("robot-new", None).routed == {"edge-1": 2, "edge-2": 1}
+    # The round reads the RIB again: the pool shrank to its first member.
+    f.m.for_scheduler("robot-a", "edge-1", ("edge-1",))
+    assert f.m.for_scheduler("robot-new", None).routed == {"edge-1": 2}
+    f.m.forget_robot("robot-a")
+    assert f.m.for_scheduler("robot-new", None).routed == {"edge-1": 1}
+
+
+def test_a_restored_route_of_a_robot_not_back_holds_no_room(f: Fixture) -> None:
+    f.m.set_route("robot-away", "edge-1", 3, None)
+    assert f.m.route("robot-away") == ("edge-1", 3), "the route is known"
+    assert f.m.for_scheduler("robot-new", None).routed == {}, "but counted nowhere"
+    f.m.for_scheduler("robot-away", "edge-1")  # back: a round sees it
+    assert f.m.for_scheduler("robot-new", None).routed == {"edge-1": 1}
