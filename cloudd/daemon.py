@@ -65,6 +65,7 @@ from cloudd.batch_queue import BatchCosts, BatchPolicy, FairQueue
 from cloudd.batch_runner import BatchRunner
 from cloudd.batch_stats import BatchStats
 from cloudd.control import Controller
+from cloudd.cpu_lanes import UsageMeter, lanes_supported
 from cloudd.faults import FaultInjector, describe
 from cloudd.limits import CloudLimits
 from cloudd.probe import ProbeResponder
@@ -358,8 +359,13 @@ class CloudDaemon(Daemon):
             closing=self.closing,
             throttled=self.throttled,
         )
+        yields = self.machine.batching.heavy_robots_low_priority and lanes_supported()
         workers = BatchWorkers(
-            queue, runner.run, self.machine.workers, name=f"{self.deployment}-worker"
+            queue,
+            runner.run,
+            self.machine.workers,
+            name=f"{self.deployment}-worker",
+            meter=UsageMeter() if yields else None,
         )
         workers.start()
         self.on_release(self._stop_workers, workers, what="workers")
@@ -410,6 +416,12 @@ class CloudDaemon(Daemon):
                 INFLIGHT_WAIT_S,
             )
         self.batch_stats.log_summary(self.deployment)
+        if workers.low_runs:
+            log.info(
+                "%s: %d batch(es) of robots using far more than the others ran at low priority",
+                self.deployment,
+                workers.low_runs,
+            )
 
     def _drain(self) -> None:
         """Mark every robot draining and ask the registry to move them; bounded in time."""

@@ -3,9 +3,11 @@
 `BatchWorkers`: `workers` threads, each taking the next batch from the daemon's `FairQueue`
 (`cloudd.batch_queue`, which admits or refuses requests at once, so a full deployment answers
 "busy" immediately instead of letting requests pile up past their deadlines) and running it.
-A batch's slots are released when its run ends, whatever happens in it. Stopping closes the
-queue: what was admitted is still handed out (the daemon answers it as stopping), then the
-threads end; a run stuck past the timeout does not hold the daemon's exit.
+A batch's slots are released when its run ends, whatever happens in it. With a `UsageMeter`
+(`cloudd.cpu_lanes`), the batch of a robot that uses far more of the workers than the others runs
+on the worker's low-priority sibling thread, so lighter robots' runs take the CPUs first.
+Stopping closes the queue: what was admitted is still handed out (the daemon answers it as
+stopping), then the threads end; a run stuck past the timeout does not hold the daemon's exit.
 
 `DelayedActions`: runs callables at a later time on one thread. Fault injection uses it to send
 delayed replies and to let go of queries it does not answer (dropped or stalled) when their
@@ -14,6 +16,7 @@ deadline has passed, without holding a worker or a Zenoh callback thread meanwhi
 
 from __future__ import annotations
 
+import functools
 import heapq
 import itertools
 import logging
@@ -23,6 +26,7 @@ from collections.abc import Callable
 from typing import Generic, TypeVar
 
 from cloudd.batch_queue import Batch, FairQueue
+from cloudd.cpu_lanes import LowPriorityThread, UsageMeter
 
 log = logging.getLogger(__name__)
 
@@ -43,17 +47,26 @@ class BatchWorkers(Generic[T]):
         workers: int,
         *,
         name: str = "worker",
+        meter: UsageMeter | None = None,
     ) -> None:
         if workers < 1:
             raise ValueError(f"workers must be >= 1, got {workers}")
         self.queue = queue
         self.workers = workers
+        self.meter = meter
         self._run = run
         self._threads = [
             threading.Thread(target=self._loop, name=f"{name}-{i}", daemon=True)
             for i in range(workers)
         ]
+        self._low = [LowPriorityThread(f"{name}-{i}-low") for i in range(workers)] if meter else []
+        self._low_counts = [0] * workers  # each written by its own worker only
         self._started = False
+
+    @property
+    def low_runs(self) -> int:
+        """Batches run at low priority so far."""
+        return sum(self._low_counts)
 
     def start(self) -> None:
         """Start the threads (once)."""
@@ -63,14 +76,23 @@ class BatchWorkers(Generic[T]):
                 thread.start()
 
     def _loop(self) -> None:
+        index = self._threads.index(threading.current_thread())
         while (batch := self.queue.get()) is not None:
+            robots = [item.robot for item in batch.items]
+            started = time.monotonic()
             try:
-                self._run(batch)
+                if self.meter is not None and self.meter.heavy(robots):
+                    self._low_counts[index] += 1
+                    self._low[index].call(functools.partial(self._run, batch))
+                else:
+                    self._run(batch)
             except Exception:
                 # Runs answer their own errors; one escaping here is a bug, but must not leak
                 # the batch's slots or end the worker.
                 log.exception("running a batch failed")
             finally:
+                if self.meter is not None:
+                    self.meter.record(robots, time.monotonic() - started)
                 self.queue.done(batch)
 
     def shutdown(self, timeout_s: float) -> bool:
@@ -81,6 +103,8 @@ class BatchWorkers(Generic[T]):
         for thread in self._threads:
             if thread.is_alive() and thread is not threading.current_thread():
                 thread.join(max(0.0, deadline - time.monotonic()))
+        for low in self._low:
+            low.stop()
         return not any(t.is_alive() for t in self._threads)
 
 

@@ -236,6 +236,12 @@ class BatchingConfig(_Model):
         description="Requests of one robot admitted at once (queued or running); one robot "
         "sending as fast as it can then cannot take every worker or queue slot.",
     )
+    heavy_robots_low_priority: bool = Field(
+        default=True,
+        description="Run the batches of a robot that uses far more of the workers than the "
+        "others (1.5x the mean, lately) at the lowest CPU priority (Linux SCHED_IDLE), so "
+        "lighter robots' runs take the CPUs first; the heavy robot still gets every idle CPU.",
+    )
 
     @model_validator(mode="after")
     def _sorted_sizes(self) -> BatchingConfig:

@@ -564,7 +564,8 @@ def scale(
         False,
         "--fairness",
         help="Instead: one robot beside a polite neighbour and beside one sending as fast as it "
-        "can, with the --max-in-flight limit and without one.",
+        "can, with the --max-in-flight limit and heavy robots at low priority (the defaults), "
+        "with the limit alone, and with neither.",
     ),
     pin_cloud: bool = typer.Option(
         False,

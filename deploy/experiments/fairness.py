@@ -170,15 +170,18 @@ def _ratio(hogged: float | None, polite: float | None) -> float | None:
 
 def run_fairness(options: ScaleOptions) -> dict[str, Any]:
     """The victim beside a polite neighbour and a hog on one deployment, with the per-robot
-    in-flight limit (`options.max_in_flight_per_robot`) and without one (every slot)."""
+    in-flight limit (`options.max_in_flight_per_robot`) and heavy robots at low priority (the
+    defaults), with the limit alone, and with neither (every slot): `variants`."""
     options.check()
     unlimited = options.workers * max(options.batch_sizes) + options.queue
     results = []
     with bench_workdir(options.workdir, "elasticfog-fairness-", options.log) as workdir:
         for batching in options.batching:
-            for limit in (options.max_in_flight_per_robot, unlimited):
-                limited = dataclasses.replace(options, robots=(2,), max_in_flight_per_robot=limit)
-                label = f"fairness-{'on' if batching else 'off'}-limit{limit}"
+            for limit, low in variants(options.max_in_flight_per_robot, unlimited):
+                limited = dataclasses.replace(
+                    options, robots=(2,), max_in_flight_per_robot=limit, heavy_low_priority=low
+                )
+                label = f"fairness-{'on' if batching else 'off'}-limit{limit}-low{int(low)}"
                 with running_fleet(limited, workdir, 1, batching, label) as fleet:
                     figures = measure_fairness(
                         fleet.cfg,
@@ -196,10 +199,17 @@ def run_fairness(options: ScaleOptions) -> dict[str, Any]:
                     {
                         "batching": "on" if batching else "off",
                         "max_in_flight_per_robot": limit,
+                        "heavy_robots_low_priority": low,
                         **figures,
                     }
                 )
     return {"load": LOAD_KIND, "settings": settings_of(options), "fairness": results}
+
+
+def variants(limit: int, unlimited: int) -> list[tuple[int, bool]]:
+    """(per-robot limit, heavy robots at low priority) per fleet: what a deployment does by
+    default, then without the low priority, then without the limit either."""
+    return [(limit, True), (limit, False), (unlimited, False)]
 
 
 def fairness_markdown(result: dict[str, Any]) -> str:
@@ -208,6 +218,7 @@ def fairness_markdown(result: dict[str, Any]) -> str:
     header = [
         "batching",
         "per-robot limit",
+        "heavy robot at low priority",
         "victim p95, polite neighbour (s)",
         "victim p95, hog (s)",
         "ratio",
@@ -220,6 +231,7 @@ def fairness_markdown(result: dict[str, Any]) -> str:
         [
             r["batching"],
             r["max_in_flight_per_robot"],
+            "yes" if r.get("heavy_robots_low_priority") else "no",
             fmt(r["polite_p95_s"], 4),
             fmt(r["hog_p95_s"], 4),
             fmt(r["ratio"], 2),
@@ -232,6 +244,7 @@ def fairness_markdown(result: dict[str, Any]) -> str:
     ]
     split_header = [
         "per-robot limit",
+        "low priority",
         "phase",
         "wait p95 ms",
         "run p95 ms",
@@ -250,6 +263,7 @@ def fairness_markdown(result: dict[str, Any]) -> str:
             split_rows.append(
                 [
                     r["max_in_flight_per_robot"],
+                    "yes" if r.get("heavy_robots_low_priority") else "no",
                     kind,
                     _ms(m["victim_p95_queue_s"]),
                     _ms(m["victim_p95_compute_s"]),

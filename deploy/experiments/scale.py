@@ -82,6 +82,8 @@ class ScaleOptions:
     max_in_flight_per_robot: int = defaults.MAX_IN_FLIGHT_PER_ROBOT
     pin_cloud: bool = False
     """Pin the cloud daemons to CPUs of their own, the rest of the bench to the others."""
+    heavy_low_priority: bool = True
+    """The deployments' `batching.heavy_robots_low_priority` (the fairness bench runs both)."""
     workdir: Path | None = None
     log: Callable[[str], None] = field(default=lambda message: None)
 
@@ -146,6 +148,7 @@ def fleet_changes(options: ScaleOptions, deployments: int, batching: bool) -> di
         "max_queue_delay_ms": options.max_queue_delay_ms,
         "preferred_batch_sizes": list(options.batch_sizes),
         "max_in_flight_per_robot": options.max_in_flight_per_robot,
+        "heavy_robots_low_priority": options.heavy_low_priority,
     }
     machines: dict[str, Any] = {
         cloud: {

@@ -102,7 +102,7 @@ def test_a_robot_sending_as_fast_as_it_can_keeps_to_its_limit_and_share(
     changes["machines"]["edge-1"] = cloud({"max_in_flight_per_robot": 1}, workers=2)
     lf = local_fleet(make_fleet(**changes))
     lf.start_registry()
-    lf.start_clouds(["edge-1"])
+    (edge,) = lf.start_clouds(["edge-1"])
     result = measure_fairness(lf.cfg, "robot-1", "robot-2", fps=FPS, rounds=2, phase_s=2.0)
     hog = [p for p in result["phases"] if p["phase"] == "hog"]
     assert result["victim_busy_rate"] == 0.0, "the victim is never refused"
@@ -112,6 +112,13 @@ def test_a_robot_sending_as_fast_as_it_can_keeps_to_its_limit_and_share(
         assert phase["victim_p95_queue_s"] <= 0.5 * phase["victim_p95_compute_s"], phase
     # What the victim's p95 became beside the hog, for the record (docs/scale.md discusses it).
     print(f"victim p95 beside a hog / beside a polite neighbour: {result['ratio']:.2f}")
+    lf.close()
+    low = re.search(
+        r"(\d+) batch\(es\) of robots using far more than the others ran at low", edge.log_text()
+    )
+    assert low is not None, "the hog's batches ran at low priority (cloudd.cpu_lanes)"
+    hog_served = sum(p["neighbour_served_fps"] for p in hog) * 2.0
+    assert int(low.group(1)) >= 0.5 * hog_served, (low.group(0), hog_served)
 
 
 def test_bench_scale_json_contract_with_two_deployments(e2e_cache, tmp_path) -> None:

@@ -90,6 +90,7 @@ def test_the_report_shows_both_settings_and_where_the_time_went(pinned: object) 
     setting = {
         "batching": "off",
         "max_in_flight_per_robot": 1,
+        "heavy_robots_low_priority": True,
         "polite_p95_s": 0.01,
         "hog_p95_s": 0.011,
         "ratio": 1.1,
@@ -108,6 +109,6 @@ def test_the_report_shows_both_settings_and_where_the_time_went(pinned: object) 
         "pin_cloud": pinned,
     }
     text = fairness_markdown({"load": "emulated", "settings": settings, "fairness": [setting]})
-    assert "| off | 1 | 0.0100 | 0.0110 | 1.10 | 1.05 | 100 | 36% | 0% |" in text
-    assert "| 1 | hog | 1.0 | 10.0 | 2.0 | 150 | n/a (n/a) |" in text
+    assert "| off | 1 | yes | 0.0100 | 0.0110 | 1.10 | 1.05 | 100 | 36% | 0% |" in text
+    assert "| 1 | yes | hog | 1.0 | 10.0 | 2.0 | 150 | n/a (n/a) |" in text
     assert ("pinned to CPU(s) 1" in text) == (pinned is not None)
