@@ -284,6 +284,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             f" {'the same' if alike else 'DIFFERENT'} route changes"
         )
     for label, results in (("before", out["baseline"]), ("now", out["results"])):
+        for r in results:
+            reasons = ", ".join(f"{k} {v:.2f}" for k, v in r.moves_by_reason.items()) or "none"
+            print(f"{label}, {r.robots} robots: moves/s by reason: {reasons}")
         if len(results) > 1:
             print(
                 f"{label}: round time grows as robots^{growth_exponent(results):.2f}"

@@ -34,6 +34,7 @@ import resource
 import statistics
 import tempfile
 import time
+from collections import Counter
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -170,6 +171,8 @@ class SizeResult:
     round_max_ms: float
     decisions_per_s: float
     moves_per_s: float
+    moves_by_reason: dict[str, float]
+    """Route changes per second by the reason published with them (initial, violation, ...)."""
     rib_writes_per_s: float
     profiles_saved_per_s: float
     reports_per_s: float
@@ -286,6 +289,7 @@ class SimNetwork:
         self.deployments: dict[str, SimDeployment] = {}
         self.robots: dict[str, SimRobot] = {}
         self.published = 0
+        self.by_reason: Counter[str] = Counter()
         # Every route change of the run, in order: two revisions that decide alike agree on it.
         self.changes = hashlib.sha256()
 
@@ -295,6 +299,7 @@ class SimNetwork:
 
     def publish_route(self, change: RouteChange) -> None:
         self.published += 1
+        self.by_reason[str(change.reason)] += 1
         line = f"{change.robot} {change.deployment} {change.epoch} {change.reason}\n"
         self.changes.update(line.encode())
         robot = self.robots.get(change.robot)
@@ -634,12 +639,14 @@ class RegistrySim:
         ticks = warmup_ticks + round(cfg.duration_s / SCHEDULER_TICK_S)
         tally = _Tally()
         writes_at = published_at = 0
+        by_reason_at: Counter[str] = Counter()
         pauses = GcPauses()
         for tick in range(ticks):
             self.clock.t = tick * SCHEDULER_TICK_S
             if tick == warmup_ticks:
                 tally = _Tally()
                 writes_at, published_at = self.writes.count, self.network.published
+                by_reason_at = Counter(self.network.by_reason)
                 pauses.start()
             if tick % per_s == 0:
                 self._churn(first=tick == 0)
@@ -676,6 +683,11 @@ class RegistrySim:
             round_max_ms=max(rounds) * 1e3,
             decisions_per_s=tally.evaluated / sum(rounds) if sum(rounds) > 0 else math.inf,
             moves_per_s=(self.network.published - published_at) / span_s,
+            moves_by_reason={
+                reason: (count - by_reason_at[reason]) / span_s
+                for reason, count in sorted(self.network.by_reason.items())
+                if count > by_reason_at[reason]
+            },
             rib_writes_per_s=(self.writes.count - writes_at) / span_s,
             profiles_saved_per_s=tally.saved / span_s,
             reports_per_s=tally.reports / span_s,

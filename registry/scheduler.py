@@ -22,7 +22,9 @@ A move for `busy` goes only to a deployment with room to spare: not full, at mos
 `busy_arrival_gap_s` (loads are sampled every few seconds: without the gap a whole round's busy
 robots would pile onto the same deployment before its load shows them). The deployment left for
 `busy` is not a target of a move by choice (`busy`, `bound_violation`, `better`) for
-`flap_window_s`, so robots that found room do not drift back and forth.
+`flap_window_s`, so robots that found room do not drift back and forth. A move for `better`
+needs the same room to spare (a gain in latency is not worth crowding a deployment, which the
+`busy` trigger or placement by load would then undo).
 
 Choice: among live, non-draining deployments of the robot's service, those whose recent probe
 profile (load-adjusted) meets the bound rank first, lowest predicted latency first; then the others
@@ -551,7 +553,10 @@ class Scheduler:
             st.better_since = None
             return None
         limit = reference * (1 - self.bound.better_margin)
-        found = targets.best(limit, max_tier=0)
+        # A gain in latency is not worth crowding a deployment: the targets need the room a
+        # placement needs (or placement by load and this rule would move robots back and forth).
+        headroom = self.params.busy_headroom
+        found = targets.best(limit, max_tier=0, headroom=headroom)
         if found is None:
             st.better_since = None
             st.better_target = None
@@ -562,7 +567,7 @@ class Scheduler:
             st.better_target = best
         if now - st.better_since < self.params.improve_hold_s or not self._dwelt(st, now):
             return None
-        ranked = targets.ranked(limit, max_tier=0)
+        ranked = targets.ranked(limit, max_tier=0, headroom=headroom)
         if not ranked:
             return None
         return _move(robot.id, current.id, ranked, Reason.BETTER)
@@ -745,22 +750,28 @@ class _Targets:
         self._st = st
         self._now = now
 
-    def _accepts(self, c: _Candidate, limit: float, max_tier: int) -> bool:
+    def _accepts(
+        self, c: _Candidate, limit: float, max_tier: int, headroom: float | None = None
+    ) -> bool:
         return (
             c.deployment.id != self._current.id
             and c.tier <= max_tier
             and c.confident_s is not None
             and c.confident_s < limit
+            and (headroom is None or c.deployment.has_room(headroom))
         )
 
-    def ranked(self, limit: float, max_tier: int) -> list[_Candidate]:
-        """Every target, best first (ranks every deployment)."""
+    def ranked(
+        self, limit: float, max_tier: int, headroom: float | None = None
+    ) -> list[_Candidate]:
+        """Every target, best first (ranks every deployment); with `headroom`, only those
+        with that share of their capacity free."""
         sched = self._scheduler
         every = sched._rank(self._robot, self._table, self._profiles, self._st, self._now)
-        return [c for c in every if self._accepts(c, limit, max_tier)]
+        return [c for c in every if self._accepts(c, limit, max_tier, headroom)]
 
-    def best(self, limit: float, max_tier: int) -> _Candidate | None:
-        """The first of `ranked(limit, max_tier)`, or None when there is none."""
+    def best(self, limit: float, max_tier: int, headroom: float | None = None) -> _Candidate | None:
+        """The first of `ranked(limit, max_tier, headroom)`, or None when there is none."""
         sched, bound = self._scheduler, self._scheduler.bound
         best: _Candidate | None = None
         for value, dep_id in self._profiles.ascending(bound.stat):
@@ -777,7 +788,7 @@ class _Targets:
             ):
                 continue  # a penalized or full deployment ranks in tier 2, never a target here
             c = sched._candidate(self._robot, dep, self._profiles, self._st, self._now)
-            if self._accepts(c, limit, max_tier) and (
+            if self._accepts(c, limit, max_tier, headroom) and (
                 best is None or c.sort_key() < best.sort_key()
             ):
                 best = c

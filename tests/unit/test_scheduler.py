@@ -383,6 +383,26 @@ def test_a_better_deployment_wins_only_by_the_margin_and_after_the_hold_time(
     assert clock.now - start == pytest.approx(params.improve_hold_s)
 
 
+def test_a_better_deployment_without_room_to_spare_is_no_target(
+    sched: Scheduler, clock: FakeClock
+) -> None:
+    params = SchedulerParams()
+    capacity = 8
+    crowded = int(capacity * (1 - params.busy_headroom)) + 1  # past 75%, not full
+
+    def make_with(load: int) -> Callable[[], tuple[RobotView, list[DeploymentView], dict]]:
+        deps = [dep("a"), dep("b", load=load, capacity=capacity)]
+        return lambda: (robot("a", window(0.05, clock)), deps, {"b": window(0.01, clock)})
+
+    # b is predicted far better even with its load, but a move would crowd it.
+    assert hold(sched, clock, 3 * params.improve_hold_s, make_with(crowded)) is None
+    decision = hold(sched, clock, 3 * params.improve_hold_s, make_with(crowded - 1))
+    assert decision is not None and (decision.to_deployment, decision.reason) == (
+        "b",
+        Reason.BETTER,
+    )
+
+
 def test_improvement_timer_resets_when_the_advantage_goes(
     sched: Scheduler, clock: FakeClock
 ) -> None:
