@@ -752,6 +752,16 @@ class FleetConfig(_Model):
         """Cloud machine (deployment) ids, in file order."""
         return [i for i, m in self.machines.items() if m.role == "cloud"]
 
+    def admitted_in_flight(self) -> int | None:
+        """Requests of one robot its deployments admit at once, at the least (each admits
+        `batching.max_in_flight_per_robot`; a round-robin pool's members each that many); None
+        without cloud machines."""
+        limits = [self.machines[c].batching.max_in_flight_per_robot for c in self.cloud_ids]
+        if not limits:
+            return None
+        members = min(self.dispatch.pool_limit() or len(limits), len(limits))
+        return min(limits) * members
+
     @property
     def zoo_model(self) -> str | None:
         """The zoo model name for `model: zoo:NAME`, else None."""

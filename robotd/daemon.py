@@ -278,7 +278,22 @@ class RobotDaemon(Daemon):
             # Phases describe themselves as they start.
             "" if self.options.phases else emulation_note(self.uplink_mbit, self._slowdown.factor),
         )
+        self._warn_if_refused_past_limit()
         self._wait_for_fleet()
+
+    def _warn_if_refused_past_limit(self) -> None:
+        """A robot with more frames in flight than its deployments admit per robot gets `busy`
+        for the rest (finished on the robot: nothing is lost, but the overlap is not there)."""
+        admitted = self.config.admitted_in_flight()
+        if admitted is not None and self.max_in_flight > admitted:
+            log.warning(
+                "%s: %d frames in flight, but the deployments serving it admit %d of a robot's "
+                "at once (batching.max_in_flight_per_robot, times the pool in round robin): "
+                "frames past that are answered busy and finished here",
+                self.robot,
+                self.max_in_flight,
+                admitted,
+            )
 
     def _open_zenoh(self) -> None:
         cfg = self.config

@@ -49,7 +49,9 @@ def robot_command(
     policy: str | None = typer.Option(
         None,
         "--policy",
-        help="elastic, ans, neurosurgeon, robot, cloud or static:K; default: the fleet's.",
+        help="elastic, ans, neurosurgeon, robot, cloud[:CODEC], static:K[:CODEC], or on "
+        "zoo:stereo a navigation option option:N[:CODEC] (e.g. option:1:png); default: the "
+        "fleet's.",
     ),
     telemetry: Path | None = typer.Option(
         None, "--telemetry", help="Write one JSON object per frame to this file (JSONL)."

@@ -45,7 +45,7 @@ def sim_command(
     policy: str | None = typer.Option(
         None,
         "--policy",
-        help="elastic, ans, neurosurgeon, robot, cloud, static:K or oracle.",
+        help="elastic, ans, neurosurgeon, robot, cloud[:CODEC], static:K[:CODEC] or oracle.",
     ),
     compare: str | None = typer.Option(
         None, "--compare", help="Comma-separated policies to run on the same trace and seed."

@@ -107,6 +107,15 @@ def test_machine_lookup_lists_known_ids() -> None:
         config.machine("robot-1", role="cloud")
 
 
+def test_what_the_deployments_admit_of_one_robot_at_once() -> None:
+    data = yaml.safe_load((CASES / "valid-single-host.yaml").read_text())
+    data["machines"]["edge-2"]["batching"] = {"max_in_flight_per_robot": 3}
+    assert fleet_from_dict(data).admitted_in_flight() == 2, "anycast: the least, default 2"
+    assert fleet_from_dict({**data, "dispatch": "round_robin"}).admitted_in_flight() == 4
+    pool_of_one = {"mode": "round_robin", "pool_size": 1}
+    assert fleet_from_dict({**data, "dispatch": pool_of_one}).admitted_in_flight() == 2
+
+
 def test_in_memory_config_without_a_file() -> None:
     data = yaml.safe_load((CASES / "valid-minimal.yaml").read_text())
     config = fleet_from_dict(data)
