@@ -231,11 +231,11 @@ class LatencyWindow:
             self._stats = WindowStats.of(self._ring, self._last_at)
         return self._stats
 
-    def sorted_samples(self) -> tuple[tuple[float, ...], float] | None:
+    def sorted_samples(self) -> tuple[list[float], float] | None:
         """(the samples in increasing order, the time of the newest), or None when empty."""
         if self._last_at is None or not self._ring:
             return None
-        return tuple(sorted(self._ring)), self._last_at
+        return sorted(self._ring), self._last_at
 
 
 WindowKey = tuple[str, str, Source]
@@ -252,30 +252,46 @@ class Profiles(Mapping[str, WindowStats]):
     (the scheduler looks up a few per robot; a robot probes 100 deployments every 2 s).
     """
 
-    __slots__ = ("_ascending", "_samples", "_stats")
+    __slots__ = ("_ascending", "_bounds", "_flat", "_index", "_last_at", "_stats")
 
     def __init__(self, stats: Mapping[str, WindowStats] | None = None) -> None:
         self._stats: dict[str, WindowStats] = dict(stats) if stats is not None else {}
-        self._samples: dict[str, tuple[tuple[float, ...], float]] = {}
-        self._ascending: dict[Stat, tuple[tuple[float, str], ...]] = {}
+        # From windows: every deployment's sorted samples in one array (deployment i's are
+        # flat[bounds[i]:bounds[i + 1]]) and their newest times in another. A robot's snapshot
+        # lives for seconds: an object per deployment would reach the collector's oldest
+        # generation by the hundred thousand at 1,000 robots and make its full passes frequent
+        # (docs/scale.md); these are a few objects per robot.
+        self._index: dict[str, int] = {}
+        self._flat = array("d")
+        self._bounds = array("q", [0])
+        self._last_at = array("d")
+        self._ascending: dict[Stat, tuple[array[float], tuple[str, ...]]] = {}
 
     @classmethod
-    def of_samples(cls, samples: Mapping[str, tuple[tuple[float, ...], float]]) -> Profiles:
-        """From (sorted non-empty samples, time of the newest) by deployment."""
+    def of_samples(cls, samples: Iterable[tuple[str, tuple[Sequence[float], float]]]) -> Profiles:
+        """From (deployment, (sorted non-empty samples, time of the newest)) pairs."""
         profiles = cls()
-        profiles._samples = dict(samples)
+        for dep, (ordered, last_at) in samples:
+            profiles._index[dep] = len(profiles._last_at)
+            profiles._flat.extend(ordered)
+            profiles._bounds.append(len(profiles._flat))
+            profiles._last_at.append(last_at)
         return profiles
+
+    def _ordered(self, i: int) -> array[float]:
+        return self._flat[self._bounds[i] : self._bounds[i + 1]]
 
     def __getitem__(self, deployment: str) -> WindowStats:
         stats = self._stats.get(deployment)
         if stats is None:
-            ordered, last_at = self._samples[deployment]
-            stats = self._stats[deployment] = WindowStats.of_sorted(ordered, last_at)
+            i = self._index[deployment]
+            stats = WindowStats.of_sorted(self._ordered(i), self._last_at[i])
+            self._stats[deployment] = stats
         return stats
 
     def _deployments(self) -> Mapping[str, object]:
         # Made from windows' samples (statistics then fill in as looked up) or from statistics.
-        return self._samples or self._stats
+        return self._index or self._stats
 
     def __contains__(self, deployment: object) -> bool:
         return deployment in self._deployments()
@@ -289,19 +305,23 @@ class Profiles(Mapping[str, WindowStats]):
     def __repr__(self) -> str:
         return f"Profiles({dict(self)!r})"
 
-    def ascending(self, stat: Stat | str) -> tuple[tuple[float, str], ...]:
+    def ascending(self, stat: Stat | str) -> Iterator[tuple[float, str]]:
         """(value of `stat`, deployment) for every deployment, lowest value first (ties by id)."""
         stat = Stat(stat)
         order = self._ascending.get(stat)
         if order is None:
-            if self._samples:
+            if self._index:
                 of = _STATISTIC[stat]
-                values = [(of(ordered), dep) for dep, (ordered, _) in self._samples.items()]
+                pairs = sorted((of(self._ordered(i)), dep) for dep, i in self._index.items())
             else:
-                values = [(stats.value(stat), dep) for dep, stats in self._stats.items()]
-            # Filled on the control loop only; a second fill would compute the same tuple.
-            order = self._ascending[stat] = tuple(sorted(values))
-        return order
+                pairs = sorted((stats.value(stat), dep) for dep, stats in self._stats.items())
+            # Kept as an array and a tuple of ids: no object per deployment for the collector.
+            # Filled on the control loop only; a second fill would compute the same.
+            order = self._ascending[stat] = (
+                array("d", (value for value, _ in pairs)),
+                tuple(dep for _, dep in pairs),
+            )
+        return zip(*order, strict=True)
 
 
 class LatencyWindows:
@@ -358,11 +378,11 @@ class LatencyWindows:
         key = (robot, Source(source))
         snapshot = self._snapshots.get(key)
         if snapshot is None:
-            samples = {
-                dep: entry
+            samples = (
+                (dep, entry)
                 for dep, win in self._windows.get(key, {}).items()
                 if (entry := win.sorted_samples()) is not None
-            }
+            )
             snapshot = self._snapshots[key] = Profiles.of_samples(samples)
         return snapshot
 
