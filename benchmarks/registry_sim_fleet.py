@@ -7,9 +7,10 @@ whose Zenoh parts are replaced: a `SimNetwork` stands in for `ZenohTransport` (d
 `SimProber` for the probe pool. The simulation calls what the daemon's Zenoh callbacks and main
 loop call: membership changes and probe outcomes go through the daemon's event handler, telemetry
 and probe reports into its measurements, and every tick (`SCHEDULER_TICK_S`) one scheduling round
-(`_schedule_all`), with the load refresh and the profile save at the daemon's intervals. Reaching
-into the daemon's control loop is deliberate: the figures are those of the daemon's own code, not
-of a copy of its wiring that could drift from it.
+(`_schedule_all`), with the load refresh at the daemon's interval and the profile save paced
+as the daemon paces it (`registry.profile_saver`). Reaching into the daemon's control loop is
+deliberate: the figures are those of the daemon's own code, not of a copy of its wiring that
+could drift from it.
 
 The fleet. Robots and deployments sit at random points of a unit square; the remote part of a
 frame is a network share growing with distance, plus the deployment's compute time scaled by its
@@ -71,7 +72,16 @@ from registry.rib import Rib
 from registry.scheduler import Scheduler
 from registry.switch import Switcher
 from registry.views import RibViews
+
+try:
+    from registry.profile_saver import PacedSaver
+except ImportError:  # a --baseline-src revision from before paced saves: a whole save per interval
+    PacedSaver = None  # type: ignore[assignment,misc]
 from robotd.probes import PROBE_INTERVAL_S
+
+# A baseline's registry/ (--baseline-src) may be found beside this one's profile_saver module,
+# while its Measurements cannot save in slices.
+PACED = PacedSaver is not None and hasattr(Measurements, "unsaved")
 
 FLEET = "sim"
 SERVICE = "vision"
@@ -635,6 +645,16 @@ class RegistrySim:
         per_s = round(1 / SCHEDULER_TICK_S)
         refresh_ticks = round(LOAD_REFRESH_INTERVAL_S / SCHEDULER_TICK_S)
         save_ticks = round(PROFILE_SAVE_INTERVAL_S / SCHEDULER_TICK_S)
+        saver = (
+            None
+            if not PACED
+            else PacedSaver(
+                self.daemon.measurements,
+                self.rib,
+                tick_s=SCHEDULER_TICK_S,
+                interval_s=PROFILE_SAVE_INTERVAL_S,
+            )
+        )
         warmup_ticks = round(cfg.warmup_s / SCHEDULER_TICK_S)
         ticks = warmup_ticks + round(cfg.duration_s / SCHEDULER_TICK_S)
         tally = _Tally()
@@ -663,7 +683,11 @@ class RegistrySim:
                 self.daemon._refresh_deployments()
                 self._probed(tally)
                 tally.refresh_s.append(time.perf_counter() - start)
-            if tick % save_ticks == save_ticks - 1:
+            if saver is not None:  # as the daemon's loop: a share after every round
+                start = time.perf_counter()
+                tally.saved += saver.tick(self.clock.t)
+                tally.save_s.append(time.perf_counter() - start)
+            elif tick % save_ticks == save_ticks - 1:
                 start = time.perf_counter()
                 tally.saved += self.daemon.measurements.save(self.rib)
                 tally.save_s.append(time.perf_counter() - start)

@@ -75,6 +75,7 @@ from registry.latency import LatencyBound
 from registry.measurements import Measurements
 from registry.pools import PoolKeeper, pool_keeper, pool_planner
 from registry.prober import Probed, Prober
+from registry.profile_saver import PacedSaver
 from registry.publications import PublicationReader
 from registry.refusals import Refusals
 from registry.registration import Registrar, RegistrationState, Role, fleet_model_digest
@@ -334,8 +335,13 @@ class RegistryDaemon(Daemon):
         """The control loop: queued events at once, the scheduler every tick."""
         now = time.monotonic()
         next_tick = now
-        next_save = now + self.profile_save_interval_s
         next_refresh = now + self.load_refresh_interval_s
+        saver = PacedSaver(
+            self.measurements,
+            self._parts.rib,
+            tick_s=self.tick_s,
+            interval_s=max(self.tick_s, self.profile_save_interval_s),
+        )
         while not self.should_exit.is_set():
             wait_s = min(self.tick_s, max(0.0, next_tick - time.monotonic()))
             try:
@@ -347,10 +353,8 @@ class RegistryDaemon(Daemon):
             now = time.monotonic()
             if now >= next_tick:
                 self._safely(self._schedule_all)
+                self._safely(saver.tick, now)
                 next_tick = now + self.tick_s
-            if now >= next_save:
-                self._safely(self.measurements.save, self._parts.rib)
-                next_save = now + self.profile_save_interval_s
             if now >= next_refresh:
                 self._safely(self._refresh_deployments)
                 next_refresh = now + self.load_refresh_interval_s

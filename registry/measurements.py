@@ -31,6 +31,7 @@ counts at once, where the deployments' reported loads are seconds old.
 
 from __future__ import annotations
 
+import itertools
 import math
 import threading
 import time
@@ -121,7 +122,8 @@ class Measurements:
         self._lock = threading.Lock()
         self._windows = LatencyWindows(window)
         self._sample_wall: dict[WindowKey, float] = {}  # wall clock of each window's newest sample
-        self._dirty: set[WindowKey] = set()  # changed since the last save
+        # Changed since last saved, in the order they first changed (saves take the oldest).
+        self._dirty: dict[WindowKey, None] = {}
         self._timeouts: dict[str, tuple[str, int]] = {}  # robot -> (deployment, consecutive)
         self._reroute_asked: set[str] = set()
         self._actions: dict[str, str] = {}
@@ -216,7 +218,7 @@ class Measurements:
             return
         wkey = (robot, deployment, source)
         self._sample_wall[wkey] = self._wall_clock()
-        self._dirty.add(wkey)
+        self._dirty[wkey] = None
 
     def _report(self, problems: list[tuple[str, str]]) -> None:
         for where, problem in problems:
@@ -283,7 +285,7 @@ class Measurements:
             self._loads.pop(deployment, None)
 
     def _forget_saved(self, dropped: Callable[[WindowKey], bool]) -> None:
-        self._dirty = {wkey for wkey in self._dirty if not dropped(wkey)}
+        self._dirty = {wkey: None for wkey in self._dirty if not dropped(wkey)}
 
     # -- reading ---------------------------------------------------------------------------------
     def for_scheduler(
@@ -357,10 +359,22 @@ class Measurements:
         with self._lock:
             return len(self._routes)
 
-    def save(self, rib: Rib) -> int:
-        """Persist the windows changed since the last save; returns how many were written."""
+    @property
+    def unsaved(self) -> int:
+        """Windows changed since they were last saved."""
         with self._lock:
-            dirty, self._dirty = self._dirty, set()
+            return len(self._dirty)
+
+    def save(self, rib: Rib, limit: int | None = None) -> int:
+        """Persist the windows changed since they were last saved (at most `limit` of them,
+        those changed first); returns how many were written."""
+        with self._lock:
+            if limit is None or limit >= len(self._dirty):
+                dirty, self._dirty = list(self._dirty), {}
+            else:
+                dirty = list(itertools.islice(self._dirty, max(0, limit)))
+                for wkey in dirty:
+                    del self._dirty[wkey]
             rows: list[tuple[str, str, str, tuple[float, ...], float | None]] = []
             for wkey in dirty:
                 robot, deployment, source = wkey

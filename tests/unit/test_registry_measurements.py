@@ -354,3 +354,15 @@ def test_a_restored_route_of_a_robot_not_back_holds_no_room(f: Fixture) -> None:
     assert f.m.for_scheduler("robot-new", None).routed == {}, "but counted nowhere"
     f.m.for_scheduler("robot-away", "edge-1")  # back: a round sees it
     assert f.m.for_scheduler("robot-new", None).routed == {"edge-1": 1}
+
+
+def test_a_save_can_take_the_longest_unsaved_windows_first(f: Fixture) -> None:
+    for dep in ("edge-1", "edge-2", "edge-3"):
+        f.m.record_probe_report(probe(dep, 0.05), KEY)
+    f.m.record_probe_report(probe("edge-1", 0.06), KEY)  # changed again: keeps its turn
+    with Rib(MEMORY) as rib:
+        assert f.m.unsaved == 3
+        assert f.m.save(rib, limit=2) == 2
+        assert {p.deployment for p in rib.profiles()} == {"edge-1", "edge-2"}
+        assert f.m.unsaved == 1
+        assert f.m.save(rib, limit=5) == 1 and f.m.unsaved == 0
