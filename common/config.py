@@ -15,6 +15,7 @@ Relative paths in the file (model, registry db, TLS files, video sources) are re
 from __future__ import annotations
 
 import difflib
+import math
 import re
 import types
 import typing
@@ -752,15 +753,15 @@ class FleetConfig(_Model):
         """Cloud machine (deployment) ids, in file order."""
         return [i for i, m in self.machines.items() if m.role == "cloud"]
 
-    def admitted_in_flight(self) -> int | None:
-        """Requests of one robot its deployments admit at once, at the least (each admits
-        `batching.max_in_flight_per_robot`; a round-robin pool's members each that many); None
-        without cloud machines."""
-        limits = [self.machines[c].batching.max_in_flight_per_robot for c in self.cloud_ids]
-        if not limits:
-            return None
-        members = min(self.dispatch.pool_limit() or len(limits), len(limits))
-        return min(limits) * members
+    def short_of_in_flight(self, in_flight: int) -> dict[str, int]:
+        """The deployments that admit fewer of one robot's requests at once than a robot with
+        `in_flight` frames in flight sends them (in round robin each member gets its share of
+        the pool's), with what they admit (`batching.max_in_flight_per_robot`)."""
+        clouds = self.cloud_ids
+        members = min(self.dispatch.pool_limit() or len(clouds), len(clouds)) or 1
+        each = math.ceil(in_flight / members)
+        limits = {c: self.machines[c].batching.max_in_flight_per_robot for c in clouds}
+        return {c: limit for c, limit in limits.items() if limit < each}
 
     @property
     def zoo_model(self) -> str | None:

@@ -282,17 +282,17 @@ class RobotDaemon(Daemon):
         self._wait_for_fleet()
 
     def _warn_if_refused_past_limit(self) -> None:
-        """A robot with more frames in flight than its deployments admit per robot gets `busy`
-        for the rest (finished on the robot: nothing is lost, but the overlap is not there)."""
-        admitted = self.config.admitted_in_flight()
-        if admitted is not None and self.max_in_flight > admitted:
+        """A robot with more frames in flight than a deployment admits per robot gets `busy`
+        there for the rest (finished on the robot: nothing is lost, but the overlap is not)."""
+        short = self.config.short_of_in_flight(self.max_in_flight)
+        if short:
             log.warning(
-                "%s: %d frames in flight, but the deployments serving it admit %d of a robot's "
-                "at once (batching.max_in_flight_per_robot, times the pool in round robin): "
-                "frames past that are answered busy and finished here",
+                "%s: %d frames in flight, but %s admit(s) fewer of one robot's requests at once "
+                "(batching.max_in_flight_per_robot): frames past that are answered busy there "
+                "and finished here",
                 self.robot,
                 self.max_in_flight,
-                admitted,
+                ", ".join(f"{c} ({limit})" for c, limit in short.items()),
             )
 
     def _open_zenoh(self) -> None:

@@ -107,13 +107,16 @@ def test_machine_lookup_lists_known_ids() -> None:
         config.machine("robot-1", role="cloud")
 
 
-def test_what_the_deployments_admit_of_one_robot_at_once() -> None:
+def test_the_deployments_that_admit_fewer_than_a_robot_keeps_in_flight() -> None:
     data = yaml.safe_load((CASES / "valid-single-host.yaml").read_text())
     data["machines"]["edge-2"]["batching"] = {"max_in_flight_per_robot": 3}
-    assert fleet_from_dict(data).admitted_in_flight() == 2, "anycast: the least, default 2"
-    assert fleet_from_dict({**data, "dispatch": "round_robin"}).admitted_in_flight() == 4
-    pool_of_one = {"mode": "round_robin", "pool_size": 1}
-    assert fleet_from_dict({**data, "dispatch": pool_of_one}).admitted_in_flight() == 2
+    anycast = fleet_from_dict(data)
+    assert anycast.short_of_in_flight(2) == {}, "default 2 on edge-1"
+    assert anycast.short_of_in_flight(3) == {"edge-1": 2}
+    assert anycast.short_of_in_flight(4) == {"edge-1": 2, "edge-2": 3}
+    pooled = fleet_from_dict({**data, "dispatch": "round_robin"})
+    assert pooled.short_of_in_flight(4) == {}, "two frames for each of the two members"
+    assert pooled.short_of_in_flight(5) == {"edge-1": 2}
 
 
 def test_in_memory_config_without_a_file() -> None:
