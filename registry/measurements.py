@@ -252,12 +252,14 @@ class Measurements:
     def _count(self, robot: str, deployment: str | None, pool: Sequence[str] = ()) -> None:
         """Count `robot` on `deployment` (on every member of its `pool`) from now on, on none
         for None (the lock is held)."""
+        members = () if deployment is None else tuple(dict.fromkeys((deployment, *pool)))
+        if self._counted.get(robot, ()) == members:
+            return  # counted there already (every round asks again for every robot)
         for before in self._counted.pop(robot, ()):
             self._routed[before] -= 1
             if self._routed[before] <= 0:
                 del self._routed[before]
-        if deployment is not None:
-            members = tuple(dict.fromkeys((deployment, *pool)))
+        if members:
             self._counted[robot] = members
             self._routed.update(members)
 

@@ -397,9 +397,7 @@ class Rib(RibStore):
         return [
             (
                 _robot_row(r),
-                RouteRow(
-                    r["id"], r["deployment"], r["epoch"], r["since"], tuple(json.loads(r["pool"]))
-                )
+                RouteRow(r["id"], r["deployment"], r["epoch"], r["since"], _pool(r["pool"]))
                 if r["epoch"] is not None
                 else None,
             )
@@ -664,5 +662,11 @@ def _route_row(r: sqlite3.Row) -> RouteRow:
         deployment=r["deployment"],
         epoch=r["epoch"],
         since=r["since"],
-        pool=tuple(json.loads(r["pool"])),
+        pool=_pool(r["pool"]),
     )
+
+
+def _pool(text: str) -> tuple[str, ...]:
+    """A route's pool column (a JSON list); an anycast fleet's `[]` without parsing (read for
+    every live robot in every round)."""
+    return () if text == "[]" else tuple(json.loads(text))
