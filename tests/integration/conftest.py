@@ -12,6 +12,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import socket
 import threading
 from collections.abc import Callable, Iterator
@@ -21,6 +22,8 @@ from typing import Any
 import pytest
 import zenoh
 
+from cloudd.daemon import CloudDaemon
+from common.config import FleetConfig
 from common.session import open_session
 
 LOOPBACK = "127.0.0.1"
@@ -39,6 +42,23 @@ def find_free_port() -> int:
 def loopback_endpoint(port: int) -> str:
     """`tcp/127.0.0.1:<port>`."""
     return f"tcp/{LOOPBACK}:{port}"
+
+
+@contextlib.contextmanager
+def running_cloud(cfg: FleetConfig, deployment: str, wait_s: float) -> Iterator[CloudDaemon]:
+    """A CloudDaemon whose `run()` runs in a thread, ready (else the test fails), stopped and
+    joined on exit."""
+    cloud = CloudDaemon(cfg, deployment)
+    thread = threading.Thread(target=cloud.run, name=f"cloud-{deployment}", daemon=True)
+    thread.start()
+    try:
+        if not cloud.ready.wait(wait_s):
+            pytest.fail(f"{deployment} did not become ready within {wait_s} s")
+        yield cloud
+    finally:
+        cloud.stop()
+        thread.join(wait_s)
+    assert not thread.is_alive(), "the cloud daemon did not stop"
 
 
 @pytest.fixture

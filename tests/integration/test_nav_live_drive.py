@@ -12,7 +12,6 @@ result (none lost, each answered by the cloud), and the assistant applied the d_
 
 from __future__ import annotations
 
-import threading
 import uuid
 from collections.abc import Iterator
 from pathlib import Path
@@ -20,12 +19,11 @@ from typing import Any
 
 import pytest
 
-from cloudd.daemon import CloudDaemon
 from common.config import FleetConfig, fleet_from_dict
 from nav.live_drive import read_outcome
 from robotd.daemon import FrameResult, RobotDaemon, RobotOptions
 from robotd.telemetry import SERVED_BY_CLOUD
-from tests.integration.conftest import find_free_port, loopback_endpoint
+from tests.integration.conftest import find_free_port, loopback_endpoint, running_cloud
 from tests.integration.test_registry import LEASE_MS, TEST_PARAMS, RunningRegistry
 
 SERVICE = "nav"
@@ -96,18 +94,11 @@ def runs(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[bool, Run]]:
     folder = tmp_path_factory.mktemp("nav-live")
     cfg = fleet_config(folder)
     registry = RunningRegistry(cfg, params=TEST_PARAMS).start()
-    cloud = CloudDaemon(cfg, DEPLOYMENT)
-    thread = threading.Thread(target=cloud.run, name="cloud-edge-1", daemon=True)
-    thread.start()
     try:
-        if not cloud.ready.wait(WAIT_S):
-            pytest.fail(f"{DEPLOYMENT} did not become ready within {WAIT_S} s")
-        yield {assist: Run(cfg, folder, assist) for assist in (True, False)}
+        with running_cloud(cfg, DEPLOYMENT, WAIT_S):
+            yield {assist: Run(cfg, folder, assist) for assist in (True, False)}
     finally:
-        cloud.stop()
-        thread.join(WAIT_S)
         registry.stop()
-    assert not thread.is_alive(), "the cloud daemon did not stop"
 
 
 @pytest.mark.parametrize("assist", [True, False], ids=["assisted", "unassisted"])

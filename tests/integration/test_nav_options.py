@@ -14,7 +14,6 @@ model's bins.
 
 from __future__ import annotations
 
-import threading
 import uuid
 from collections.abc import Iterator
 from pathlib import Path
@@ -23,11 +22,10 @@ from typing import Any
 import numpy as np
 import pytest
 
-from cloudd.daemon import CloudDaemon
 from common.config import FleetConfig, fleet_from_dict
 from robotd.daemon import FrameResult, RobotDaemon, RobotOptions
 from robotd.telemetry import SERVED_BY_CLOUD, SERVED_BY_ROBOT
-from tests.integration.conftest import find_free_port, loopback_endpoint
+from tests.integration.conftest import find_free_port, loopback_endpoint, running_cloud
 from tests.integration.test_registry import LEASE_MS, TEST_PARAMS, RunningRegistry
 
 SERVICE = "nav"
@@ -99,34 +97,27 @@ def results(
     """Each run's frames, run against one registry and one cloud daemon."""
     cfg = fleet_config(tmp_path_factory.mktemp("nav-fleet"))
     registry = RunningRegistry(cfg, params=TEST_PARAMS).start()
-    cloud = CloudDaemon(cfg, DEPLOYMENT)
-    thread = threading.Thread(target=cloud.run, name="cloud-edge-1", daemon=True)
-    thread.start()
     try:
-        if not cloud.ready.wait(WAIT_S):
-            pytest.fail(f"{DEPLOYMENT} did not become ready within {WAIT_S} s")
-        by_run: dict[str, list[FrameResult]] = {}
-        for run, spec in RUNS.items():
-            frames: list[FrameResult] = []
-            daemon = RobotDaemon(
-                cfg,
-                ROBOTS[run],
-                RobotOptions(
-                    frames=FRAMES,
-                    policy=spec,
-                    registry_wait_s=WAIT_S,
-                    route_wait_s=WAIT_S,
-                ),
-                on_result=frames.append,
-            )
-            assert daemon.run() == 0
-            by_run[run] = frames
-        yield by_run
+        with running_cloud(cfg, DEPLOYMENT, WAIT_S):
+            by_run: dict[str, list[FrameResult]] = {}
+            for run, spec in RUNS.items():
+                frames: list[FrameResult] = []
+                daemon = RobotDaemon(
+                    cfg,
+                    ROBOTS[run],
+                    RobotOptions(
+                        frames=FRAMES,
+                        policy=spec,
+                        registry_wait_s=WAIT_S,
+                        route_wait_s=WAIT_S,
+                    ),
+                    on_result=frames.append,
+                )
+                assert daemon.run() == 0
+                by_run[run] = frames
+            yield by_run
     finally:
-        cloud.stop()
-        thread.join(WAIT_S)
         registry.stop()
-    assert not thread.is_alive(), "the cloud daemon did not stop"
 
 
 @pytest.mark.parametrize("run", list(RUNS))
