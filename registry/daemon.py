@@ -602,9 +602,7 @@ class RegistryDaemon(Daemon):
             )
         elif result.changed:
             self._confirmed.add(decision.robot)
-            self.measurements.set_route(
-                result.robot, result.deployment, result.epoch, self._parts.rib.pool(result.robot)
-            )
+            self.measurements.set_route(result.robot, result.deployment, result.epoch, result.pool)
             log.info(
                 "route %s: %s -> %s (epoch %d, %s)",
                 result.robot,

@@ -102,6 +102,8 @@ class SwitchResult:
     changed: bool
     reason: str
     attempts: tuple[Attempt, ...] = ()
+    pool: tuple[str, ...] = ()
+    """Round robin: the pool the route was set with, `deployment` first (empty otherwise)."""
 
 
 @dataclass(frozen=True)
@@ -269,7 +271,7 @@ class Switcher:
         for old in dict.fromkeys([previous, *failed, *old_pool]):
             if old is not None and old != deployment and old not in pool:
                 self._standby(robot, old, epoch)
-        return SwitchResult(robot, previous, deployment, epoch, True, reason, tuple(attempts))
+        return SwitchResult(robot, previous, deployment, epoch, True, reason, tuple(attempts), pool)
 
     def repool(self, robot: str, *, reason: str = "pool") -> SwitchResult:
         """Round robin: rebuild `robot`'s pool around its deployment under a new epoch (a member
