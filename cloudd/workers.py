@@ -59,7 +59,8 @@ class BatchWorkers(Generic[T]):
             threading.Thread(target=self._loop, name=f"{name}-{i}", daemon=True)
             for i in range(workers)
         ]
-        self._low = [LowPriorityThread(f"{name}-{i}-low") for i in range(workers)] if meter else []
+        self._name = name
+        self._low: list[LowPriorityThread] = []  # started with the workers, with a meter
         self._low_counts = [0] * workers  # each written by its own worker only
         self._started = False
 
@@ -72,6 +73,10 @@ class BatchWorkers(Generic[T]):
         """Start the threads (once)."""
         if not self._started:
             self._started = True
+            if self.meter is not None:
+                self._low = [
+                    LowPriorityThread(f"{self._name}-{i}-low") for i in range(self.workers)
+                ]
             for thread in self._threads:
                 thread.start()
 
