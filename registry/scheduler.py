@@ -779,14 +779,20 @@ class _Targets:
                 break
             if best is not None and best.predicted_s is not None and value > best.predicted_s:
                 break
+            if dep_id == self._current.id:
+                continue  # never a target; usually the robot's best, so met on every round
             dep = self._table.by_id.get(dep_id)
             if (
                 dep is None
                 or sched._avoided(self._st, dep_id, now=self._now)
                 or dep.full
+                or (headroom is not None and not dep.has_room(headroom))
                 or not _usable(self._robot, dep)
             ):
-                continue  # a penalized or full deployment ranks in tier 2, never a target here
+                # A penalized or full deployment ranks in tier 2, never a target here; one
+                # without the headroom asked for is refused by `_accepts`: both are skipped
+                # before a candidate is built (at a loaded fleet's, most of the walk).
+                continue
             c = sched._candidate(self._robot, dep, self._profiles, self._st, self._now)
             if self._accepts(c, limit, max_tier, headroom) and (
                 best is None or c.sort_key() < best.sort_key()
