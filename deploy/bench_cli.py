@@ -567,6 +567,13 @@ def scale(
         "can, with the --max-in-flight limit and heavy robots at low priority (the defaults), "
         "with the limit alone, and with neither.",
     ),
+    arrivals: str = typer.Option(
+        "periodic",
+        "--arrivals",
+        help="How each robot's frames are spaced: periodic (a camera's ticks) or poisson "
+        "(exponential gaps, the same mean rate; robots at one rate then collide at random, not "
+        "by the phase they started with).",
+    ),
     pin_cloud: bool = typer.Option(
         False,
         "--pin-cloud",
@@ -616,6 +623,7 @@ def scale(
             batch_sizes=sc.parse_counts(batch_sizes, "--batch-sizes"),
             max_in_flight_per_robot=max_in_flight,
             pin_cloud=pin_cloud,
+            arrivals=arrivals,
             workdir=workdir,
             log=lambda message: err.print(f"[dim]bench:[/dim] {message}", highlight=False),
         )

@@ -8,7 +8,11 @@ how long, with the deployment's own queue and compute times), `busy`, an error r
 a timeout (no reply within the deadline), or no route (nobody serves the robot yet). A robot
 sends its next frame at its next tick of `fps`, or at once when a reply came after the tick (a
 camera's frame loop drops the frames it had no time for); `fps=None` sends as soon as the reply
-is in (closed loop: a robot "as fast as it can").
+is in (closed loop: a robot "as fast as it can"). Ticks are periodic (a camera), or with
+`arrivals="poisson"` exponentially spaced at the same mean rate, as perf_analyzer's
+`--request-distribution poisson`: robots at exactly the same rate keep the phase they started
+with, so whether two of them collide on a deployment is a lottery drawn once per start; Poisson
+arrivals draw it again at every frame, which steadies a comparison between short phases.
 
 Frames a deployment does not serve are the ones a real robot would finish itself; the generator
 does not compute them, it counts them, and the robot waits `local_s` (the time it would spend
@@ -66,6 +70,9 @@ PAYLOAD_FRAMES = 4
 LOCAL_S = 0.05
 """How long an emulated robot takes to finish a frame the cloud did not serve (about what a small
 robot computer takes for the bench's models)."""
+
+ARRIVALS = ("periodic", "poisson")
+"""How a robot's frames are spaced: a camera's ticks, or exponential gaps of the same mean."""
 
 JOIN_TIMEOUT_S = 5.0
 """How long stopping waits for a robot's thread (at most one deadline is in flight)."""
@@ -127,6 +134,12 @@ def cut_payloads(
     return model.digest, payloads
 
 
+def frame_gap_s(period_s: float, poisson: random.Random | None) -> float:
+    """Seconds from one tick of a robot's lane to the next: the period, or with a random source
+    (Poisson arrivals) an exponential gap whose mean is the period."""
+    return period_s if poisson is None else poisson.expovariate(1.0 / period_s)
+
+
 class EmulatedRobot:
     """One robot's frame loop (see the module docstring): `in_flight` lanes, each on a thread of
     its own with one frame at a time (a pipelined robot keeps several frames in flight)."""
@@ -139,6 +152,7 @@ class EmulatedRobot:
         *,
         in_flight: int = 1,
         phase_s: float = 0.0,
+        poisson: random.Random | None = None,
     ) -> None:
         if in_flight < 1:
             raise ValueError(f"in_flight must be >= 1, got {in_flight}")
@@ -146,6 +160,8 @@ class EmulatedRobot:
         self.fps = fps
         self._gen = generator
         self._phase_s = phase_s
+        self._poisson = poisson
+        """With Poisson arrivals, the random source of this robot's gaps (None: periodic)."""
         self._key = keys.svc_infer(generator.cfg.fleet, generator.cfg.service, robot)
         self._records: list[FrameRecord] = []
         self._lock = threading.Lock()
@@ -191,7 +207,7 @@ class EmulatedRobot:
                 break  # a robot finishes an unserved frame itself before its next one
             if period_s:
                 # A reply after the next tick: the frames meanwhile were dropped; go at once.
-                next_at = max(next_at + period_s, time.monotonic())
+                next_at = max(next_at + frame_gap_s(period_s, self._poisson), time.monotonic())
 
     def _send(self, frame: int) -> FrameRecord:
         gen = self._gen
@@ -267,7 +283,8 @@ class LoadGenerator:
     robot; `in_flight` the frames each robot keeps in flight (or a mapping). `deadline_s`
     defaults to the fleet's; `local_s` is how long a robot takes to finish a frame the cloud did
     not serve. Robots start at random phases within one frame period (`seed`), as robots
-    switched on independently do.
+    switched on independently do; `arrivals` is "periodic" (a camera's ticks) or "poisson"
+    (exponential gaps of the same mean, drawn from `seed` too).
     """
 
     def __init__(
@@ -282,9 +299,12 @@ class LoadGenerator:
         in_flight: int | dict[str, int] = 1,
         local_s: float = LOCAL_S,
         seed: int = 0,
+        arrivals: str = "periodic",
     ) -> None:
         if not robots:
             raise ValueError("at least one robot is needed")
+        if arrivals not in ARRIVALS:
+            raise ValueError(f"arrivals must be one of {', '.join(ARRIVALS)}, got {arrivals!r}")
         self.cfg = cfg
         self.cut = cut
         self.codec = codec
@@ -300,7 +320,10 @@ class LoadGenerator:
             rate = fps.get(robot) if isinstance(fps, dict) else fps
             lanes = in_flight.get(robot, 1) if isinstance(in_flight, dict) else in_flight
             phase = rng.uniform(0.0, 1.0 / rate) if rate else 0.0
-            self.robots.append(EmulatedRobot(self, robot, rate, in_flight=lanes, phase_s=phase))
+            gaps = random.Random(rng.random()) if arrivals == "poisson" else None
+            self.robots.append(
+                EmulatedRobot(self, robot, rate, in_flight=lanes, phase_s=phase, poisson=gaps)
+            )
 
     def __enter__(self) -> LoadGenerator:
         return self.start()

@@ -59,6 +59,7 @@ def measure_fairness(
     hog_in_flight: int = defaults.FAIRNESS_HOG_IN_FLIGHT,
     cut: int = 0,
     codec: str = "raw",
+    arrivals: str = "periodic",
     daemons: Mapping[str, int] | None = None,
     cloud_cpus: Collection[int] | None = None,
     log: Callable[[str], None] = lambda message: None,
@@ -76,8 +77,12 @@ def measure_fairness(
     pause = threading.Event()  # timed measurement windows, not waits for readiness
     phases: list[tuple[str, float, float, dict[str, Any], dict[str, float]]] = []
     with (
-        LoadGenerator(cfg, [victim], fps=fps, cut=cut, codec=codec) as victim_gen,
-        NeighbourProcess(str(cfg.source_path), neighbour, cut=cut, codec=codec) as other,
+        LoadGenerator(
+            cfg, [victim], fps=fps, cut=cut, codec=codec, arrivals=arrivals
+        ) as victim_gen,
+        NeighbourProcess(
+            str(cfg.source_path), neighbour, cut=cut, codec=codec, arrivals=arrivals
+        ) as other,
     ):
         meter = CpuMeter(
             {**daemons, "generator": os.getpid(), "neighbour": other.pid},
@@ -190,6 +195,7 @@ def run_fairness(options: ScaleOptions) -> dict[str, Any]:
                         fps=options.fps,
                         cut=options.cut,
                         codec=options.codec,
+                        arrivals=options.arrivals,
                         daemons={"cloud": fleet.clouds[0].pid, "registry": fleet.registry.pid},
                         cloud_cpus=None if fleet.cpus is None else fleet.cpus.cloud,
                         log=options.log,
@@ -287,7 +293,8 @@ def fairness_markdown(result: dict[str, Any]) -> str:
     return (
         f"Load: {result['load']}; {settings['model']} at "
         f"{'x'.join(map(str, settings['input_shape']))}; the victim and the polite neighbour "
-        f"send {settings['fps_per_robot']:g} fps, the hog as fast as it can with "
+        f"send {settings['fps_per_robot']:g} fps ({settings.get('arrivals', 'periodic')}), "
+        "the hog as fast as it can with "
         f"{defaults.FAIRNESS_HOG_IN_FLIGHT} frames in flight; medians of "
         f"{defaults.FAIRNESS_ROUNDS} alternating phases of {defaults.FAIRNESS_PHASE_S:g} s "
         f"(at least {frames} victim frames each); {settings['workers']} workers; {where}; "

@@ -26,7 +26,9 @@ COMMAND_TIMEOUT_S = 120.0
 """How long the parent waits for the child to answer a command (its first load included)."""
 
 
-def serve_commands(conn: Connection, config_path: str, robot: str, cut: int, codec: str) -> None:
+def serve_commands(
+    conn: Connection, config_path: str, robot: str, cut: int, codec: str, arrivals: str
+) -> None:
     """The child's main: carry out the parent's commands until ("exit",)."""
     from common.config import load_fleet
     from deploy.load_generator import LoadGenerator, summarize
@@ -40,7 +42,14 @@ def serve_commands(conn: Connection, config_path: str, robot: str, cut: int, cod
             _, fps, in_flight, seed = command
             try:
                 with LoadGenerator(
-                    cfg, [robot], fps=fps, in_flight=in_flight, cut=cut, codec=codec, seed=seed
+                    cfg,
+                    [robot],
+                    fps=fps,
+                    in_flight=in_flight,
+                    cut=cut,
+                    codec=codec,
+                    seed=seed,
+                    arrivals=arrivals,
                 ) as gen:
                     gen.wait_served(COMMAND_TIMEOUT_S / 2)
                     started = time.monotonic()
@@ -60,12 +69,20 @@ def serve_commands(conn: Connection, config_path: str, robot: str, cut: int, cod
 class NeighbourProcess:
     """A child process running one emulated robot, a phase at a time (module docstring)."""
 
-    def __init__(self, config_path: str, robot: str, *, cut: int = 0, codec: str = "raw") -> None:
+    def __init__(
+        self,
+        config_path: str,
+        robot: str,
+        *,
+        cut: int = 0,
+        codec: str = "raw",
+        arrivals: str = "periodic",
+    ) -> None:
         context = multiprocessing.get_context("spawn")
         self._conn, child = context.Pipe()
         self._proc = context.Process(
             target=serve_commands,
-            args=(child, config_path, robot, cut, codec),
+            args=(child, config_path, robot, cut, codec, arrivals),
             name=f"neighbour-{robot}",
             daemon=True,
         )

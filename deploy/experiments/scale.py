@@ -42,7 +42,7 @@ import psutil
 from common.config import FleetConfig, load_fleet
 from common.errors import UserError
 from deploy.cpu_pinning import CpuSplit, off_set_threads, pin_process, split_for_cloud, usable_cpus
-from deploy.load_generator import LoadGenerator, summarize
+from deploy.load_generator import ARRIVALS, LoadGenerator, summarize
 from deploy.procs import DaemonProc, LocalFleet, write_local_fleet
 
 from . import scale_defaults as defaults
@@ -84,6 +84,8 @@ class ScaleOptions:
     """Pin the cloud daemons to CPUs of their own, the rest of the bench to the others."""
     heavy_low_priority: bool = True
     """The deployments' `batching.heavy_robots_low_priority` (the fairness bench runs both)."""
+    arrivals: str = "periodic"
+    """How each robot's frames are spaced: "periodic" (a camera) or "poisson" (same mean rate)."""
     workdir: Path | None = None
     log: Callable[[str], None] = field(default=lambda message: None)
 
@@ -104,6 +106,8 @@ class ScaleOptions:
             raise UserError(f"--warmup-s {self.warmup_s:g}: expected >= 0")
         if self.workers < 1 or self.queue < 0 or self.threads < 0:
             raise UserError("--workers >= 1, --queue >= 0 and --threads >= 0 are expected")
+        if self.arrivals not in ARRIVALS:
+            raise UserError(f"--arrivals {self.arrivals!r}: expected one of {', '.join(ARRIVALS)}")
         if self.pin_cloud:
             self.cpu_split(max(self.deployments))  # refused here, before any daemon starts
 
@@ -268,7 +272,12 @@ def run_cell(
     """One cell: `robots` emulated robots against the running deployments."""
     pause = threading.Event()  # a timed measurement window, not a wait for readiness
     with LoadGenerator(
-        cfg, robot_ids(robots), fps=options.fps, cut=options.cut, codec=options.codec
+        cfg,
+        robot_ids(robots),
+        fps=options.fps,
+        cut=options.cut,
+        codec=options.codec,
+        arrivals=options.arrivals,
     ) as gen:
         gen.wait_served(ROUTED_TIMEOUT_S)
         pause.wait(options.warmup_s)
@@ -327,6 +336,7 @@ def settings_of(options: ScaleOptions) -> dict[str, Any]:
         "cut": options.cut,
         "codec": options.codec,
         "fps_per_robot": options.fps,
+        "arrivals": options.arrivals,
         "warmup_s": options.warmup_s,
         "duration_s": options.duration_s,
         "deadline_s": options.deadline_s,
