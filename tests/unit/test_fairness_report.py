@@ -31,7 +31,10 @@ def test_the_meter_sees_this_process_use_a_core() -> None:
     used = meter.usage(start, end)
     # /proc counts in clock ticks (10 ms at the usual 100 Hz).
     assert used["cloud_cores"] * (end.at - start.at) == pytest.approx(BURN_S, abs=0.05), used
-    assert used["cloud_zenoh_cores"] == 0.0  # no Zenoh session here
+    # The burn ran on this (Python) thread, not on a Zenoh one. Zenoh threads may be there
+    # (sessions that other tests in this process opened leave the runtime's threads running),
+    # with a few percent of a core at most.
+    assert used["cloud_zenoh_cores"] < used["cloud_cores"] / 2, used
     assert {"others_cores", "others_on_cloud_cpus_cores", "steal_cores"} <= set(used)
     assert all(value >= 0 for value in used.values()), used
     with pytest.raises(ValueError, match="time order"):

@@ -5,6 +5,8 @@ listed by ascending statistic; windows hold their samples in a ring."""
 
 from __future__ import annotations
 
+import random
+
 import pytest
 
 from registry.latency import LatencyWindow, LatencyWindows, Profiles, Source, Stat, WindowStats
@@ -62,3 +64,28 @@ def test_a_window_ring_keeps_the_last_samples_in_order_and_clears() -> None:
     assert window.samples() == () and window.stats() is None and window.sorted_samples() is None
     window.add(7.0, at=10.0)
     assert window.samples() == (7.0,)
+
+
+@pytest.mark.parametrize("stat", list(Stat))
+@pytest.mark.parametrize("full", [True, False], ids=["full windows", "some windows filling"])
+def test_a_snapshot_sorted_at_once_agrees_with_each_window_to_the_bit(
+    stat: Stat, full: bool
+) -> None:
+    """The snapshot sorts all of a robot's windows in one call and picks order statistics from
+    them at once: every deployment's statistics, and the order by any statistic, are exactly
+    those of its window on its own (ties included: equal windows rank by id)."""
+    rng = random.Random(5)
+    table = LatencyWindows(size=20)
+    values = {}
+    for d in range(40):
+        count = 20 if full or d % 3 else rng.randint(1, 19)
+        # Rounded to the millisecond so that equal statistics (ties) do occur.
+        samples = [round(rng.uniform(0.01, 0.2), 3) for _ in range(count + 7 * full)]
+        for i, x in enumerate(samples):
+            table.add("r1", f"edge-{d:02d}", Source.PROBE, x, at=float(i))
+        window = table.window("r1", f"edge-{d:02d}", Source.PROBE)
+        values[f"edge-{d:02d}"] = window.stats()
+    profiles = table.profiles("r1")
+    expected = sorted((s.value(stat), dep) for dep, s in values.items() if s is not None)
+    assert list(profiles.ascending(stat)) == expected
+    assert {dep: profiles[dep] for dep in profiles} == values
