@@ -89,3 +89,33 @@ def test_a_snapshot_sorted_at_once_agrees_with_each_window_to_the_bit(
     expected = sorted((s.value(stat), dep) for dep, s in values.items() if s is not None)
     assert list(profiles.ascending(stat)) == expected
     assert {dep: profiles[dep] for dep in profiles} == values
+
+
+def _filled(size: int, deployments: list[str], seed: int) -> LatencyWindows:
+    rng = random.Random(seed)
+    table = LatencyWindows(size=size)
+    for d, dep in enumerate(deployments):
+        for i in range(rng.randint(1, size + 5) if d % 2 else size + 3):
+            table.add("r1", dep, Source.PROBE, round(rng.uniform(0.01, 0.2), 3), at=float(i))
+    return table
+
+
+@pytest.mark.parametrize("dropped", ["edge-00", "edge-07", "edge-13"])
+def test_a_dropped_deployment_leaves_each_snapshot_as_if_built_without_it(dropped: str) -> None:
+    """Every robot's snapshot holds a deployment that dies: dropping it keeps the rest of the
+    snapshot (nothing sorted again) and gives what a snapshot built without it gives, the
+    orders already computed included; a holder of the old snapshot sees no change."""
+    deps = [f"edge-{d:02d}" for d in range(14)]
+    table = _filled(6, deps, seed=3)
+    before = table.profiles("r1")
+    orders = {stat: list(before.ascending(stat)) for stat in (Stat.MEDIAN, Stat.P95)}
+    looked_up = {dep: before[dep] for dep in deps[::3]}  # statistics made lazily, kept
+    table.drop_deployment(dropped)
+    after = table.profiles("r1")
+    assert set(after) == set(deps) - {dropped} and len(after) == len(deps) - 1
+    own = {dep: stats for dep in after if (stats := table.window("r1", dep, Source.PROBE).stats())}
+    assert {dep: after[dep] for dep in after} == own
+    for stat in Stat:  # median and p95 from the kept orders, the others computed anew
+        assert list(after.ascending(stat)) == sorted((s.value(stat), dep) for dep, s in own.items())
+    assert list(before.ascending(Stat.MEDIAN)) == orders[Stat.MEDIAN], "the old one is unchanged"
+    assert all(before[dep] == stats for dep, stats in looked_up.items()) and dropped in before
