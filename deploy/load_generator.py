@@ -12,7 +12,7 @@ is in (closed loop: a robot "as fast as it can"). Ticks are periodic (a camera),
 `arrivals="poisson"` exponentially spaced at the same mean rate, as perf_analyzer's
 `--request-distribution poisson`: robots at exactly the same rate keep the phase they started
 with, so whether two of them collide on a deployment is a lottery drawn once per start; Poisson
-arrivals draw it again at every frame, which steadies a comparison between short phases.
+arrivals draw it again at every frame, as robots that are not synchronised see it.
 
 Frames a deployment does not serve are the ones a real robot would finish itself; the generator
 does not compute them, it counts them, and the robot waits `local_s` (the time it would spend

@@ -114,12 +114,12 @@ RESTORE_GRACE_S = 5.0
 # How long the membership's seeding get waits for replies (it returns earlier once every peer
 # answered; tokens it misses still come through the subscriber's history).
 MEMBERSHIP_SEED_TIMEOUT_S = 0.5
-# Allocations between two collections of the youngest generation (Python's default: 700). A
-# scheduling round allocates tens of thousands of short-lived objects at 1,000 robots; collected
-# every 700 of them, the round's own working set was promoted to the oldest generation and
-# triggered full passes over the half-million long-lived objects of the latency windows, up to
-# 0.2 s each, 7 in 20 s (docs/scale.md). At 50,000 the round's objects are freed before a
-# collection sees them.
+# Net allocations of container objects between two collections of the youngest generation
+# (Python's default: 700). A scheduling round at 1,000 robots holds thousands of short-lived
+# objects at once (rows, views, candidates); collected every 700, the round's own working set
+# was promoted to the oldest generation and triggered full passes over the half-million
+# long-lived objects of the latency windows, up to 0.2 s each, 7 in 20 s (docs/scale.md). At
+# 50,000 the round's objects are freed by their reference counts before a collection sees them.
 GC_YOUNG_THRESHOLD = 50_000
 
 

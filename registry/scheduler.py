@@ -791,7 +791,7 @@ class _Targets:
             ):
                 # A penalized or full deployment ranks in tier 2, never a target here; one
                 # without the headroom asked for is refused by `_accepts`: both are skipped
-                # before a candidate is built (at a loaded fleet's, most of the walk).
+                # before a candidate is built (on a loaded fleet, most of the walk).
                 continue
             c = sched._candidate(self._robot, dep, self._profiles, self._st, self._now)
             if self._accepts(c, limit, max_tier, headroom) and (
