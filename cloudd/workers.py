@@ -56,7 +56,7 @@ class BatchWorkers(Generic[T]):
         self.meter = meter
         self._run = run
         self._threads = [
-            threading.Thread(target=self._loop, name=f"{name}-{i}", daemon=True)
+            threading.Thread(target=self._loop, args=(i,), name=f"{name}-{i}", daemon=True)
             for i in range(workers)
         ]
         self._name = name
@@ -80,25 +80,33 @@ class BatchWorkers(Generic[T]):
             for thread in self._threads:
                 thread.start()
 
-    def _loop(self) -> None:
-        index = self._threads.index(threading.current_thread())
+    def _loop(self, index: int) -> None:
         while (batch := self.queue.get()) is not None:
-            robots = [item.robot for item in batch.items]
-            started = time.monotonic()
             try:
-                if self.meter is not None and self.meter.heavy(robots):
-                    self._low_counts[index] += 1
-                    self._low[index].call(functools.partial(self._run, batch))
-                else:
+                if self.meter is None:
                     self._run(batch)
+                else:
+                    self._run_metered(batch, self.meter, index)
             except Exception:
                 # Runs answer their own errors; one escaping here is a bug, but must not leak
                 # the batch's slots or end the worker.
                 log.exception("running a batch failed")
             finally:
-                if self.meter is not None:
-                    self.meter.record(robots, time.monotonic() - started)
                 self.queue.done(batch)
+
+    def _run_metered(self, batch: Batch[T], meter: UsageMeter, index: int) -> None:
+        """Run `batch` on worker `index`'s low-priority sibling when its robots are heavy, and
+        record the worker time it took (whatever happens in it)."""
+        robots = [item.robot for item in batch.items]
+        started = time.monotonic()
+        try:
+            if meter.heavy(robots):
+                self._low_counts[index] += 1
+                self._low[index].call(functools.partial(self._run, batch))
+            else:
+                self._run(batch)
+        finally:
+            meter.record(robots, time.monotonic() - started)
 
     def shutdown(self, timeout_s: float) -> bool:
         """Close the queue and let the threads finish what was admitted, for up to
