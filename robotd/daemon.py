@@ -411,7 +411,8 @@ class RobotDaemon(Daemon):
             except EndOfStream:
                 log.info("%s: %s ended after %d frames", self.robot, self._source.description, n)
                 break
-            self.run_frame(n, frame)
+            stamp_ns = self._source.last_stamp_ns
+            self.run_frame(n, frame, stamp_ns=stamp_ns if stamp_ns is not None else time.time_ns())
             n += 1
         self._pipeline.drain()
         self._settle_pending(block=True)
@@ -419,7 +420,7 @@ class RobotDaemon(Daemon):
         if self.should_exit.is_set() and limit is not None and n < limit:
             log.info("%s: stopped after %d of %d frames", self.robot, n, limit)
 
-    def run_frame(self, n: int, frame: CameraFrame) -> None:
+    def run_frame(self, n: int, frame: CameraFrame, *, stamp_ns: int = 0) -> None:
         """Run one frame to completion, or hand it to the pipeline (`robotd.pipeline`), or (hedged,
         the robot's result first) to where it is served; its cloud reply is settled later."""
         started = time.perf_counter()
@@ -429,7 +430,7 @@ class RobotDaemon(Daemon):
         decision = self.policy.decide(FrameContext(index=n, entropy=entropy))
         held = self.link.held
         epoch = held.epoch
-        f = Frame(n, decision, entropy, feeds, started, cpu_started, epoch)
+        f = Frame(n, decision, entropy, feeds, started, cpu_started, epoch, stamp_ns)
         model = self.model
         if decision.action == PURE_ROBOT:
             f.outputs = self._compute(lambda options: model.run_full(feeds, run_options=options))
@@ -629,7 +630,7 @@ class RobotDaemon(Daemon):
             if reroute is not None:
                 self.link.request_reroute(reroute, self._failures.streak)
         if not f.stale:
-            result = FrameResult(f.n, f.feeds, f.outputs, record, f.served_by, f.hedged)
+            result = FrameResult(f.n, f.feeds, f.outputs, record, f.served_by, f.hedged, f.stamp_ns)
             if self._on_result is not None:
                 self._on_result(result)
             self._source.on_result(result)

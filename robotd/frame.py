@@ -30,6 +30,8 @@ class FrameResult:
     record: TelemetryRecord
     served_by: str
     hedged: bool
+    # When the frame was captured (ns since the epoch): the source's stamp, else when it was read.
+    stamp_ns: int = 0
 
 
 @dataclass
@@ -44,6 +46,8 @@ class Frame:
     started: float
     cpu_started: float
     epoch: int
+    # Capture stamp, ns since the epoch (`FrameSource.last_stamp_ns`, else the read time).
+    stamp_ns: int = 0
     prefix_s: float = 0.0
     local_s: float | None = None
     bytes_up: int = 0

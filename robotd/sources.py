@@ -94,6 +94,10 @@ class FrameSource(abc.ABC):
     description: str = "source"
     views: tuple[str, ...] | None = None
     """The names of a stereo source's views (`robotd.stereo_frame`); None: one image a frame."""
+    last_stamp_ns: int | None = None
+    """The capture stamp (ns since the epoch) of the frame `read()` returned last, where the
+    source knows it (a camera message's header, a bag record); None: the robot stamps the frame
+    with its own clock when it reads it."""
 
     @abc.abstractmethod
     def read(self) -> CameraFrame:
