@@ -25,6 +25,7 @@ import zenoh
 from cloudd.batch_queue import FairQueue, Pending, Refusal
 from cloudd.faults import FaultInjector
 from cloudd.limits import CloudLimits
+from cloudd.metrics import CloudMetrics, Outcome
 from cloudd.refusals import RefusalReason, Refusals, check_refusal, decode_refusal
 from cloudd.replies import Replier, query_payload
 from cloudd.robot_book import RobotBook
@@ -70,6 +71,7 @@ class Admission:
         limits: CloudLimits,
         refusals: Refusals,
         throttled: ThrottledLog,
+        metrics: CloudMetrics | None = None,
     ) -> None:
         self.deployment = deployment
         self._digest = digest
@@ -81,12 +83,14 @@ class Admission:
         self._limits = limits
         self._refusals = refusals
         self._throttled = throttled
+        self._metrics = metrics
 
     def on_query(self, robot: str, key: str, query: zenoh.Query) -> None:
         """The callback of `robot`'s service key `key`."""
         arrived = time.monotonic()
         fault = self._faults.get()
         if fault.stall:
+            self._outcome(robot, Outcome.DROPPED)
             self._replies.hold(query)
             return
         delay_s = fault.delay_ms / 1000.0
@@ -95,7 +99,7 @@ class Admission:
                 query_payload(query), max_bytes=self._limits.request_bytes
             )
         except WireError as exc:
-            self._refusals.count(decode_refusal(exc))
+            self._count(robot, decode_refusal(exc))
             self._throttled.warning(
                 "%s: bad inference request for %s: %s", self.deployment, robot, exc.reason
             )
@@ -107,6 +111,7 @@ class Admission:
             self._refuse(query, robot, key, request, too_large, reason, delay_s)
             return
         if self._faults.drop_now(fault):
+            self._outcome(robot, Outcome.DROPPED)
             self._replies.hold(query)
             return
         error = check_request(request, robot=robot, digest=self._digest, cut_specs=self._cut_specs)
@@ -119,6 +124,7 @@ class Admission:
             reply = ErrorReply.make(
                 ErrorCode.NOT_SERVING, f"{self.deployment} does not serve {robot} now"
             )
+            self._outcome(robot, Outcome.NOT_SERVING)
             self._replies.send(query, key, reply.to_wire(), delay_s)
             return
         item = Pending(
@@ -130,7 +136,7 @@ class Admission:
         )
         refusal = self._queue.offer(item)
         if refusal is not None:
-            self._refusals.count(BUSY_REASONS[refusal])
+            self._count(robot, BUSY_REASONS[refusal])
             busy = BusyReply(
                 frame=request.frame,
                 deployment=self.deployment,
@@ -151,8 +157,18 @@ class Admission:
     ) -> None:
         """Answer a decoded request on `robot`'s key `key` with `error`, counted as `reason`,
         with one warning line."""
-        self._refusals.count(reason)
+        self._count(robot, reason)
         self._throttled.warning(
             "%s: refused frame %d of %s: %s", self.deployment, request.frame, robot, error.reason
         )
         self._replies.send(query, key, error.to_wire(), delay_s)
+
+    def _count(self, robot: str, reason: RefusalReason) -> None:
+        """A request of `robot` refused for `reason`: in the refusal counts and the metrics."""
+        self._refusals.count(reason)
+        if self._metrics is not None:
+            self._metrics.refused(robot, reason)
+
+    def _outcome(self, robot: str, outcome: Outcome) -> None:
+        if self._metrics is not None:
+            self._metrics.request(robot, outcome)

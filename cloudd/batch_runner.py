@@ -25,6 +25,8 @@ import numpy as np
 from cloudd.admission import Job
 from cloudd.batch_queue import Batch, BatchCosts, FairQueue, Pending
 from cloudd.batch_stats import BatchStats
+from cloudd.metrics import CloudMetrics, error_outcome
+from cloudd.refusals import decode_refusal
 from cloudd.replies import Replier
 from cloudd.robot_book import RobotBook
 from cloudd.validate import decode_tensors
@@ -53,6 +55,7 @@ class BatchRunner:
         replies: Replier,
         closing: threading.Event,
         throttled: ThrottledLog,
+        metrics: CloudMetrics | None = None,
     ) -> None:
         self.deployment = deployment
         self._model = model
@@ -64,6 +67,7 @@ class BatchRunner:
         self._replies = replies
         self._closing = closing
         self._throttled = throttled
+        self._metrics = metrics
 
     def run(self, batch: Batch[Job]) -> None:
         """Worker: answer the expired requests, then run the batch's requests together (one
@@ -100,6 +104,8 @@ class BatchRunner:
                     "%s: frame %d of %s: %s", self.deployment, request.frame, item.robot, exc.reason
                 )
                 self._release(item)
+                if self._metrics is not None:
+                    self._metrics.refused(item.robot, decode_refusal(exc))
                 self._replies.send(
                     item.payload.query, item.payload.key, error_reply(exc), self._replies.delay_s()
                 )
@@ -135,6 +141,8 @@ class BatchRunner:
         compute_s = time.monotonic() - started
         self._costs.record(group, len(ready), compute_s)
         self._stats.ran(len(ready))
+        if self._metrics is not None:
+            self._metrics.batch(len(ready))
         for (item, _), result in zip(ready, outputs, strict=True):
             self._answer(item, result, queue_s=started - item.arrived, compute_s=compute_s)
 
@@ -166,6 +174,8 @@ class BatchRunner:
             return
         compute_s = time.monotonic() - started
         self._stats.ran(1)
+        if self._metrics is not None:
+            self._metrics.batch(1)
         self._answer(item, outputs, queue_s=started - item.arrived, compute_s=compute_s)
 
     def _answer(
@@ -179,6 +189,8 @@ class BatchRunner:
         job, robot = item.payload, item.robot
         epoch = self._book.wire_epoch(robot)
         self._release(item)
+        if self._metrics is not None:
+            self._metrics.answered(robot, queue_s, compute_s)
         reply = InferReply(
             frame=job.request.frame,
             deployment=self.deployment,
@@ -197,6 +209,8 @@ class BatchRunner:
 
     def _answer_error(self, item: Pending[Job], error: ErrorReply) -> None:
         self._release(item)
+        if self._metrics is not None:
+            self._metrics.request(item.robot, error_outcome(error.error_code))
         self._replies.send(
             item.payload.query, item.payload.key, error.to_wire(), self._replies.delay_s()
         )

@@ -68,6 +68,13 @@ def cloud(
         "--inject-drop",
         help="Fault injection: probability of leaving an inference request unanswered.",
     ),
+    metrics_port: int | None = typer.Option(
+        None,
+        "--metrics-port",
+        metavar="PORT",
+        help="Serve Prometheus metrics on this port (/metrics); default: the machine's "
+        "metrics.port, else off.",
+    ),
     log_level: str = typer.Option(
         DEFAULT_LOG_LEVEL, "--log-level", envvar=LOG_LEVEL_ENV, help=LOG_LEVEL_HELP
     ),
@@ -77,7 +84,9 @@ def cloud(
         with logging_to_stderr(log_level):
             from cloudd.daemon import CloudDaemon
             from common.config import load_fleet
+            from common.metrics import check_port
 
+            check_port(metrics_port)
             cfg = load_fleet(config)
             machine = cfg.machine(deployment_id, role="cloud")
             fault = fault_from_flags(
@@ -87,7 +96,7 @@ def cloud(
                 inject_delay_ms,
                 inject_drop,
             )
-            daemon = CloudDaemon(cfg, deployment_id, fault=fault)
+            daemon = CloudDaemon(cfg, deployment_id, fault=fault, metrics_port=metrics_port)
             dump_threads_on_sigusr1()
             code = daemon.run()
     except UserError as exc:

@@ -68,6 +68,7 @@ from cloudd.control import Controller
 from cloudd.cpu_lanes import UsageMeter, lanes_supported
 from cloudd.faults import FaultInjector, describe
 from cloudd.limits import CloudLimits
+from cloudd.metrics import CloudMetrics
 from cloudd.probe import ProbeResponder
 from cloudd.refusals import Refusals
 from cloudd.registry_link import DRAIN_TIMEOUT_S, RegistryLink
@@ -80,6 +81,7 @@ from common import keys
 from common.config import FleetConfig, MachineConfig
 from common.daemon import Daemon
 from common.membership import MembershipView
+from common.metrics import MetricsEndpoint, serve
 from common.partition import TensorSpec
 from common.partition.runtime import SplitModel
 from common.wire.registry import (
@@ -127,6 +129,7 @@ class CloudDaemon(Daemon):
         *,
         fault: FaultSpec | None = None,
         drop_seed: int | None = None,
+        metrics_port: int | None = None,
     ) -> None:
         super().__init__()
         self.cfg = cfg
@@ -176,6 +179,10 @@ class CloudDaemon(Daemon):
         self._queue: FairQueue[Job] | None = None
         self._admission: Admission | None = None
         self._session: zenoh.Session | None = None
+        # `/metrics` (`cloudd.metrics`), when the machine's metrics.port or `metrics_port` is set.
+        self._metrics_port = metrics_port
+        self.metrics_endpoint: MetricsEndpoint | None = None
+        self.metrics: CloudMetrics | None = None
 
     # -- public ----------------------------------------------------------------------------
     @property
@@ -228,6 +235,7 @@ class CloudDaemon(Daemon):
 
     # -- lifecycle -------------------------------------------------------------------------
     def startup(self) -> None:
+        self._serve_metrics()
         self._load_model()
         if self.should_exit.is_set():
             return
@@ -293,6 +301,32 @@ class CloudDaemon(Daemon):
         log.info("%s: stopped", self.deployment)
 
     # -- startup steps ---------------------------------------------------------------------
+    def _serve_metrics(self) -> None:
+        endpoint = serve(self, self.machine.metrics, self._metrics_port, who=self.name)
+        if endpoint is None:
+            return
+        self.metrics_endpoint = endpoint
+        queue = self._queue_numbers
+        self.metrics = CloudMetrics(
+            endpoint.registry,
+            self.deployment,
+            states=self.states,
+            queue=queue,
+            providers=self.machine.providers,
+            model=self._model_names,
+        )
+
+    def _model_names(self) -> tuple[str, str]:
+        """(the fleet's model, its digest once loaded), for the metrics."""
+        model = self._model
+        return self.cfg.model, model.digest if model is not None else ""
+
+    def _queue_numbers(self) -> tuple[int, int, int] | None:
+        """(requests pending, requests queued, capacity), for the metrics; None before the
+        queue exists."""
+        queue = self._queue
+        return None if queue is None else (queue.load, queue.queued, queue.capacity)
+
     def _load_model(self) -> None:
         started = time.monotonic()
         log.info("%s: loading %s", self.deployment, self.cfg.model)
@@ -346,6 +380,7 @@ class CloudDaemon(Daemon):
             limits=self.limits,
             refusals=self.refusals,
             throttled=self.throttled,
+            metrics=self.metrics,
         )
         runner = BatchRunner(
             self.deployment,
@@ -358,6 +393,7 @@ class CloudDaemon(Daemon):
             replies=self._replies,
             closing=self.closing,
             throttled=self.throttled,
+            metrics=self.metrics,
         )
         yields = self.machine.batching.heavy_robots_low_priority and lanes_supported()
         workers = BatchWorkers(

@@ -153,6 +153,24 @@ class DispatchConfig(_Model):
         return self.pool_size or 0
 
 
+class MetricsConfig(_Model):
+    """Where a daemon serves its Prometheus metrics (`/metrics`, docs/metrics.md)."""
+
+    port: int | None = Field(
+        default=None,
+        ge=0,
+        le=65535,
+        description="TCP port of the daemon's /metrics endpoint; null: not served; 0: any free "
+        "port (logged).",
+    )
+    host: str = Field(
+        default="0.0.0.0",
+        min_length=1,
+        description="Address the /metrics endpoint binds (0.0.0.0: every interface, so a "
+        "Prometheus on another host can scrape it).",
+    )
+
+
 class RegistryConfig(_Model):
     """Where the registry is and how it runs."""
 
@@ -179,6 +197,10 @@ class RegistryConfig(_Model):
     tls: TlsConfig | None = Field(
         default=None,
         description="The registry's TLS files (cert and key; ca and mtls default to zenoh.tls).",
+    )
+    metrics: MetricsConfig = Field(
+        default_factory=MetricsConfig,
+        description="The registry's Prometheus /metrics endpoint (off unless a port is set).",
     )
     max_request_bytes: int = Field(
         default=DEFAULT_MAX_REQUEST_BYTES,
@@ -362,6 +384,10 @@ class MachineConfig(_Model):
         ge=1,
         description="Robot: offloaded frames in flight at once (pipelining); 1: each frame's "
         "result is awaited before the next frame starts.",
+    )
+    metrics: MetricsConfig = Field(
+        default_factory=MetricsConfig,
+        description="This machine's Prometheus /metrics endpoint (off unless a port is set).",
     )
 
     @model_validator(mode="after")

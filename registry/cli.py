@@ -23,6 +23,13 @@ def registry(
         help="sqlite file of the routing information base (default: registry.db of the fleet "
         "file, else <fleet>.rib.sqlite next to it).",
     ),
+    metrics_port: int | None = typer.Option(
+        None,
+        "--metrics-port",
+        metavar="PORT",
+        help="Serve Prometheus metrics on this port (/metrics); default: registry.metrics.port, "
+        "else off.",
+    ),
     log_level: str = typer.Option(
         DEFAULT_LOG_LEVEL, "--log-level", envvar=LOG_LEVEL_ENV, help=LOG_LEVEL_HELP
     ),
@@ -32,12 +39,14 @@ def registry(
     # Heavy imports (pydantic, zenoh, the wire codec) where the command runs: `elasticfog --help`
     # must stay fast.
     from common.config import load_fleet
+    from common.metrics import check_port
     from registry.daemon import run_registry
 
     try:
         with logging_to_stderr(log_level):
+            check_port(metrics_port)
             cfg = load_fleet(config)
-            code = run_registry(cfg, db_path=db)
+            code = run_registry(cfg, db_path=db, metrics_port=metrics_port)
     except UserError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(exc.exit_code) from None

@@ -69,11 +69,13 @@ from common.config import FleetConfig
 from common.daemon import Daemon
 from common.file_safety import check_private_file
 from common.membership import MemberChange, MembershipView
+from common.metrics import MetricsEndpoint, serve
 from common.session import open_session
 from common.wire import registry as msg
 from common.wire.telemetry import ProbeReport, TelemetryRecord
 from registry.latency import LatencyBound
 from registry.measurements import Measurements
+from registry.metrics import RESTORE, RegistryMetrics
 from registry.pools import PoolKeeper, pool_keeper, pool_planner
 from registry.prober import Probed, Prober
 from registry.profile_saver import PacedSaver
@@ -169,6 +171,7 @@ class RegistryDaemon(Daemon):
         restore_grace_s: float = RESTORE_GRACE_S,
         profile_save_interval_s: float = PROFILE_SAVE_INTERVAL_S,
         load_refresh_interval_s: float = LOAD_REFRESH_INTERVAL_S,
+        metrics_port: int | None = None,
     ) -> None:
         super().__init__()
         tune_collector()
@@ -208,6 +211,10 @@ class RegistryDaemon(Daemon):
         self._confirmed: set[str] = set()  # robots whose route was confirmed in this run
         self._started_at = 0.0
         self._started: _Started | None = None  # made in startup, dropped after shutdown
+        # `/metrics` (`registry.metrics`): off (counts nothing) unless a port is set.
+        self._metrics_port = metrics_port
+        self.metrics = RegistryMetrics(None)
+        self.metrics_endpoint: MetricsEndpoint | None = None
 
     # -- what startup made ---------------------------------------------------------------------
     @property
@@ -236,6 +243,12 @@ class RegistryDaemon(Daemon):
             check_private_file(self.db_path, "RIB file")  # refuse a world-writable RIB
         rib = self.hold(Rib(self.db_path), "RIB")
         rib.reset_liveness()
+        # Served while the RIB is open: released before it closes.
+        self.metrics_endpoint = serve(
+            self, cfg.registry.metrics, self._metrics_port, who=f"registry {self.id}"
+        )
+        if self.metrics_endpoint is not None:
+            self.metrics = RegistryMetrics(self.metrics_endpoint.registry, lambda: self.rib)
         self.measurements.restore(rib)
         # Released just before the RIB closes: by then the session is closed and nothing measures.
         self.on_release(self.measurements.save, rib, what="latency profiles")
@@ -369,6 +382,7 @@ class RegistryDaemon(Daemon):
             now = time.monotonic()
             if now >= next_tick:
                 self._safely(self._schedule_all)
+                self.metrics.round(time.monotonic() - now)
                 self._safely(saver.tick, now)
                 next_tick = now + self.tick_s
             if now >= next_refresh:
@@ -402,6 +416,7 @@ class RegistryDaemon(Daemon):
             self._events.put(_Evaluate(rec.robot))
 
     def _on_probe_report(self, sample: zenoh.Sample) -> None:
+        self.metrics.probe_report()
         rep = self._publications.read(sample, ProbeReport, "probe report")
         if rep is not None:
             self.measurements.record_probe_report(rep, str(sample.key_expr))
@@ -518,7 +533,9 @@ class RegistryDaemon(Daemon):
                 # A robot not back yet holds no room there: a round counts it once it is.
                 pool = route.pool if row is not None and row.alive else None
                 self.measurements.set_route(result.robot, result.deployment, result.epoch, pool)
-                if not result.changed:
+                if result.changed:
+                    self.metrics.route_change(RESTORE, None)
+                else:
                     # Tell the robot again (receivers ignore an epoch they hold already).
                     self._publish(route.robot, deployment, result.epoch, "restore", pool=route.pool)
                 log.info(
@@ -609,6 +626,8 @@ class RegistryDaemon(Daemon):
                 scheduler.record_failure(decision.robot)
         else:
             result = carry_out(scheduler, switcher, decision)
+        if result.changed:
+            self.metrics.route_change(decision.reason.value, result.previous)
         if result.changed and decision.reason is Reason.NO_CAPACITY:
             self.measurements.set_route(result.robot, None, result.epoch)
             log.info(
@@ -660,6 +679,8 @@ def _latency_bound(cfg: FleetConfig) -> LatencyBound:
     )
 
 
-def run_registry(cfg: FleetConfig, *, db_path: str | Path | None = None) -> int:
+def run_registry(
+    cfg: FleetConfig, *, db_path: str | Path | None = None, metrics_port: int | None = None
+) -> int:
     """Run the registry in this (main) thread until SIGINT/SIGTERM; returns the exit code."""
-    return RegistryDaemon(cfg, db_path=db_path).run()
+    return RegistryDaemon(cfg, db_path=db_path, metrics_port=metrics_port).run()

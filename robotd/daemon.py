@@ -66,6 +66,7 @@ from common.config import FleetConfig
 from common.daemon import Daemon
 from common.errors import UserError
 from common.membership import MemberChange, MembershipView
+from common.metrics import MetricsEndpoint, check_port, serve
 from common.partition.runtime import SplitModel
 from common.session import open_session
 from common.wire.tensor_codecs import encode_tensor_as
@@ -80,6 +81,7 @@ from robotd.emulation import (
 from robotd.entropy import frame_entropy
 from robotd.failure_runs import FailureRuns
 from robotd.frame import Frame, FrameResult
+from robotd.metrics import RobotMetrics
 from robotd.model_runs import ModelRuns
 from robotd.offload import FINISH_GRACE_S, STOP_POLL_S, LocalRunner
 from robotd.pacing import FramePacer, TokenBucket
@@ -129,6 +131,7 @@ class RobotOptions:
     robot_slowdown: float = 1.0
     phases: tuple[Phase, ...] = ()
     max_in_flight: int | None = None
+    metrics_port: int | None = None  # None: the machine's `metrics.port` (off if unset)
 
     @property
     def initial_slowdown(self) -> float:
@@ -150,6 +153,7 @@ class RobotOptions:
         if self.max_in_flight is not None and self.max_in_flight < 1:
             raise UserError(f"--max-in-flight must be at least 1, got {self.max_in_flight}")
         check_slowdown(self.robot_slowdown)
+        check_port(self.metrics_port)
 
 
 class RobotDaemon(Daemon):
@@ -213,6 +217,7 @@ class RobotDaemon(Daemon):
         # phases switch it and the uplink at frame boundaries.
         self._slowdown = Slowdown(self.options.initial_slowdown, stop=self.should_exit)
         self._emulation: Emulation
+        self.metrics: MetricsEndpoint | None = None  # `/metrics`, when its port is set
 
     # -- public ----------------------------------------------------------------------------
     @property
@@ -234,6 +239,11 @@ class RobotDaemon(Daemon):
     # -- lifecycle -------------------------------------------------------------------------
     def startup(self) -> None:
         cfg = self.config
+        self.metrics = serve(
+            self, self.machine.metrics, self.options.metrics_port, who=f"robot {self.robot}"
+        )
+        if self.metrics is not None:
+            self._sink.metrics = RobotMetrics(self.metrics.registry, self.robot, lambda: self.route)
         self.model = self.hold(open_split_model(cfg, self.machine), "model sessions")
         self._robot_model = robot_model = RobotModel(self.model, cfg.model)
         warm_up(self.model, robot_model.sample_feeds)

@@ -80,6 +80,13 @@ def robot_command(
         metavar="N",
         help="Offloaded frames in flight at once (pipelining); default: the machine's (1).",
     ),
+    metrics_port: int | None = typer.Option(
+        None,
+        "--metrics-port",
+        metavar="PORT",
+        help="Serve Prometheus metrics on this port (/metrics); default: the machine's "
+        "metrics.port, else off.",
+    ),
     seed: int = typer.Option(0, "--seed", help="Seed of the synthetic and photo frame sources."),
     json_out: bool = typer.Option(False, "--json", help="Print the summary as JSON on stdout."),
     log_level: str = typer.Option(
@@ -113,6 +120,7 @@ def robot_command(
                 robot_slowdown=robot_slowdown,
                 phases=loaded,
                 max_in_flight=max_in_flight,
+                metrics_port=metrics_port,
             )
             daemon = RobotDaemon(cfg, robot_id, options)
             code = daemon.run()

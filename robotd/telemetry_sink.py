@@ -1,6 +1,7 @@
 """Where the robot's telemetry goes: each served frame's record to `tele/<robot>`, to the
 `--telemetry` JSONL file (`robotd.telemetry`) and into the run summary; probe reports to
-`tele/<robot>/probe`.
+`tele/<robot>/probe`; with a `/metrics` endpoint, each frame into the robot's Prometheus
+metrics too (`robotd.metrics`), counted where the summary counts it.
 
 The sink holds no resource of its own: its publishers and the file are entered into the daemon's
 lifecycle as they are made, which releases them at shutdown. Publishing a frame's record is
@@ -18,6 +19,7 @@ from common import keys
 from common.daemon import Daemon
 from common.wire.telemetry import ProbeReport, TelemetryRecord
 from robotd.frame import Frame
+from robotd.metrics import RobotMetrics
 from robotd.telemetry import RunSummary, TelemetryFile, jsonl_object
 
 log = logging.getLogger("robotd")
@@ -33,6 +35,7 @@ class TelemetrySink:
         self.frames: zenoh.Publisher | None = None
         self.probes: zenoh.Publisher | None = None
         self.file: TelemetryFile | None = None
+        self.metrics: RobotMetrics | None = None  # with a /metrics endpoint (`robotd.metrics`)
 
     def declare(self, owner: Daemon, session: zenoh.Session, fleet: str) -> None:
         """Declare the frame and probe publishers, held by `owner`'s lifecycle."""
@@ -60,6 +63,8 @@ class TelemetrySink:
                 )
             )
         self.summary.add(record, hedged=f.hedged, served_by=f.served_by)
+        if self.metrics is not None:
+            self.metrics.frame(record, f.served_by)
 
     def probe(self, report: ProbeReport) -> None:
         """Publish one probe report (the prober's callback)."""

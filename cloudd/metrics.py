@@ -1,0 +1,204 @@
+"""The cloud daemon's Prometheus metrics (docs/metrics.md, "cloud").
+
+Counted where the daemon already decides: `request(robot, outcome)` where a request is refused
+(`cloudd.admission`, beside the refusal counts) or answered with an error (`cloudd.batch_runner`),
+`answered(robot, queue_s, compute_s)` where a reply with outputs goes out (the outcome `ok` and
+the queue and compute histograms, the times the reply itself carries), `batch(size)` where a
+batch has run. Read at scrape time: requests pending and the capacity (the queue), each robot's
+state here (the robot book), the execution providers and the model.
+
+Names follow Triton's where the meaning is the same (`inference_request`, `queue_duration`,
+`compute_infer_duration`, `pending_request`, `inference_exec`), in Prometheus's base units
+(seconds, not Triton's microseconds) and with its suffixes (`_total`, `_seconds`).
+"""
+
+from __future__ import annotations
+
+import enum
+from collections.abc import Callable, Iterator, Sequence
+
+from prometheus_client import CollectorRegistry, Counter, Histogram
+from prometheus_client.core import GaugeMetricFamily, InfoMetricFamily, Metric
+
+from cloudd.refusals import RefusalReason
+from cloudd.state import RobotState
+from common.metrics import BATCH_SIZE_BUCKETS, LATENCY_BUCKETS_S, NAMESPACE, ReadCollector
+from common.wire import ErrorCode
+from common.wire.registry import DeploymentState
+
+
+class Outcome(str, enum.Enum):
+    """What became of an inference request (the `outcome` label)."""
+
+    OK = "ok"  # answered with its outputs
+    BUSY = "busy"  # refused at once: queue full, the robot at its in-flight limit, stopping
+    ERROR = "error"  # the suffix failed, or an unexpected error (INTERNAL)
+    TOO_LARGE = "too_large"  # a payload or tensor over the deployment's limits
+    WRONG_ROBOT = "wrong_robot"  # the body names another robot than its key
+    BAD_REQUEST = "bad_request"  # does not decode, or does not fit this model
+    NOT_SERVING = "not_serving"  # reached a deployment not serving its robot (crossed a switch)
+    EXPIRED = "expired"  # its deadline passed in the queue: answered without computing
+    DROPPED = "dropped"  # held unanswered by fault injection (drop or stall)
+
+    def __str__(self) -> str:
+        return self.value
+
+
+REFUSAL_OUTCOMES = {
+    RefusalReason.REQUEST_TOO_LARGE: Outcome.TOO_LARGE,
+    RefusalReason.TENSOR_TOO_LARGE: Outcome.TOO_LARGE,
+    RefusalReason.ECHO_TOO_LARGE: Outcome.TOO_LARGE,
+    RefusalReason.WRONG_ROBOT: Outcome.WRONG_ROBOT,
+    RefusalReason.ROBOT_IN_FLIGHT: Outcome.BUSY,
+    RefusalReason.QUEUE_FULL: Outcome.BUSY,
+    RefusalReason.STOPPING: Outcome.BUSY,
+    RefusalReason.BAD_REQUEST: Outcome.BAD_REQUEST,
+}
+"""The outcome of a request refused for each counted reason."""
+
+ERROR_OUTCOMES = {
+    ErrorCode.DEADLINE_EXPIRED: Outcome.EXPIRED,
+    ErrorCode.NOT_SERVING: Outcome.NOT_SERVING,
+}
+"""The outcome of an error reply by its code; any other code a worker answers is `error`."""
+
+
+def error_outcome(code: ErrorCode | None) -> Outcome:
+    """The outcome of a request a worker answered with error `code` (None: a code this build
+    does not know)."""
+    return ERROR_OUTCOMES.get(code, Outcome.ERROR) if code is not None else Outcome.ERROR
+
+
+class CloudMetrics:
+    """The metrics of deployment `deployment` in `registry`.
+
+    `states()`: each robot's state here; `queue()`: (requests pending, requests queued,
+    capacity), or None before the queue exists; `providers` and `model` describe the sessions.
+    """
+
+    def __init__(
+        self,
+        registry: CollectorRegistry,
+        deployment: str,
+        *,
+        states: Callable[[], dict[str, RobotState]],
+        queue: Callable[[], tuple[int, int, int] | None],
+        providers: Sequence[str],
+        model: Callable[[], tuple[str, str]],
+    ) -> None:
+        self.deployment = deployment
+        self._states = states
+        self._queue = queue
+        self._providers = tuple(providers)
+        self._model = model
+        ns, sub = NAMESPACE, "cloud"
+        self._requests = Counter(
+            "inference_requests",
+            "Inference requests on the robots' service keys, by robot and outcome.",
+            ["deployment", "robot", "outcome"],
+            namespace=ns,
+            subsystem=sub,
+            registry=registry,
+        )
+        self._queue_s = Histogram(
+            "inference_queue_duration_seconds",
+            "Seconds an answered request waited in the queue for a worker.",
+            ["deployment"],
+            namespace=ns,
+            subsystem=sub,
+            buckets=LATENCY_BUCKETS_S,
+            registry=registry,
+        ).labels(deployment)
+        self._compute_s = Histogram(
+            "inference_compute_infer_duration_seconds",
+            "Seconds of the suffix run that computed an answered request (its whole batch's).",
+            ["deployment"],
+            namespace=ns,
+            subsystem=sub,
+            buckets=LATENCY_BUCKETS_S,
+            registry=registry,
+        ).labels(deployment)
+        self._batch = Histogram(
+            "inference_batch_size",
+            "Requests per model run (1 without batching).",
+            ["deployment"],
+            namespace=ns,
+            subsystem=sub,
+            buckets=BATCH_SIZE_BUCKETS,
+            registry=registry,
+        ).labels(deployment)
+        self._by: dict[tuple[str, Outcome], Counter] = {}
+        registry.register(ReadCollector(self._read, "the deployment's queue and states"))
+
+    # -- counted where the daemon decides ------------------------------------------------------
+    def request(self, robot: str, outcome: Outcome) -> None:
+        """One request of `robot` came to `outcome`."""
+        key = (robot, outcome)
+        counter = self._by.get(key)
+        if counter is None:
+            counter = self._by[key] = self._requests.labels(self.deployment, robot, outcome.value)
+        counter.inc()
+
+    def refused(self, robot: str, reason: RefusalReason) -> None:
+        """One request of `robot` refused for `reason` (as `cloudd.refusals` counts it)."""
+        self.request(robot, REFUSAL_OUTCOMES[reason])
+
+    def answered(self, robot: str, queue_s: float, compute_s: float) -> None:
+        """One request of `robot` answered with its outputs, after these seconds."""
+        self.request(robot, Outcome.OK)
+        self._queue_s.observe(queue_s)
+        self._compute_s.observe(compute_s)
+
+    def batch(self, size: int) -> None:
+        """One model run of `size` requests."""
+        self._batch.observe(size)
+
+    # -- read at scrape time -------------------------------------------------------------------
+    def _read(self) -> Iterator[Metric]:
+        ns, d = NAMESPACE, self.deployment
+        queue = self._queue()
+        if queue is not None:
+            pending, queued, capacity = queue
+            for name, text, value in (
+                (
+                    "inference_pending_requests",
+                    "Requests admitted and not answered yet (queued or running).",
+                    pending,
+                ),
+                ("inference_queued_requests", "Requests waiting for a worker.", queued),
+                ("capacity_requests", "Requests admitted at once at most.", capacity),
+            ):
+                g = GaugeMetricFamily(f"{ns}_cloud_{name}", text, labels=["deployment"])
+                g.add_metric([d], value)
+                yield g
+        state = GaugeMetricFamily(
+            f"{ns}_cloud_robot_state",
+            "Each robot's state here: 1 for the state it is in, 0 for the others.",
+            labels=["deployment", "robot", "state"],
+        )
+        for robot, st in sorted(self._states().items()):
+            for s in DeploymentState:
+                state.add_metric([d, robot, s.value], 1.0 if st.state is s else 0.0)
+        yield state
+        name, digest = self._model()
+        info = InfoMetricFamily(
+            f"{ns}_cloud_model",
+            "The model this deployment serves and the execution providers of its sessions, "
+            "in order of preference.",
+            labels=["deployment"],
+        )
+        info.add_metric(
+            [d], {"model": name, "digest": digest, "providers": ",".join(self._providers)}
+        )
+        yield info
+        ranks = GaugeMetricFamily(
+            f"{ns}_cloud_provider_rank",
+            "Each execution provider of the sessions and its rank (0: preferred).",
+            labels=["deployment", "provider"],
+        )
+        for rank, provider in enumerate(self._providers):
+            ranks.add_metric([d, provider], rank)
+        yield ranks
+
+
+__all__ = ["ERROR_OUTCOMES", "REFUSAL_OUTCOMES", "CloudMetrics", "Outcome", "error_outcome"]
