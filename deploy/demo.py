@@ -70,6 +70,11 @@ COMPARE_POLICIES = ("robot", "cloud:jpeg80")
 """`--compare` runs these after the demo's own policy: all on the robot, and the compressed full
 offload that a user would do anyway (DESIGN.md: the baseline to beat)."""
 DEFAULT_FPS = 15.0
+METRICS_DAEMONS = ("registry", *CLOUD_IDS, ROBOT_ID)
+"""The daemons `--metrics` exposes, in the order of `--metrics-port-base`'s ports."""
+METRICS_HOST = "127.0.0.1"
+"""The demo's fleet runs on loopback: so do its metrics endpoints."""
+MAX_PORT = 65535
 STARTUP_TIMEOUT_S = 60.0
 """Per stage (registry, clouds): daemons import onnxruntime and load the cached split."""
 ROBOT_SLACK_S = 60.0
@@ -97,6 +102,21 @@ class DemoOptions:
     workdir: Path | None = None
     tls: bool = False
     """Mutual TLS and access control on every link (`elasticfog init --tls`'s fleet)."""
+    metrics: bool = False
+    """Every daemon serves Prometheus metrics (docs/metrics.md) on a free loopback port."""
+    metrics_port_base: int | None = None
+    """...on consecutive ports from this one instead (registry, edge-1, edge-2, robot-1)."""
+
+    def metrics_ports(self) -> dict[str, int] | None:
+        """Daemon -> its /metrics port, or None without metrics (ports chosen now)."""
+        from deploy.procs import free_tcp_port
+
+        if self.metrics_port_base is not None:
+            base = self.metrics_port_base
+            return {name: base + i for i, name in enumerate(METRICS_DAEMONS)}
+        if self.metrics:
+            return {name: free_tcp_port() for name in METRICS_DAEMONS}
+        return None
 
     def resolve(self) -> DemoScript:
         """The script this run follows, with the command line's overrides; UserError naming the
@@ -115,6 +135,13 @@ class DemoOptions:
             check_slowdown(self.robot_slowdown)
         if self.policy is not None:
             _check_policy(self.policy)
+        if self.metrics_port_base is not None and not (
+            1 <= self.metrics_port_base <= MAX_PORT - len(METRICS_DAEMONS) + 1
+        ):
+            raise UserError(
+                f"--metrics-port-base {self.metrics_port_base}: expected a TCP port in 1.."
+                f"{MAX_PORT - len(METRICS_DAEMONS) + 1} (the demo takes {len(METRICS_DAEMONS)})"
+            )
         if self.script is not None and self.frames is not None:
             raise UserError("--script and --frames: give one (a script sets its own frames)")
         if self.script is not None:
@@ -262,8 +289,13 @@ def _run(
 
     started = time.monotonic()
     policy = options.policy or DEFAULT_POLICY
+    ports = options.metrics_ports()
     cfg_path = write_local_fleet(
-        workdir, fleet=f"demo-{os.getpid()}", model=options.model, tls=options.tls
+        workdir,
+        fleet=f"demo-{os.getpid()}",
+        model=options.model,
+        tls=options.tls,
+        changes=None if ports is None else metrics_changes(ports),
     )
     cfg = load_fleet(cfg_path)
     with console.status(f"preparing {cfg.model} (split and verify; cached after the first run)"):
@@ -273,6 +305,9 @@ def _run(
     telemetry_path = workdir / "telemetry.jsonl"
     result = DemoResult(summary={}, workdir=workdir)
     view = LiveView(script, policy, console, enabled=show)
+    urls = metrics_urls(ports)
+    for name, url in urls.items():
+        console.print(f"{name}: metrics on {url}", highlight=False)
 
     with LocalFleet(cfg_path, workdir, startup_timeout_s=STARTUP_TIMEOUT_S) as fleet:
         killer = KillSwitch(fleet, ROBOT_ID, script.kill_at)
@@ -309,6 +344,7 @@ def _run(
     result.summary = {
         "policy": policy,
         "tls": cfg.tls,
+        **({"metrics": urls} if urls else {}),
         **summary,
         "phases": summarize_phases(records, script.phases),
         "wall_s": round(time.monotonic() - started, 1),
@@ -320,6 +356,20 @@ def _run(
             f"{ROBOT_ID} exited with code {result.robot_exit}: {last}; log: {robot.log_path}"
         )
     return result
+
+
+def metrics_changes(ports: dict[str, int]) -> dict[str, Any]:
+    """What the demo's fleet file gets for `--metrics`: each daemon's endpoint on loopback."""
+    machines = {
+        name: {"metrics": {"port": port, "host": METRICS_HOST}} for name, port in ports.items()
+    }
+    registry = machines.pop("registry")
+    return {"registry": registry, "machines": machines}
+
+
+def metrics_urls(ports: dict[str, int] | None) -> dict[str, str]:
+    """Daemon -> the URL of its /metrics ({} without metrics)."""
+    return {n: f"http://{METRICS_HOST}:{p}/metrics" for n, p in (ports or {}).items()}
 
 
 @dataclass
@@ -437,6 +487,19 @@ def demo(
         help="Mutual TLS and access control on every link (certificates made in the temporary "
         "folder, as `elasticfog init --tls` does).",
     ),
+    metrics: bool = typer.Option(
+        False,
+        "--metrics",
+        help="Every daemon serves Prometheus metrics on a free loopback port (listed at start "
+        "and in the summary's `metrics`); docs/metrics.md.",
+    ),
+    metrics_port_base: int | None = typer.Option(
+        None,
+        "--metrics-port-base",
+        metavar="PORT",
+        help="Like --metrics, on ports PORT (registry), PORT+1 (edge-1), PORT+2 (edge-2), "
+        "PORT+3 (robot-1).",
+    ),
     keep: bool = typer.Option(False, "--keep", help="Keep the temporary folder (fleet, logs)."),
     as_json: bool = typer.Option(False, "--json", help="Print the summary as JSON on stdout."),
 ) -> None:
@@ -455,6 +518,8 @@ def demo(
         source=source,
         keep=keep,
         tls=tls,
+        metrics=metrics,
+        metrics_port_base=metrics_port_base,
     )
     try:
         if plot is not None and plot.suffix.lower() != ".png":

@@ -10,7 +10,11 @@ failover; every name docs/metrics.md lists is served by the daemon it names.
 
 from __future__ import annotations
 
+import json
+import os
 import re
+import signal
+import subprocess
 import urllib.request
 from collections import Counter
 from pathlib import Path
@@ -19,8 +23,9 @@ from typing import Any
 import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
-from deploy.demo import answered_by, read_telemetry
-from deploy.procs import free_tcp_port, wait_until
+from deploy.demo import METRICS_DAEMONS, answered_by, read_telemetry
+from deploy.demo import ROBOT_ID as DEMO_ROBOT
+from deploy.procs import elasticfog_argv, free_tcp_port, wait_until
 
 pytestmark = [pytest.mark.e2e, pytest.mark.usefixtures("e2e_watchdog")]
 
@@ -32,6 +37,10 @@ SLOW_FPS = 4.0
 sees the same frames as its telemetry file."""
 QUIET_TRIES = 40
 """Bound of the tries for a scrape between two frames (each waits for the next frame)."""
+DEMO_FRAMES = 30
+DEMO_START_S = 60.0
+"""Bound of the demo's start (model split, four daemons) and of its run after the scrape."""
+MAX_PORT = 65535
 DOCS = Path(__file__).resolve().parents[2] / "docs" / "metrics.md"
 
 Samples = dict[tuple[str, frozenset[tuple[str, str]]], float]
@@ -181,11 +190,7 @@ def test_counters_of_a_running_fleet_agree_with_its_telemetry(
     documented = documented_names()
     assert set(documented) == {"robot", "cloud", "registry"}
     for daemon, names in documented.items():
-        missing = [
-            n
-            for n in names
-            if not {n, f"{n}_total", f"{n}_count", f"{n}_info"} & served_names[daemon]
-        ]
+        missing = [n for n in names if not _served(n, served_names[daemon])]
         assert not missing, f"{daemon}: documented but not served: {missing}"
 
     result = robot.stop()
@@ -203,3 +208,90 @@ def _refused(url: str) -> bool:
     except OSError:
         return True
     return False
+
+
+def _free_run(length: int, tries: int = 50) -> int:
+    """The first of `length` consecutive TCP ports free on loopback right now."""
+    import socket
+
+    for _ in range(tries):
+        base = free_tcp_port()
+        if base + length - 1 > MAX_PORT:
+            continue
+        socks = []
+        try:
+            for port in range(base, base + length):
+                sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+                socks.append(sock)
+                sock.bind(("127.0.0.1", port))
+            return base
+        except OSError:
+            continue
+        finally:
+            for sock in socks:
+                sock.close()
+    raise AssertionError(f"no {length} consecutive free ports in {tries} tries")
+
+
+def test_demo_metrics_serves_every_documented_name_on_each_daemon(
+    demo_model: str, tmp_path: Path
+) -> None:
+    """`elasticfog demo --metrics-port-base P`: while it runs, each of its four daemons answers
+    on its port with the names docs/metrics.md lists for it; the summary lists the URLs."""
+    base = _free_run(len(METRICS_DAEMONS))
+    argv = [*elasticfog_argv(), "demo", "--frames", str(DEMO_FRAMES), "--fps", str(SLOW_FPS)]
+    argv += ["--policy", "cloud", "--metrics-port-base", str(base), "--json"]
+    work = tmp_path / "tmp"
+    work.mkdir()
+    demo = subprocess.Popen(
+        argv,
+        env=dict(os.environ, TMPDIR=str(work)),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+    urls = {name: f"http://127.0.0.1:{base + i}/metrics" for i, name in enumerate(METRICS_DAEMONS)}
+    try:
+        wait_until(
+            lambda: _frames_served(urls[DEMO_ROBOT]) > 0,
+            timeout_s=DEMO_START_S,
+            what="the demo robot's first frame on its /metrics",
+        )
+        scraped = {name: scrape(url) for name, url in urls.items()}
+        out, err = demo.communicate(timeout=DEMO_START_S)
+    finally:
+        if demo.poll() is None:
+            os.killpg(demo.pid, signal.SIGINT)
+            demo.wait(timeout=DEMO_START_S)
+    assert demo.returncode == 0, err[-3000:]
+    assert json.loads(out)["metrics"] == urls
+    documented = documented_names()
+    for name, samples in scraped.items():
+        daemon = "cloud" if name.startswith("edge") else name.split("-")[0]
+        served = {n for n, _ in samples}
+        missing = [n for n in documented[daemon] if not _served(n, served)]
+        if name != "edge-1":  # the standby: a robot's requests are counted from its first
+            missing = [n for n in missing if n != "elasticfog_cloud_inference_requests_total"]
+        assert not missing, f"{name}: documented but not served: {missing}"
+
+
+def _served(name: str, served: set[str]) -> bool:
+    return bool({name, f"{name}_total", f"{name}_count", f"{name}_info"} & served)
+
+
+def _frames_served(url: str) -> float:
+    try:
+        return total(scrape(url), "elasticfog_robot_frames_total")
+    except OSError:
+        return 0.0
+
+
+@pytest.fixture(scope="module")
+def demo_model(e2e_cache: Path) -> str:
+    """The demo's model split into the test cache once."""
+    from common.init_cli import DEFAULT_MODEL
+    from common.partition import load_partition
+
+    load_partition(DEFAULT_MODEL)
+    return DEFAULT_MODEL
