@@ -25,6 +25,11 @@ from deploy.testbed import DEFAULT_HOSTS
 DEPLOY_DIR = Path(__file__).resolve().parents[2] / "deploy"
 COMPOSE_FILE = DEPLOY_DIR / "docker-compose.yml"
 SERVICES = ("registry", "robot", "edge-1", "edge-2", "cloud-1")
+OBSERVERS = ("prometheus", "grafana")
+"""Services beside the fleet: they scrape and draw its metrics (docs/metrics.md)."""
+PROMETHEUS_FILE = DEPLOY_DIR / "prometheus.yml"
+DASHBOARD_FILE = DEPLOY_DIR / "grafana" / "elasticfog.json"
+METRICS_DOC = DEPLOY_DIR.parent / "docs" / "metrics.md"
 # Commands a service's shell may run before it execs the daemon (the robot shapes its uplink).
 SHELL_TOOLS = {"tc", "ip"}
 # The daemon each `elasticfog` subcommand runs, and the role its --id must have in the fleet.
@@ -117,7 +122,7 @@ def _fleet_for(service: dict[str, Any]) -> FleetConfig:
 
 def test_compose_has_the_testbed_hosts() -> None:
     services = _compose()["services"]
-    assert set(services) == set(SERVICES)
+    assert set(services) == set(SERVICES) | set(OBSERVERS)
     # The namespace testbed's default hosts are the same, so the fleet file runs in both.
     assert set(DEFAULT_HOSTS) == set(SERVICES)
 
@@ -198,3 +203,44 @@ def test_clouds_and_robot_start_after_their_dependencies_are_healthy() -> None:
             assert condition == {"condition": "service_healthy"}
     assert "registry" in _service("edge-1")["depends_on"]
     assert set(_service("robot")["depends_on"]) == {"edge-1", "edge-2", "cloud-1"}
+
+
+def test_prometheus_scrapes_every_daemon_on_its_metrics_port() -> None:
+    """Each fleet service is a target at the port its machine serves /metrics on."""
+    fleet = _fleet_for(_service("registry"))
+    ports = {"registry": fleet.registry.metrics.port}
+    ports.update({m: fleet.machines[m].metrics.port for m in fleet.cloud_ids})
+    ports["robot"] = fleet.machines["robot-1"].metrics.port
+    assert all(p is not None for p in ports.values()), ports
+    config = yaml.safe_load(PROMETHEUS_FILE.read_text())
+    targets = {
+        t for job in config["scrape_configs"] for sc in job["static_configs"] for t in sc["targets"]
+    }
+    assert targets == {f"{host}:{port}" for host, port in ports.items()}
+    mounts = _bind_mounts(_service("prometheus"))
+    assert mounts["/etc/prometheus/prometheus.yml"] == PROMETHEUS_FILE.resolve()
+
+
+def test_dashboard_queries_only_documented_metrics() -> None:
+    """Every metric the dashboard draws is one docs/metrics.md documents (a renamed metric
+    would leave a panel empty), and the panels the operators need are there."""
+    import json
+    import re
+
+    dashboard = json.loads(DASHBOARD_FILE.read_text())
+    exprs = [t["expr"] for p in dashboard["panels"] for t in p["targets"]]
+    used = {
+        re.sub(r"_(bucket|count|sum|total)$", "", n)
+        for e in exprs
+        for n in re.findall(r"elasticfog_[a-z_]+", e)
+    }
+    documented = {
+        re.sub(r"_total$", "", n)
+        for n in re.findall(r"^\| `(elasticfog_[a-z_]+)`", METRICS_DOC.read_text(), re.M)
+    }
+    assert used and used <= documented, used - documented
+    titles = " / ".join(p["title"] for p in dashboard["panels"]).lower()
+    for needed in ("frames/s", "p95", "actions", "fallbacks", "failovers", "per-deployment load"):
+        assert needed in titles, f"no panel for {needed}"
+    mounts = _bind_mounts(_service("grafana"))
+    assert DASHBOARD_FILE.resolve() in mounts.values()
