@@ -47,15 +47,20 @@ Admission: a robot to be placed (no route, or its deployment lost) when every us
 frame itself, as without a route) once, and is placed by a later round's `initial` as soon as a
 deployment has room. A deployment of unknown capacity is never full.
 
-Placement by load (`initial`): a deployment's committed load is its reported load or the robots
-routed to it (`RobotView.routed`), whichever is more: a robot takes a request slot as soon as it is
-routed, while a reported load is seconds old, so a round that places several robots would pile
-them all onto the deployment that reported room. Targets whose committed load is below
-`1 - busy_headroom` of their capacity (the busy trigger's room to spare) come first, in rank order;
-the others are `crowded` in the decision, so the initial policy's preference (applied after the
-scheduler, `registry.round_inputs.prefer_initial`) does not send a robot there while another has
-room. With room nowhere the targets are ordered by committed share, those meeting the bound first:
-robots spread instead of all going to the first in rank.
+Placement by load (`initial`), from a robot's first registration: a deployment's committed load
+is its reported load or the robots routed to it (`RobotView.routed`), whichever is more: a robot
+takes a request slot as soon as it is routed, while a reported load is seconds old, so a round
+that places several robots would pile them all onto the deployment that reported room. Targets
+whose committed load is below `1 - busy_headroom` of their capacity (the busy trigger's room to
+spare) come first: those predicted to meet the bound first, then the one with the most headroom
+(the least committed share of its capacity), then by rank. So robots spread across deployments
+from the start, not onto the first until it is crowded. Every target with less headroom than
+the choice (or no room to spare) is `crowded` in the decision, so the initial policy's preference
+(applied after the scheduler, `registry.round_inputs.prefer_initial`) only breaks ties: it never
+sends a robot where another deployment has more room. With room nowhere the targets are ordered
+by committed share, those meeting the bound first. The placement is a robot's first route, so it
+does not start the dwell time; later moves keep their hysteresis (a `better` move needs room to
+spare as well, so it does not undo the spread by crowding one deployment).
 """
 
 from __future__ import annotations
@@ -222,7 +227,8 @@ class RouteDecision:
 
     `candidates` lists acceptable targets best first (`to_deployment` first) so the switch protocol
     can fall back to the next one when a deployment does not acknowledge. `crowded` (an initial
-    placement only) names the candidates without room to spare for one more robot.
+    placement only) names the candidates with less room than the choice (or none to spare for one
+    more robot): the initial policy's preference may pick among the others only.
     """
 
     robot: str
@@ -469,7 +475,8 @@ class Scheduler:
 
     def _place(self, robot: RobotView, targets: list[_Candidate]) -> RouteDecision:
         """An initial placement by load (module docstring): the targets with room for one more
-        robot first, in rank order, then the crowded ones, named in the decision."""
+        robot first, those meeting the bound first, then the most headroom first; every target
+        with less room than the choice is named crowded in the decision."""
         share = 1 - self.params.busy_headroom
         room: list[_Candidate] = []
         crowded: list[_Candidate] = []
@@ -478,14 +485,23 @@ class Scheduler:
                 c.deployment, _committed(robot, c.deployment), share
             )
             (room if roomy else crowded).append(c)
-        if not room:
-            # Nowhere with room to spare: the least committed first, or every robot of a round
-            # would go to the first in rank (the one that met the bound or had the lowest id).
-            crowded.sort(
-                key=lambda c: (c.tier, _committed_share(robot, c.deployment), c.sort_key())
-            )
-        decision = _move(robot.id, robot.route, room + crowded, Reason.INITIAL)
-        return replace(decision, crowded=tuple(c.deployment.id for c in crowded))
+
+        def by_load(c: _Candidate) -> tuple[int, float, tuple[int, bool, float, bool, float, str]]:
+            # Tier (meets the bound), committed share (least first), then rank.
+            return (c.tier, _committed_share(robot, c.deployment), c.sort_key())
+
+        # With room nowhere, the least committed first too: otherwise every robot of a round
+        # would go to the first in rank (the one that met the bound or had the lowest id).
+        room.sort(key=by_load)
+        crowded.sort(key=by_load)
+        order = room + crowded
+        first = by_load(order[0])[:2]
+        # Ties with the choice (same tier, same share) are the initial policy's to break.
+        tied = {c.deployment.id for c in room if by_load(c)[:2] == first}
+        decision = _move(robot.id, robot.route, order, Reason.INITIAL)
+        return replace(
+            decision, crowded=tuple(c.deployment.id for c in order if c.deployment.id not in tied)
+        )
 
     def _on_violation(
         self,

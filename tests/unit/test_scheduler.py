@@ -83,7 +83,10 @@ def test_initial_route_is_the_lowest_predicted_deployment_meeting_the_bound(
     deps = [dep("a"), dep("b"), dep("c")]
     profiles = {"a": window(0.05, clock), "b": window(0.03, clock)}
     decision = sched.evaluate(robot(None), deps, profiles)
-    assert decision == RouteDecision(ROBOT, None, "b", Reason.INITIAL, ("b", "a", "c"), 0.03)
+    # c, not predicted to meet the bound, is not the initial policy's to pick over b (crowded).
+    assert decision == RouteDecision(
+        ROBOT, None, "b", Reason.INITIAL, ("b", "a", "c"), 0.03, crowded=("c",)
+    )
 
 
 def test_no_usable_deployment_means_no_initial_route(sched: Scheduler, clock: FakeClock) -> None:

@@ -1,7 +1,8 @@
-"""Placement by load (issue 12): a robot's first placement follows the deployments' committed load,
-not only initial_policy. Robots routed to a deployment count at once (reported loads lag), the
-initial policy's choice wins while it has room to spare, and a fleet whose every robot is in
-service on one deployment spreads to the other once that one is 75% committed."""
+"""Placement by load: a robot's first placement goes to the deployment with the most headroom (the
+least committed share of its capacity) among those meeting the bound, not to the first. Robots
+routed to a deployment count at once (reported loads lag), the initial policy's choice only breaks
+ties, and a fleet whose every robot is in service on one deployment spreads from the first robot:
+one each in turn."""
 
 from __future__ import annotations
 
@@ -98,12 +99,34 @@ def test_the_reported_load_counts_when_it_is_more_than_the_robots_routed(
     assert decision is not None and decision.crowded == ("b",)
 
 
+def test_the_most_headroom_comes_first_and_the_others_are_crowded(sched: Scheduler) -> None:
+    # Regression: the first deployment took robots until 75% committed while the other idled.
+    deps = [dep("a", capacity=4), dep("b", capacity=4)]
+    decision = sched.evaluate(new_robot({"a": 1}), deps, probes(a=0.02, b=0.03))
+    assert decision is not None
+    assert (decision.to_deployment, decision.crowded) == ("b", ("a",))
+    tied = sched.evaluate(new_robot({"a": 1, "b": 1}), deps, probes(a=0.02, b=0.03))
+    assert tied is not None and (tied.to_deployment, tied.crowded) == ("a", ())
+
+
+def test_headroom_is_a_share_of_each_capacity(sched: Scheduler) -> None:
+    deps = [dep("small", capacity=4), dep("large", capacity=12)]
+    decision = sched.evaluate(new_robot({"small": 1, "large": 2}), deps, probes())
+    assert decision is not None and decision.to_deployment == "large"  # 1/6 < 1/4 taken
+
+
+def test_meeting_the_bound_comes_before_headroom(sched: Scheduler) -> None:
+    decision = sched.evaluate(new_robot({"a": 2}), [dep("a"), dep("b")], probes(a=0.02, b=0.5))
+    assert decision is not None and decision.to_deployment == "a"
+    assert decision.crowded == ("b",)
+
+
 def test_room_to_spare_is_below_three_quarters_of_the_capacity(sched: Scheduler) -> None:
     deps = [dep("a", capacity=4), dep("b", capacity=4)]
-    below = sched.evaluate(new_robot({"a": 2}), deps, probes(a=0.02, b=0.03))
-    at = sched.evaluate(new_robot({"a": 3}), deps, probes(a=0.02, b=0.03))
-    assert below is not None and below.crowded == ()
-    assert at is not None and at.crowded == ("a",) and at.to_deployment == "b"
+    below = sched.evaluate(new_robot({"a": 2, "b": 2}), deps, probes(a=0.02, b=0.03))
+    at = sched.evaluate(new_robot({"a": 3, "b": 3}), deps, probes(a=0.02, b=0.03))
+    assert below is not None and below.crowded == () and below.to_deployment == "a"
+    assert at is not None and set(at.crowded) == {"a", "b"}
 
 
 def test_with_room_nowhere_the_least_committed_comes_first(sched: Scheduler) -> None:
@@ -177,18 +200,19 @@ def place_all(robots: int) -> Counter[str]:
     return placed
 
 
-def test_eight_robots_in_service_on_one_deployment_spread_to_the_standby() -> None:
-    # Regression (issue 12): all 8 stayed on edge-1 while edge-2 stood idle. Edge-1 takes robots
-    # while under 75% of its 6 slots committed (4.5), edge-2 the rest.
-    assert place_all(8) == Counter({"edge-1": 5, "edge-2": 3})
+def test_eight_robots_in_service_on_one_deployment_spread_from_the_first() -> None:
+    # Regression (issue 26): edge-1 took 5 robots before edge-2 got one. Now one each in turn,
+    # the initial policy's edge-1 first (it breaks the tie of two empty deployments).
+    assert place_all(8) == Counter({"edge-1": 4, "edge-2": 4})
 
 
-def test_sixteen_robots_are_shared_evenly_once_neither_has_room() -> None:
+def test_sixteen_robots_are_shared_evenly() -> None:
     assert place_all(16) == Counter({"edge-1": 8, "edge-2": 8})
 
 
-def test_a_few_robots_all_follow_the_initial_policy() -> None:
-    assert place_all(3) == Counter({"edge-1": 3})
+def test_a_few_robots_spread_too_the_initial_policy_breaking_ties() -> None:
+    assert place_all(3) == Counter({"edge-1": 2, "edge-2": 1})
+    assert place_all(1) == Counter({"edge-1": 1})
 
 
 # -- counting robots routed ----------------------------------------------------------------------
