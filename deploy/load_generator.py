@@ -37,6 +37,7 @@ from __future__ import annotations
 import enum
 import itertools
 import logging
+import math
 import random
 import statistics
 import threading
@@ -314,6 +315,7 @@ class LoadGenerator:
         self.stopping = threading.Event()
         self.session: zenoh.Session = open_session(cfg, listen=["tcp/127.0.0.1:0"])
         self._tokens: list[zenoh.LivelinessToken] = []
+        self.started_at = math.inf  # set by start()
         rng = random.Random(seed)
         self.robots: list[EmulatedRobot] = []
         for robot in robots:
@@ -332,7 +334,9 @@ class LoadGenerator:
         self.close()
 
     def start(self) -> LoadGenerator:
-        """Declare every robot's liveliness token, then start their frame loops."""
+        """Declare every robot's liveliness token, then start their frame loops; `started_at`
+        is when (monotonic seconds)."""
+        self.started_at = time.monotonic()
         for robot in self.robots:
             token = self.session.liveliness().declare_token(
                 keys.alive_robot(self.cfg.fleet, robot.robot)

@@ -9,9 +9,13 @@ key at the robot frame rate, one frame at a time, with the fleet's deadline. The
 emulated, not robot daemons: they run no prefix, no policy and publish no telemetry, and a frame
 the cloud does not serve (busy, error, timeout) is counted, not finished locally.
 
-Routing: the fleet's initial_policy puts robot i in service on deployment i mod D, and the
-registry places each robot there when its token appears (the registry's own placement; with no
-telemetry nothing moves a robot afterwards), so with two deployments each serves half.
+Routing: the fleet's initial_policy puts every robot in service on edge-1 (what a fleet file
+written for one deployment says), and the registry places each robot by load when its token
+appears: on the deployment with the most headroom (`registry.scheduler`, placement by load), the
+initial policy breaking ties; with no telemetry nothing moves a robot afterwards. Each cell's
+`timeline` counts the frames each deployment served in every TIMELINE_BIN_S from the load
+generator's start (warm-up included), and `first_served_s` when each deployment served its first
+frame: placement by load shows as every deployment serving within the first seconds.
 
 Per cell (robots x deployments x batching), over a window after a warm-up: frames per second
 served by the cloud, the served frames' latency (median, p95; send to reply, as the robot sees
@@ -28,6 +32,7 @@ deployments' CPUs. One robot beside a hog on one deployment (`--fairness`) is in
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import threading
 import time
@@ -42,7 +47,7 @@ import psutil
 from common.config import FleetConfig, load_fleet
 from common.errors import UserError
 from deploy.cpu_pinning import CpuSplit, off_set_threads, pin_process, split_for_cloud, usable_cpus
-from deploy.load_generator import ARRIVALS, LoadGenerator, summarize
+from deploy.load_generator import ARRIVALS, FrameOutcome, FrameRecord, LoadGenerator, summarize
 from deploy.procs import DaemonProc, LocalFleet, write_local_fleet
 
 from . import scale_defaults as defaults
@@ -52,6 +57,10 @@ from .report import fmt, md_table, save_plot, use_agg
 LOAD_KIND = "load generator (emulated robots; real Zenoh requests to real cloud daemons)"
 ROUTED_TIMEOUT_S = 60.0
 """How long every robot of a cell may take to be routed and have a first frame served."""
+TIMELINE_BIN_S = 0.5
+"""Width of a bin of a cell's per-deployment `timeline`, seconds."""
+SPREAD_WITHIN_S = 2.0
+"""The bar of placement by load: every deployment serves within this long of the start."""
 MUST_SHOW_ROBOTS = 8
 MUST_SHOW_RATIO = 1.5
 """The issue's bar: frames/s per core with batching >= 1.5x without, at 8 robots, 1 deployment."""
@@ -166,11 +175,10 @@ def fleet_changes(options: ScaleOptions, deployments: int, batching: bool) -> di
         for cloud in clouds
     }
     machines.update({r: {"role": "robot", "listen": ["tcp/127.0.0.1:0"]} for r in robots})
+    # Every robot in service on the first deployment: spreading them is the registry's job.
     policy: dict[str, Any] = {r: "robot" for r in robots}
     for i, cloud in enumerate(clouds):
-        policy[cloud] = {
-            r: "service" if j % deployments == i else "standby" for j, r in enumerate(robots)
-        }
+        policy[cloud] = "service" if i == 0 else "standby"
     return {
         "input_shape": list(options.input_shape),
         "deadline_s": options.deadline_s,
@@ -279,6 +287,7 @@ def run_cell(
         codec=options.codec,
         arrivals=options.arrivals,
     ) as gen:
+        started = gen.started_at
         gen.wait_served(ROUTED_TIMEOUT_S)
         pause.wait(options.warmup_s)
         t0, cpu0 = time.monotonic(), cpu_seconds(clouds)
@@ -286,11 +295,12 @@ def run_cell(
         t1, cpu1 = time.monotonic(), cpu_seconds(clouds)
     # Read after the robots stopped: frames sent in the window and answered after it count.
     figures = summarize(gen.records(t0, t1), t1 - t0)
+    early = timeline(gen.records(started, t1), started, t1)
     cpu_s = {name: cpu1[name] - cpu0[name] for name in cpu1}
     total_cpu_s = sum(cpu_s.values())
     served = figures["served"]
     p95 = figures["p95_latency_s"]
-    return {
+    cell = {
         "robots": robots,
         "deployments": deployments,
         "batching": "on" if batching else "off",
@@ -309,7 +319,36 @@ def run_cell(
         "cloud_cpu_per_frame_s": total_cpu_s / served if served else None,
         "served_fps_per_core": served / total_cpu_s if total_cpu_s > 0 else None,
         "p95_within_bound": p95 is not None and p95 <= options.bound_s,
+        "fallback_rate": 1.0 - served / figures["frames"] if figures["frames"] else None,
+        **early,
     }
+    cell["spread_within_s"] = {"seconds": SPREAD_WITHIN_S, "met": spread(cell)}
+    return cell
+
+
+def timeline(records: Sequence[FrameRecord], start: float, end: float) -> dict[str, Any]:
+    """Frames served per deployment in every TIMELINE_BIN_S from `start` (by when they were
+    sent), and the seconds from `start` to each deployment's first served frame."""
+    bins = max(1, math.ceil((end - start) / TIMELINE_BIN_S))
+    deployments = sorted({r.deployment for r in records if r.outcome is FrameOutcome.SERVED})
+    counts = {d: [0] * bins for d in deployments}
+    first: dict[str, float] = {}
+    for r in records:
+        if r.outcome is not FrameOutcome.SERVED:
+            continue
+        at = r.sent_at - start
+        counts[r.deployment][min(bins - 1, int(at / TIMELINE_BIN_S))] += 1
+        first[r.deployment] = min(first.get(r.deployment, math.inf), at + r.latency_s)
+    return {
+        "timeline": {"bin_s": TIMELINE_BIN_S, "served_by_deployment": counts},
+        "first_served_s": {d: round(first[d], 3) for d in deployments},
+    }
+
+
+def spread(cell: dict[str, Any]) -> bool:
+    """Whether every deployment of the cell served within SPREAD_WITHIN_S of its start."""
+    first = cell.get("first_served_s") or {}
+    return len(first) == cell["deployments"] and max(first.values()) <= SPREAD_WITHIN_S
 
 
 def run(options: ScaleOptions) -> dict[str, Any]:
@@ -347,7 +386,8 @@ def settings_of(options: ScaleOptions) -> dict[str, Any]:
         "max_queue_delay_ms": options.max_queue_delay_ms,
         "preferred_batch_sizes": list(options.batch_sizes),
         "max_in_flight_per_robot": options.max_in_flight_per_robot,
-        "routing": "initial_policy: robot i on deployment i mod D, placed by the registry",
+        "routing": "initial_policy: every robot in service on edge-1; placed by the registry by "
+        "load (most headroom first)",
         "host_cpus": psutil.cpu_count(),
         "pin_cloud": _pinning(options),
     }
@@ -367,7 +407,8 @@ def _progress(cell: dict[str, Any]) -> str:
         f"{cell['batching']}: {cell['served_fps']:.1f} frames/s served, p95 "
         f"{fmt(cell['p95_latency_s'])} s, busy {100 * cell['busy_rate']:.1f}%, timeout "
         f"{100 * cell['timeout_rate']:.1f}%, "
-        f"{fmt(cell['served_fps_per_core'], 1)} frames/s per core"
+        f"{fmt(cell['served_fps_per_core'], 1)} frames/s per core; first served "
+        + (", ".join(f"{d} {s:.2f} s" for d, s in cell["first_served_s"].items()) or "-")
     )
 
 

@@ -6,7 +6,8 @@ the registry).
 - A robot sending as fast as it can, several frames in flight, is held to its in-flight limit
   (the rest of its frames are answered busy), and the other robot keeps a worker to itself: its
   wait for a worker stays a fraction of its own run time and it is never refused.
-- `elasticfog bench scale --json` keeps its contract, and two deployments share the robots.
+- `elasticfog bench scale --json` keeps its contract, and two deployments share the robots
+  although the fleet file puts both on edge-1 (placement by load from the first registration).
 """
 
 from __future__ import annotations
@@ -141,3 +142,8 @@ def test_bench_scale_json_contract_with_two_deployments(e2e_cache, tmp_path) -> 
     assert set(cell["by_deployment"]) == {"edge-1", "edge-2"}, cell["by_deployment"]
     assert cell["by_deployment"]["edge-1"] == pytest.approx(0.5, abs=0.1)
     assert cell["served_fps_per_core"] > 0 and cell["p95_latency_s"] is not None
+    # The bench's fleet puts both robots on edge-1: edge-2 serving is the registry's placement
+    # by load, from the first registration; the timeline shows when.
+    assert set(cell["first_served_s"]) == {"edge-1", "edge-2"}, cell["first_served_s"]
+    timeline = cell["timeline"]["served_by_deployment"]
+    assert set(timeline) == {"edge-1", "edge-2"} and all(sum(v) > 0 for v in timeline.values())
