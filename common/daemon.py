@@ -16,6 +16,18 @@ everything else in reverse order of registration; one release that fails is logg
 still run. It all lives in `contextlib.ExitStack`s, so there is no per-daemon cleanup list and no
 chain of None checks, and releasing twice is harmless.
 
+Stopping is bounded whatever the network does (a pulled cable, a frozen peer, a router gone).
+Closing a Zenoh session can block: Zenoh sets SO_LINGER (10 s) on its TCP links, and closing a
+link whose peer vanished waits for unsent data (docs/experiments.md). So a session held here is
+closed on a thread of its own and waited for at most SESSION_CLOSE_TIMEOUT_S; past that it is
+abandoned (one WARNING line naming it): the peers then learn of our leaving from their lease
+(about a second in our fleets) instead of from the close, and the process leaves without
+finalizing the interpreter (`os._exit` once the daemon's command is done: a session still open
+at interpreter exit would hang it). And from the first signal, a watchdog gives the whole stop
+STOP_LIMIT_S: past it, one WARNING line names the step still running, and the process exits at
+once (code FORCED_EXIT_CODE). Files are flushed as they are written (telemetry lines), or by
+their own release step before the session's.
+
 Zenoh calls callbacks on its own threads and an exception raised into it is lost or worse:
 `guarded(callback)` wraps every one. Bad input (`WireError`) becomes one throttled WARNING line,
 anything else a throttled ERROR with its traceback; both go through the daemon's one
@@ -24,10 +36,12 @@ anything else a throttled ERROR with its traceback; both go through the daemon's
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import logging
 import os
 import signal
+import sys
 import threading
 from collections.abc import Callable, Iterator
 from contextlib import AbstractContextManager, ExitStack
@@ -43,6 +57,10 @@ log = logging.getLogger(__name__)
 
 HANDLED_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 FORCED_EXIT_CODE = 130
+SESSION_CLOSE_TIMEOUT_S = 0.5
+"""How long shutdown waits for a Zenoh session to close (tens of ms when its peers answer)."""
+STOP_LIMIT_S = 1.8
+"""From the first signal to the process's exit, at most (the daemons promise 2 s)."""
 
 T = TypeVar("T")
 _ExitFn = Callable[
@@ -68,6 +86,11 @@ class Daemon:
         self._previous_handlers: dict[int, Any] = {}
         self._tokens = ExitStack()
         self._resources = ExitStack()
+        # What shutdown could not release in time (sessions left to their lease), and the step
+        # it is on (named by the stop watchdog).
+        self.abandoned: list[str] = []
+        self._releasing = ""
+        self._finished = threading.Event()
 
     # -- lifecycle hooks -------------------------------------------------------------------
     def startup(self) -> None:
@@ -87,10 +110,44 @@ class Daemon:
 
     # -- resources -------------------------------------------------------------------------
     def hold(self, resource: AbstractContextManager[T], what: str) -> T:
-        """Enter `resource` and keep it until shutdown exits it; returns what it entered as."""
+        """Enter `resource` and keep it until shutdown exits it; returns what it entered as.
+        A Zenoh session is closed within SESSION_CLOSE_TIMEOUT_S (module docstring)."""
         entered = resource.__enter__()
-        self._resources.push(self._tolerant(what, resource.__exit__))
+        if isinstance(resource, zenoh.Session):
+            session = resource
+            self._resources.push(
+                self._tolerant(what, lambda *_exc: self._close_bounded(session, what))
+            )
+        else:
+            self._resources.push(self._tolerant(what, resource.__exit__))
         return entered
+
+    def _close_bounded(self, session: zenoh.Session, what: str) -> None:
+        """Close `session` on a thread of its own; abandon it after SESSION_CLOSE_TIMEOUT_S."""
+        done = threading.Event()
+        failed: list[Exception] = []
+
+        def close() -> None:
+            try:
+                session.close()
+            except Exception as exc:
+                failed.append(exc)
+            finally:
+                done.set()
+
+        threading.Thread(target=close, name=f"close {what}", daemon=True).start()
+        if not done.wait(SESSION_CLOSE_TIMEOUT_S):
+            self.abandoned.append(what)
+            log.warning(
+                "%s: the %s did not close within %.1f s (a link to a peer that is gone lingers); "
+                "leaving it: peers see us leave when our lease ends",
+                self.name,
+                what,
+                SESSION_CLOSE_TIMEOUT_S,
+            )
+            return
+        if failed:
+            raise failed[0]
 
     def on_release(
         self, fn: Callable[..., object], *args: object, what: str, **kwargs: object
@@ -117,6 +174,7 @@ class Daemon:
             exc: BaseException | None,
             tb: TracebackType | None,
         ) -> bool:
+            self._releasing = what
             try:
                 exit_fn(exc_type, exc, tb)
             except Exception as error:
@@ -169,12 +227,21 @@ class Daemon:
     # -- driver ----------------------------------------------------------------------------
     def run(self) -> int:
         """Run the daemon in the calling (main) thread; returns a process exit code."""
-        with self._captured_signals():
-            try:
-                self.startup()
-                self.main_loop()
-            finally:
-                self.shutdown()
+        completed = False
+        try:
+            with self._captured_signals():
+                try:
+                    self.startup()
+                    self.main_loop()
+                finally:
+                    self.shutdown()
+            completed = True
+        finally:
+            self._finished.set()
+            if self.abandoned:
+                # A session still open at interpreter exit hangs it: leave without finalizing,
+                # once the command has printed what it prints.
+                atexit.register(_exit_now, 0 if completed else 1)
         return 0
 
     def stop(self) -> None:
@@ -186,9 +253,24 @@ class Daemon:
             # Second Ctrl-C: the user wants out now, even if shutdown is stuck.
             log.warning("%s: forced exit", self.name)
             os._exit(FORCED_EXIT_CODE)
+        first = not self.should_exit.is_set()
         self.stop_signal = sig
         log.info("%s: received %s, stopping", self.name, signal.Signals(sig).name)
         self.should_exit.set()
+        if first:
+            watchdog = threading.Timer(STOP_LIMIT_S, self._stop_overdue)
+            watchdog.daemon = True
+            watchdog.start()
+
+    def _stop_overdue(self) -> None:
+        """The stop watchdog: past STOP_LIMIT_S since the first signal, exit now."""
+        if self._finished.is_set():
+            return
+        step = f"releasing the {self._releasing}" if self._releasing else "stopping the main loop"
+        log.warning(
+            "%s: still %s %.1f s after the signal; exiting now", self.name, step, STOP_LIMIT_S
+        )
+        _exit_now(FORCED_EXIT_CODE)
 
     @contextlib.contextmanager
     def _captured_signals(self) -> Iterator[None]:
@@ -204,6 +286,17 @@ class Daemon:
             for signum, handler in self._previous_handlers.items():
                 signal.signal(signum, handler)
             self._previous_handlers.clear()
+
+
+def _exit_now(code: int) -> None:
+    """Flush what is buffered (stdout, stderr, log handlers) and leave the process at once,
+    without finalizing the interpreter."""
+    with contextlib.suppress(Exception):
+        logging.shutdown()
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):
+            stream.flush()
+    os._exit(code)
 
 
 def _callback_name(callback: Callable[..., Any]) -> str:

@@ -4,18 +4,22 @@ Fake resources record when they are released, so the order is checked without a 
 startup that fails half-way still releases what it had declared (regression: the daemons each
 wrapped startup in their own try/except for this), the liveliness token goes first whatever its
 place in startup, a release that fails does not keep the others, and `guarded` callbacks survive
-errors with their log lines throttled.
+errors with their log lines throttled. A stop stuck in a release step still ends within 2 s.
 """
 
 from __future__ import annotations
 
 import logging
+import os
 import signal
+import subprocess
+import sys
+import time
 from typing import Any
 
 import pytest
 
-from common.daemon import Daemon
+from common.daemon import FORCED_EXIT_CODE, STOP_LIMIT_S, Daemon
 from common.throttled_log import ThrottledLog
 from common.wire import WireError
 
@@ -213,3 +217,47 @@ def test_throttled_log_counts_what_it_suppressed_when_the_next_window_opens(
         "edge-1: 3 more warnings were not logged in the last 10 s",
         "bad request 5",
     ]
+
+
+STUCK_DAEMON = """
+import sys, threading
+from common.daemon import FORCED_EXIT_CODE, STOP_LIMIT_S, Daemon
+
+class Stuck(Daemon):
+    name = "stuck"
+
+    def startup(self):
+        # A release step that never returns (what a session blocked on a dead link did).
+        self.on_release(threading.Event().wait, what="stuck step")
+        print("ready", flush=True)
+
+sys.exit(Stuck().run())
+"""
+
+
+def test_a_stop_stuck_in_a_release_step_still_exits_within_2_s_naming_the_step() -> None:
+    """Regression (issue 26): a stop waited as long as a blocked release (up to 10 s on a dead
+    link). The watchdog gives the whole stop STOP_LIMIT_S from the first signal."""
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(sys.path))
+    proc = subprocess.Popen(
+        [sys.executable, "-c", STUCK_DAEMON],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
+    try:
+        assert proc.stdout is not None and proc.stdout.readline().strip() == "ready"
+        signalled = time.monotonic()
+        proc.send_signal(signal.SIGTERM)
+        code = proc.wait(timeout=10 * STOP_LIMIT_S)
+        took_s = time.monotonic() - signalled
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.stderr is not None
+    err = proc.stderr.read()
+    assert code == FORCED_EXIT_CODE, err
+    assert STOP_LIMIT_S <= took_s <= 2.0, took_s
+    assert "still releasing the stuck step" in err, err
