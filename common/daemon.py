@@ -19,7 +19,8 @@ chain of None checks, and releasing twice is harmless.
 Stopping is bounded whatever the network does (a pulled cable, a frozen peer, a router gone).
 Closing a Zenoh session can block: Zenoh sets SO_LINGER (10 s) on its TCP links, and closing a
 link whose peer vanished waits for unsent data (docs/experiments.md). So a session held here is
-closed on a thread of its own and waited for at most SESSION_CLOSE_TIMEOUT_S; past that it is
+closed on a thread of its own and waited for at most SESSION_CLOSE_TIMEOUT_S (less when the
+stop's limit below is nearer, STOP_MARGIN_S before it); past that it is
 abandoned (one WARNING line naming it): the peers then learn of our leaving from their lease
 (about a second in our fleets) instead of from the close, and the process leaves without
 finalizing the interpreter (`os._exit` once the daemon's command is done: a session still open
@@ -39,10 +40,12 @@ from __future__ import annotations
 import atexit
 import contextlib
 import logging
+import math
 import os
 import signal
 import sys
 import threading
+import time
 from collections.abc import Callable, Iterator
 from contextlib import AbstractContextManager, ExitStack
 from types import FrameType, TracebackType
@@ -61,6 +64,10 @@ SESSION_CLOSE_TIMEOUT_S = 0.5
 """How long shutdown waits for a Zenoh session to close (tens of ms when its peers answer)."""
 STOP_LIMIT_S = 1.8
 """From the first signal to the process's exit, at most (the daemons promise 2 s)."""
+STOP_MARGIN_S = 0.15
+"""What a session's close leaves of the stop's limit for the release steps after it."""
+MIN_CLOSE_WAIT_S = 0.05
+"""A session's close is always given this long (a close with live peers takes about as much)."""
 
 T = TypeVar("T")
 _ExitFn = Callable[
@@ -91,6 +98,7 @@ class Daemon:
         self.abandoned: list[str] = []
         self._releasing = ""
         self._finished = threading.Event()
+        self._stop_deadline = math.inf  # monotonic; set by the first signal
 
     # -- lifecycle hooks -------------------------------------------------------------------
     def startup(self) -> None:
@@ -136,14 +144,17 @@ class Daemon:
                 done.set()
 
         threading.Thread(target=close, name=f"close {what}", daemon=True).start()
-        if not done.wait(SESSION_CLOSE_TIMEOUT_S):
+        # Within what is left of the stop's limit too, so the watchdog does not cut it short.
+        left_s = self._stop_deadline - time.monotonic() - STOP_MARGIN_S
+        wait_s = max(MIN_CLOSE_WAIT_S, min(SESSION_CLOSE_TIMEOUT_S, left_s))
+        if not done.wait(wait_s):
             self.abandoned.append(what)
             log.warning(
-                "%s: the %s did not close within %.1f s (a link to a peer that is gone lingers); "
+                "%s: the %s did not close within %.2f s (a link to a peer that is gone lingers); "
                 "leaving it: peers see us leave when our lease ends",
                 self.name,
                 what,
-                SESSION_CLOSE_TIMEOUT_S,
+                wait_s,
             )
             return
         if failed:
@@ -258,6 +269,7 @@ class Daemon:
         log.info("%s: received %s, stopping", self.name, signal.Signals(sig).name)
         self.should_exit.set()
         if first:
+            self._stop_deadline = time.monotonic() + STOP_LIMIT_S
             watchdog = threading.Timer(STOP_LIMIT_S, self._stop_overdue)
             watchdog.daemon = True
             watchdog.start()
