@@ -7,10 +7,12 @@ The reference digest is the fleet file's model when this host has the file; for 
 (the registry never exports one) it is the digest of the deployments already accepted.
 
 `Registrar` serves `reg/register` (a robot that is accepted gets its current route, and one left
-without a deployment the reason, e.g. `no_capacity`), and keeps the registration state of every
-cloud whose token is alive (`pending` until its probe is answered, then `accepted` or `refused`),
-which deployments were accepted in this run, and the model digest each robot registered with. The
-control loop writes; the views and `reg/register` read from Zenoh callback threads, hence the lock.
+without a deployment the reason, e.g. `no_capacity`; a robot not placed yet while every
+deployment that could serve it is full is told `no_capacity` at once), and keeps the
+registration state of every cloud whose token is alive (`pending` until its probe is answered,
+then `accepted` or `refused`), which deployments were accepted in this run, and the model digest
+each robot registered with. The control loop writes; the views and `reg/register` read from
+Zenoh callback threads, hence the lock.
 A refusal is an event in the RIB and one warning naming the machine and the reason; nothing is ever
 routed to a refused deployment.
 """
@@ -32,7 +34,7 @@ from common.models import file_digest
 from common.wire import registry as msg
 from registry.replies import answer, decode_query
 from registry.rib import EventKind, Rib, RouteRow
-from registry.scheduler import Reason
+from registry.scheduler import Reason, RobotView, no_room_for
 
 log = logging.getLogger(__name__)
 
@@ -217,7 +219,9 @@ class Registrar:
         route = None
         if reason is None and Role(request.role) is Role.ROBOT:
             row = self.rib.route(request.id)
-            if row is not None:
+            if row is None:
+                route = self._refused_for_capacity(request)
+            else:
                 route = msg.RouteChange(
                     robot=request.id,
                     deployment=row.deployment,
@@ -231,6 +235,29 @@ class Registrar:
             reason=reason or "accepted",
             protocol_version=msg.PROTOCOL_VERSION,
             route=route,
+        )
+
+    def _refused_for_capacity(self, request: msg.RegisterRequest) -> msg.RouteChange | None:
+        """A robot not placed yet, when every deployment that could serve it is full: no route,
+        `no_capacity`, told in its registration reply instead of by the next round's route
+        change (which says the same under a newer epoch). None otherwise."""
+        # The round's inputs read the registrar: imported here, not with the module.
+        from registry.round_inputs import deployment_table
+
+        robot = RobotView(
+            id=request.id,
+            service=request.service,
+            route=None,
+            model_digest=request.model_digest,
+        )
+        if not no_room_for(robot, deployment_table(self.rib.deployments()).views):
+            return None
+        return msg.RouteChange(
+            robot=request.id,
+            deployment=None,
+            epoch=self.rib.issued_epoch(request.id),
+            reason=msg.NO_CAPACITY_REASON,
+            at=time.time(),
         )
 
     def _route_reason(self, row: RouteRow) -> str:

@@ -717,6 +717,14 @@ def _usable(robot: RobotView, dep: DeploymentView) -> bool:
     )
 
 
+def no_room_for(robot: RobotView, deployments: Iterable[DeploymentView]) -> bool:
+    """Admission's test (trigger 1 with every target full): some deployment could serve `robot`
+    and every one that could is full. The registration reply asks it of a robot not placed yet,
+    so that a robot refused for capacity learns it at once, not one round later."""
+    usable = [d for d in deployments if _usable(robot, d)]
+    return bool(usable) and all(d.full for d in usable)
+
+
 def _committed(robot: RobotView, dep: DeploymentView) -> int:
     """The load `dep` is committed to: its reported load, or the robots routed to it when more
     (each holds a request slot as soon as it is routed; the report is seconds old)."""

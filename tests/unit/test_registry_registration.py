@@ -186,3 +186,43 @@ def test_a_robot_with_a_deployment_gets_its_current_route(rib: Rib) -> None:
     assert reply.route is not None
     assert (reply.route.deployment, reply.route.reason) == ("edge-1", "current")
     assert registrar.reply_to(robot_request("robot-2")).route is None, "never routed"
+
+
+def _deployment(rib: Rib, name: str, *, load: int, capacity: int = 4, **changes: str) -> None:
+    fields = {"service": SERVICE, "model_digest": DIGEST, **changes}
+    rib.upsert_deployment(
+        name,
+        service=fields["service"],
+        model_digest=fields["model_digest"],
+        capacity=capacity,
+        version="1",
+        load=load,
+    )
+
+
+def test_a_robot_refused_for_capacity_learns_it_in_its_registration_reply(rib: Rib) -> None:
+    # Regression (issue 26): a new robot learned it was refused for capacity one round later,
+    # from the route change; the reply said nothing.
+    registrar = Registrar("f", rib, SERVICE, DIGEST)
+    _deployment(rib, "edge-1", load=4)
+    _deployment(rib, "edge-2", load=6, capacity=6)
+    reply = registrar.reply_to(robot_request("robot-1"))
+    assert reply.accepted and reply.route is not None
+    assert (reply.route.deployment, reply.route.reason) == (None, NO_CAPACITY_REASON)
+    assert reply.route.epoch == 0, "not an epoch of its own: the round's route supersedes it"
+
+
+def test_a_robot_is_not_refused_while_one_deployment_that_can_serve_it_has_room(rib: Rib) -> None:
+    registrar = Registrar("f", rib, SERVICE, DIGEST)
+    _deployment(rib, "edge-1", load=4)
+    _deployment(rib, "edge-2", load=3)
+    assert registrar.reply_to(robot_request("robot-1")).route is None, "placed by the round"
+    rib.set_deployment_alive("edge-2", False)
+    _deployment(rib, "edge-3", load=0, model_digest=OTHER_DIGEST)  # another model: not a target
+    refused = registrar.reply_to(robot_request("robot-2")).route
+    assert refused is not None and refused.reason == NO_CAPACITY_REASON
+
+
+def test_with_no_deployment_at_all_the_robot_is_not_told_capacity(rib: Rib) -> None:
+    registrar = Registrar("f", rib, SERVICE, DIGEST)
+    assert registrar.reply_to(robot_request("robot-1")).route is None
