@@ -38,6 +38,7 @@ sees the same frames as its telemetry file."""
 QUIET_TRIES = 40
 """Bound of the tries for a scrape between two frames (each waits for the next frame)."""
 DEMO_FRAMES = 30
+DEMO_KILL_AT = 10
 DEMO_START_S = 60.0
 """Bound of the demo's start (model split, four daemons) and of its run after the scrape."""
 MAX_PORT = 65535
@@ -237,10 +238,12 @@ def test_demo_metrics_serves_every_documented_name_on_each_daemon(
     demo_model: str, tmp_path: Path
 ) -> None:
     """`elasticfog demo --metrics-port-base P`: while it runs, each of its four daemons answers
-    on its port with the names docs/metrics.md lists for it; the summary lists the URLs."""
+    on its port with the names docs/metrics.md lists for it; the summary lists the URLs, and
+    the registry counts the failover the demo's summary reports."""
     base = _free_run(len(METRICS_DAEMONS))
     argv = [*elasticfog_argv(), "demo", "--frames", str(DEMO_FRAMES), "--fps", str(SLOW_FPS)]
     argv += ["--policy", "cloud", "--metrics-port-base", str(base), "--json"]
+    argv += ["--kill-service-at", str(DEMO_KILL_AT)]
     work = tmp_path / "tmp"
     work.mkdir()
     demo = subprocess.Popen(
@@ -259,13 +262,22 @@ def test_demo_metrics_serves_every_documented_name_on_each_daemon(
             what="the demo robot's first frame on its /metrics",
         )
         scraped = {name: scrape(url) for name, url in urls.items()}
+        # The demo kills the serving deployment at DEMO_KILL_AT: the registry counts it.
+        wait_until(
+            lambda: total(scrape(urls["registry"]), "elasticfog_registry_failovers_total") >= 1,
+            timeout_s=DEMO_START_S,
+            what="the registry's failover counter",
+        )
+        failovers = total(scrape(urls["registry"]), "elasticfog_registry_failovers_total")
         out, err = demo.communicate(timeout=DEMO_START_S)
     finally:
         if demo.poll() is None:
             os.killpg(demo.pid, signal.SIGINT)
             demo.wait(timeout=DEMO_START_S)
     assert demo.returncode == 0, err[-3000:]
-    assert json.loads(out)["metrics"] == urls
+    summary = json.loads(out)
+    assert summary["metrics"] == urls
+    assert failovers == len(summary["failovers"]) == 1, summary["failovers"]
     documented = documented_names()
     for name, samples in scraped.items():
         daemon = "cloud" if name.startswith("edge") else name.split("-")[0]
