@@ -1,0 +1,124 @@
+"""The daemons' Prometheus metrics without a network: what one call counts, in a registry of its
+own (two daemons in one process never share one), and the closed vocabularies they map.
+
+The endpoint itself and a running fleet's counters against its telemetry are checked over HTTP
+in tests/integration/test_cloudd_metrics.py and tests/e2e/test_metrics.py.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+from prometheus_client import CollectorRegistry
+
+from cloudd.metrics import REFUSAL_OUTCOMES, Outcome, error_outcome
+from cloudd.refusals import RefusalReason
+from common.metrics import new_registry
+from common.wire import ErrorCode
+from common.wire.telemetry import FallbackReason, TelemetryRecord
+from registry.metrics import RegistryMetrics
+from registry.scheduler import Reason
+from robotd.metrics import NO_DEPLOYMENT, RobotMetrics
+
+ROBOT = "robot-1"
+
+
+def record(frame: int, **changes: object) -> TelemetryRecord:
+    fields: dict[str, object] = {
+        "robot": ROBOT,
+        "frame": frame,
+        "action": "cut:2",
+        "bytes_up": 1000,
+        "bytes_down": 10,
+        "prefix_s": 0.01,
+        "transfer_s": 0.01,
+        "cloud_s": 0.01,
+        "suffix_local_s": 0.0,
+        "latency_s": 0.04,
+        "robot_cpu_s": 0.01,
+        "energy_j": 0.1,
+        "deployment": "edge-1",
+        "fallback": False,
+        "reason": None,
+        "epoch": 1,
+        "at": time.time(),
+    }
+    fields.update(changes)
+    return TelemetryRecord(**fields)  # type: ignore[arg-type]
+
+
+def value(registry: CollectorRegistry, name: str, **labels: str) -> float:
+    got = registry.get_sample_value(name, labels)
+    return 0.0 if got is None else got
+
+
+def test_a_robots_frames_are_counted_by_action_served_by_and_reason() -> None:
+    registry = new_registry()
+    held: dict[str, Any] = {"deployment": "edge-1", "epoch": 3}
+    metrics = RobotMetrics(registry, ROBOT, lambda: (held["deployment"], held["epoch"]))
+    metrics.frame(record(0), "cloud")
+    metrics.frame(record(1, fallback=True, deployment=None, reason=FallbackReason.TIMEOUT), "robot")
+    metrics.frame(record(2, action="P", bytes_up=0, deployment=None), "robot")
+    metrics.frame(record(3, stale=True), "cloud")
+    frames = "elasticfog_robot_frames_total"
+    assert value(registry, frames, robot=ROBOT, action="cut:2", served_by="cloud") == 2
+    assert value(registry, frames, robot=ROBOT, action="cut:2", served_by="robot") == 1
+    assert value(registry, frames, robot=ROBOT, action="P", served_by="robot") == 1
+    fallbacks = "elasticfog_robot_fallbacks_total"
+    assert value(registry, fallbacks, robot=ROBOT, reason="timeout") == 1
+    # Every reason is served from the start, at 0.
+    assert registry.get_sample_value(fallbacks, {"robot": ROBOT, "reason": "busy"}) == 0
+    answered = "elasticfog_robot_answered_frames_total"
+    assert value(registry, answered, robot=ROBOT, deployment="edge-1") == 2
+    assert value(registry, "elasticfog_robot_sent_bytes_total", robot=ROBOT) == 3000
+    assert value(registry, "elasticfog_robot_stale_results_dropped_total", robot=ROBOT) == 1
+    assert value(registry, "elasticfog_robot_frame_latency_seconds_count", robot=ROBOT) == 4
+    assert value(registry, "elasticfog_robot_route_epoch", robot=ROBOT) == 3
+    held["deployment"] = None
+    info = "elasticfog_robot_route_info"
+    assert value(registry, info, robot=ROBOT, deployment=NO_DEPLOYMENT) == 1
+
+
+def test_two_robots_in_one_process_keep_their_own_registries() -> None:
+    first, second = new_registry(), new_registry()
+    RobotMetrics(first, ROBOT, lambda: (None, 0)).frame(record(0), "cloud")
+    RobotMetrics(second, ROBOT, lambda: (None, 0))
+    frames = "elasticfog_robot_frames_total"
+    labels = {"robot": ROBOT, "action": "cut:2", "served_by": "cloud"}
+    assert first.get_sample_value(frames, labels) == 1
+    assert second.get_sample_value(frames, labels) is None
+
+
+def test_a_failover_is_a_route_change_off_a_deployment_that_failed() -> None:
+    registry = new_registry()
+    metrics = RegistryMetrics(registry)
+    metrics.route_change(Reason.INITIAL.value, None)
+    metrics.route_change(Reason.DEPLOYMENT_LOST.value, "edge-1")
+    metrics.route_change(Reason.TIMEOUTS.value, "edge-2")
+    metrics.route_change(Reason.DEPLOYMENT_LOST.value, None)  # nothing to fail over from
+    metrics.route_change(Reason.DRAIN.value, "edge-1")  # planned, not a failover
+    assert value(registry, "elasticfog_registry_failovers_total") == 2
+    changes = "elasticfog_registry_route_changes_total"
+    assert value(registry, changes, reason="deployment_lost") == 2
+    assert registry.get_sample_value(changes, {"reason": "better"}) == 0
+    metrics.round(0.002)
+    metrics.probe_report()
+    assert value(registry, "elasticfog_registry_round_duration_seconds_count") == 1
+    assert value(registry, "elasticfog_registry_probe_reports_total") == 1
+
+
+def test_registry_metrics_off_count_nothing() -> None:
+    off = RegistryMetrics(None)
+    off.round(0.1)
+    off.route_change(Reason.DEPLOYMENT_LOST.value, "edge-1")
+    off.probe_report()
+    assert not off.enabled
+
+
+def test_every_refusal_and_error_code_has_an_outcome() -> None:
+    assert set(REFUSAL_OUTCOMES) == set(RefusalReason)
+    assert error_outcome(ErrorCode.DEADLINE_EXPIRED) is Outcome.EXPIRED
+    assert error_outcome(ErrorCode.NOT_SERVING) is Outcome.NOT_SERVING
+    assert error_outcome(ErrorCode.INTERNAL) is Outcome.ERROR
+    assert error_outcome(None) is Outcome.ERROR
