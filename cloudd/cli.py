@@ -99,6 +99,7 @@ def cloud(
             daemon = CloudDaemon(cfg, deployment_id, fault=fault, metrics_port=metrics_port)
             dump_threads_on_sigusr1()
             code = daemon.run()
+            daemon.exit_if_abandoned(code)
     except UserError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(exc.exit_code) from None

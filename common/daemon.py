@@ -20,11 +20,11 @@ Stopping is bounded whatever the network does (a pulled cable, a frozen peer, a 
 Closing a Zenoh session can block: Zenoh sets SO_LINGER (10 s) on its TCP links, and closing a
 link whose peer vanished waits for unsent data (docs/experiments.md). So a session held here is
 closed on a thread of its own and waited for at most SESSION_CLOSE_TIMEOUT_S (less when the
-stop's limit below is nearer, STOP_MARGIN_S before it); past that it is
-abandoned (one WARNING line naming it): the peers then learn of our leaving from their lease
-(about a second in our fleets) instead of from the close, and the process leaves without
-finalizing the interpreter (`os._exit` once the daemon's command is done: a session still open
-at interpreter exit would hang it). And from the first signal, a watchdog gives the whole stop
+stop's limit below is nearer, STOP_MARGIN_S before it); past that it is abandoned (one WARNING
+line naming it): the peers then learn of our leaving from their lease (about a second in our
+fleets) instead of from the close, and the command leaves the process without finalizing the
+interpreter once it has printed its output (`exit_if_abandoned`: a session still open at
+interpreter exit would hang it). And from the first signal, a watchdog gives the whole stop
 STOP_LIMIT_S: past it, one WARNING line names the step still running, and the process exits at
 once (code FORCED_EXIT_CODE). Files are flushed as they are written (telemetry lines), or by
 their own release step before the session's.
@@ -37,7 +37,6 @@ anything else a throttled ERROR with its traceback; both go through the daemon's
 
 from __future__ import annotations
 
-import atexit
 import contextlib
 import logging
 import math
@@ -238,7 +237,6 @@ class Daemon:
     # -- driver ----------------------------------------------------------------------------
     def run(self) -> int:
         """Run the daemon in the calling (main) thread; returns a process exit code."""
-        completed = False
         try:
             with self._captured_signals():
                 try:
@@ -246,14 +244,16 @@ class Daemon:
                     self.main_loop()
                 finally:
                     self.shutdown()
-            completed = True
         finally:
             self._finished.set()
-            if self.abandoned:
-                # A session still open at interpreter exit hangs it: leave without finalizing,
-                # once the command has printed what it prints.
-                atexit.register(_exit_now, 0 if completed else 1)
         return 0
+
+    def exit_if_abandoned(self, code: int) -> None:
+        """For the command, once it has printed what it prints: when a session was left open
+        (`abandoned`), leave the process now with `code`, without finalizing the interpreter
+        (a session still open at interpreter exit hangs it). Otherwise return."""
+        if self.abandoned:
+            _exit_now(code)
 
     def stop(self) -> None:
         """Ask the main loop to finish (thread-safe)."""

@@ -40,13 +40,15 @@ def registry(
     # must stay fast.
     from common.config import load_fleet
     from common.metrics import check_port
-    from registry.daemon import run_registry
+    from registry.daemon import RegistryDaemon
 
     try:
         with logging_to_stderr(log_level):
             check_port(metrics_port)
             cfg = load_fleet(config)
-            code = run_registry(cfg, db_path=db, metrics_port=metrics_port)
+            daemon = RegistryDaemon(cfg, db_path=db, metrics_port=metrics_port)
+            code = daemon.run()
+            daemon.exit_if_abandoned(code)
     except UserError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(exc.exit_code) from None

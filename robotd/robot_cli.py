@@ -132,4 +132,5 @@ def robot_command(
     else:
         for line in daemon.summary.lines():
             typer.echo(line)
+    daemon.exit_if_abandoned(code)
     raise typer.Exit(code)
