@@ -65,6 +65,8 @@ registry:
   embedded_router: true{registry_tls}
   # The routing information base (sqlite); default: <fleet>.rib.sqlite next to this file.
   # db: rib.sqlite
+  # Prometheus /metrics of the registry (docs/metrics.md); any machine takes the same key.
+  # metrics: {{port: 9400}}
 
 # Machines by id. Peers talk to each other directly: each listens on an endpoint the others can
 # reach (port 0: any free port, announced to the others through the registry's router).
