@@ -421,11 +421,23 @@ class PolicyConfig(_Model):
     kind: str = Field(
         default="elastic",
         min_length=1,
-        description="Policy name: elastic, robot, cloud, static:<k>, neurosurgeon, ans...",
+        description="Policy name, a row of robotd.policies.POLICIES: elastic, ans, "
+        "neurosurgeon, robot, cloud[:CODEC], static:K[:CODEC], option:N[:CODEC].",
     )
     params: dict[str, Any] = Field(
-        default_factory=dict, description="Policy parameters, checked by the policy itself."
+        default_factory=dict, description="Policy parameters, checked by the policy's model."
     )
+
+    @model_validator(mode="after")
+    def _known_policy(self) -> PolicyConfig:
+        # Imported here: the policies (numpy) are not needed to read the rest of the file.
+        from robotd.policies import check_policy
+
+        try:
+            check_policy(self.kind, self.params, real_time=True)
+        except UserError as exc:
+            raise ValueError(str(exc)) from None
+        return self
 
 
 class ObjectiveConfig(_Model):
