@@ -15,6 +15,7 @@ Relative paths in the file (model, registry db, TLS files, video sources) are re
 from __future__ import annotations
 
 import difflib
+import enum
 import math
 import re
 import types
@@ -32,6 +33,7 @@ from pydantic import (
     PrivateAttr,
     ValidationError,
     ValidationInfo,
+    field_validator,
     model_validator,
 )
 
@@ -42,7 +44,7 @@ from common.defaults import (
     ZOO_PREFIX,
 )
 from common.errors import UserError
-from common.keys import DEFAULT_FLEET, validate_id
+from common.keys import DEFAULT_FLEET, MACHINE_ROLES, Role, validate_id
 from common.wire.codec import DEFAULT_MAX_PAYLOAD_BYTES
 from robotd.source_names import SourceError, parse_source
 
@@ -58,7 +60,6 @@ MAX_REQUEST_BYTES_LIMIT = 16 * 1024 * 1024
 
 LatencyStat = Literal["median", "mean", "p95", "max", "stddev"]
 LATENCY_STATS: tuple[str, ...] = typing.get_args(LatencyStat)
-Role = Literal["cloud", "robot"]
 InitialState = Literal["robot", "service", "standby"]
 
 # Zenoh endpoints: <protocol>/<address>[?metadata][#config]; IP protocols need host:port.
@@ -119,11 +120,19 @@ class CutsConfig(_Model):
     )
 
 
+class DispatchMode(str, enum.Enum):
+    """How the deployments serving one robot share its frames (`dispatch.mode`)."""
+
+    ANYCAST = "anycast"
+    ROUND_ROBIN = "round_robin"
+
+
 class DispatchConfig(_Model):
     """How the deployments serving one robot share its frames."""
 
-    mode: Literal["anycast", "round_robin"] = Field(
-        default="anycast",
+    mode: DispatchMode = Field(
+        default=DispatchMode.ANYCAST,
+        strict=False,  # the YAML's string becomes the member
         description="anycast: one deployment serves each robot; round_robin: a pool of "
         "deployments serves it together, each frame computed by exactly one member, in turn "
         "(the robot needs max_in_flight > 1 for the members to overlap).",
@@ -143,13 +152,13 @@ class DispatchConfig(_Model):
 
     @model_validator(mode="after")
     def _pool_needs_round_robin(self) -> DispatchConfig:
-        if self.pool_size is not None and self.mode != "round_robin":
-            raise ValueError(f"pool_size: only for mode round_robin (mode is {self.mode})")
+        if self.pool_size is not None and self.mode is not DispatchMode.ROUND_ROBIN:
+            raise ValueError(f"pool_size: only for mode round_robin (mode is {self.mode.value})")
         return self
 
     def pool_limit(self) -> int:
         """How many deployments may serve one robot (1 in anycast; 0: no limit)."""
-        if self.mode == "anycast":
+        if self.mode is DispatchMode.ANYCAST:
             return 1
         return self.pool_size or 0
 
@@ -296,6 +305,14 @@ class MachineConfig(_Model):
     """One machine of the fleet: a cloud deployment or a robot, with its overrides."""
 
     role: Role = Field(description="'cloud' (serves suffixes) or 'robot' (runs the frame loop).")
+
+    @field_validator("role", mode="before")
+    @classmethod
+    def _machine_role(cls, value: Any) -> Any:
+        if value not in MACHINE_ROLES:
+            raise ValueError(f"{value!r} is not a machine role; expected cloud or robot")
+        return Role(value)  # the model is strict: the YAML's string becomes the member here
+
     listen: list[Endpoint] = Field(
         default_factory=list,
         description="Zenoh endpoints this machine listens on; peers reach it there directly, so "
@@ -367,12 +384,11 @@ class MachineConfig(_Model):
 
     @model_validator(mode="after")
     def _role_fields(self) -> MachineConfig:
-        foreign = (_ROBOT_ONLY if self.role == "cloud" else _CLOUD_ONLY) & self.model_fields_set
+        foreign = (_ROBOT_ONLY if self.role is Role.CLOUD else _CLOUD_ONLY) & self.model_fields_set
         if foreign:
-            other = "robot" if self.role == "cloud" else "cloud"
-            raise ValueError(
-                f"{', '.join(sorted(foreign))}: only for {other} machines (role is {self.role!r})"
-            )
+            other = Role.ROBOT if self.role is Role.CLOUD else Role.CLOUD
+            fields = ", ".join(sorted(foreign))
+            raise ValueError(f"{fields}: only for {other} machines (role is {self.role.value!r})")
         try:
             parse_source(self.source)
         except SourceError as exc:
@@ -704,11 +720,11 @@ class FleetConfig(_Model):
                 raise ValueError(
                     f"initial_policy: unknown machine {machine_id!r}; known machines: {known}"
                 )
-            if machine.role == "robot" and entry != "robot":
+            if machine.role is Role.ROBOT and entry != "robot":
                 raise ValueError(
                     f"initial_policy.{machine_id}: a robot's state is 'robot', not {entry!r}"
                 )
-            if machine.role == "cloud" and entry == "robot":
+            if machine.role is Role.CLOUD and entry == "robot":
                 raise ValueError(
                     f"initial_policy.{machine_id}: a cloud is 'service' or 'standby', not 'robot'"
                 )
@@ -757,12 +773,12 @@ class FleetConfig(_Model):
     @property
     def robot_ids(self) -> list[str]:
         """Robot machine ids, in file order."""
-        return [i for i, m in self.machines.items() if m.role == "robot"]
+        return [i for i, m in self.machines.items() if m.role is Role.ROBOT]
 
     @property
     def cloud_ids(self) -> list[str]:
         """Cloud machine (deployment) ids, in file order."""
-        return [i for i, m in self.machines.items() if m.role == "cloud"]
+        return [i for i, m in self.machines.items() if m.role is Role.CLOUD]
 
     def short_of_in_flight(self, in_flight: int) -> dict[str, int]:
         """The deployments that admit fewer of one robot's requests at once than a robot with

@@ -65,6 +65,7 @@ from common import keys
 from common.config import FleetConfig
 from common.daemon import Daemon
 from common.errors import UserError
+from common.keys import Role
 from common.membership import MemberChange, MembershipView
 from common.partition.runtime import SplitModel
 from common.session import open_session
@@ -170,7 +171,7 @@ class RobotDaemon(Daemon):
     ) -> None:
         super().__init__()
         self.config = config
-        self.machine = config.machine(robot_id, role="robot")
+        self.machine = config.machine(robot_id, role=Role.ROBOT)
         self.robot = robot_id
         self.options = options or RobotOptions()
         self.options.check()
