@@ -41,7 +41,9 @@ loaded at startup, its camera input, cut positions, replies checked against its 
 `robotd.service_match` (whether a deployment serves the service key), `robotd.request_sender`
 (the request on the service key, through the emulated uplink), `robotd.frame` (a frame's
 accounting), `robotd.telemetry_sink` (where each frame's record and each probe report go),
-`robotd.failure_runs` (runs of cloud failures, and when they call for a reroute),
+`robotd.result_sinks` (where each applied frame's result goes: the sinks the robot's config
+asks for, made on the session, and any an embedder adds), `robotd.failure_runs` (runs of cloud
+failures, and when they call for a reroute),
 `robotd.robot_profile` (the startup profile and policy) and `robotd.emulation` (on one host: a
 robot `--robot-slowdown` times slower than the host, every robot-side model run stretched by a
 wait, and `--phases` that change it and the emulated uplink at frame boundaries; the telemetry
@@ -89,6 +91,7 @@ from robotd.pool_turns import PoolTurns
 from robotd.probes import PROBE_INTERVAL_S, CloudTime, Prober, probe_padding_bytes
 from robotd.registry_link import REGISTRY_RETRY_INITIAL_S, RegistryLink
 from robotd.request_sender import RequestSender
+from robotd.result_sinks import ResultSink, open_result_sinks
 from robotd.robot_model import RobotModel, open_split_model
 from robotd.robot_profile import build_policy, robot_profile, warm_up
 from robotd.service_match import ServiceMatch
@@ -200,6 +203,8 @@ class RobotDaemon(Daemon):
         )
         # Publications, file and summary of the frames; what they go to is made in startup.
         self._sink = TelemetrySink(robot_id, self.summary)
+        # Where each applied frame's result goes (`robotd.result_sinks`), in the lifecycle.
+        self._result_sinks: list[ResultSink] = []
         # Made in startup, released by the lifecycle.
         self.model: SplitModel
         self._robot_model: RobotModel
@@ -230,6 +235,24 @@ class RobotDaemon(Daemon):
     @property
     def registry_reachable(self) -> bool:
         return self._link is not None and self._link.reachable
+
+    @property
+    def result_sinks(self) -> tuple[ResultSink, ...]:
+        """The sinks each applied frame's result is published to, in the order added."""
+        return tuple(self._result_sinks)
+
+    def add_result_sink(self, sink: ResultSink, what: str = "result sink") -> ResultSink:
+        """Publish every applied frame's result to `sink` from now on; the lifecycle takes it
+        off the list and closes it at shutdown (in reverse order with the rest)."""
+        self._result_sinks.append(sink)
+
+        def release() -> None:
+            if sink in self._result_sinks:
+                self._result_sinks.remove(sink)
+            sink.close()
+
+        self.on_release(release, what=what)
+        return sink
 
     # -- lifecycle -------------------------------------------------------------------------
     def startup(self) -> None:
@@ -298,6 +321,8 @@ class RobotDaemon(Daemon):
     def _open_zenoh(self) -> None:
         cfg = self.config
         session = self.hold(open_session(cfg, machine=self.robot), "zenoh session")
+        for sink, what in open_result_sinks(cfg, self.robot, session):
+            self.add_result_sink(sink, what)
         self._requests = RequestSender(
             session,
             self._svc_key,
@@ -612,7 +637,9 @@ class RobotDaemon(Daemon):
     # -- after a frame ---------------------------------------------------------------------
     def _emit(self, f: Frame) -> None:
         """Feed the policy, publish and record the frame, act on a run of cloud failures, and
-        hand an applied frame's result to `on_result`, then to the source."""
+        hand an applied frame's result to `on_result`, the result sinks, then the source. A
+        stale frame (a newer one's result was applied first) reaches none of them: it is
+        counted in its record and the summary."""
         res = f.result
         remote = RemoteTimes.of(res)
         compute_s = f.prefix_s + (f.local_s or 0.0)
@@ -633,7 +660,22 @@ class RobotDaemon(Daemon):
             result = FrameResult(f.n, f.feeds, f.outputs, record, f.served_by, f.hedged, f.stamp_ns)
             if self._on_result is not None:
                 self._on_result(result)
+            for sink in self._result_sinks:
+                self._publish(sink, result)
             self._source.on_result(result)
+
+    def _publish(self, sink: ResultSink, result: FrameResult) -> None:
+        """Hand `result` to `sink`; a sink that fails is a throttled line, never the loop's end."""
+        try:
+            sink.publish(result)
+        except Exception:
+            self.throttled.error(
+                "%s: result sink %s failed on frame %d",
+                self.robot,
+                type(sink).__name__,
+                result.frame,
+                exc_info=True,
+            )
 
 
 def _wait_until(
