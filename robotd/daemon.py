@@ -4,12 +4,15 @@ Lifecycle (`common.daemon.Daemon`: startup -> main loop -> shutdown, in reverse 
 
 1. Load the split model (one set of shared-weight onnxruntime sessions, every cut warmed up),
    start the low-priority local-run thread, build the policy from a robot-side profile, open the
-   frame source and the `--telemetry` file.
+   `--telemetry` file.
 2. Open a Zenoh *peer* session connected to the registry endpoint only (the robot's config names
    no cloud host: it finds deployments through the registry's router and queries its anycast
-   service key). Declare the telemetry and probe publishers, the route subscriber (handled by
-   the registry link), one membership view of the registry and the clouds (`common.membership`),
-   and a querier on the service key whose matching listener says when a deployment serves it.
+   service key). Make the result sinks (`robotd.result_sinks`) and open the frame source on it
+   (`robotd.sources.SourceSession`: a source fed over Zenoh needs the session; every source is
+   opened here, so each is released before the session). Declare the telemetry and probe
+   publishers, the route subscriber (handled by the registry link), one membership view of the
+   registry and the clouds (`common.membership`), and a querier on the service key whose
+   matching listener says when a deployment serves it.
 3. Start the prober, then announce the liveliness token `alive/robot/<id>`.
 4. Wait (bounded, cut short by a signal) for the registry, start the registry link's watcher
    (`robotd.registry_link`), then wait for a deployment serving the robot.
@@ -95,7 +98,7 @@ from robotd.result_sinks import ResultSink, open_result_sinks
 from robotd.robot_model import RobotModel, open_split_model
 from robotd.robot_profile import build_policy, robot_profile, warm_up
 from robotd.service_match import ServiceMatch
-from robotd.sources import EndOfStream, FrameSource
+from robotd.sources import EndOfStream, FrameSource, SourceSession
 from robotd.stereo_frame import CameraFrame, first_view
 from robotd.telemetry import SERVED_BY_CLOUD, RemoteTimes, RunSummary, TelemetryFile
 from robotd.telemetry_sink import TelemetrySink
@@ -279,10 +282,6 @@ class RobotDaemon(Daemon):
             ),
             self._objective,
         )
-        self._source = self.hold(
-            robot_model.open_source(self.source_spec, seed=self.options.seed),
-            "frame source",
-        )
         if self.options.telemetry is not None:
             self._sink.file = self.hold(TelemetryFile(self.options.telemetry), "telemetry file")
         self._open_zenoh()
@@ -323,6 +322,15 @@ class RobotDaemon(Daemon):
         session = self.hold(open_session(cfg, machine=self.robot), "zenoh session")
         for sink, what in open_result_sinks(cfg, self.robot, session):
             self.add_result_sink(sink, what)
+        # Opened on the session (a source fed over Zenoh needs it), so released before it.
+        self._source = self.hold(
+            self._robot_model.open_source(
+                self.source_spec,
+                seed=self.options.seed,
+                session=SourceSession(session, cfg, self.robot),
+            ),
+            "frame source",
+        )
         self._requests = RequestSender(
             session,
             self._svc_key,
