@@ -327,7 +327,7 @@ class RobotDaemon(Daemon):
             self._robot_model.open_source(
                 self.source_spec,
                 seed=self.options.seed,
-                session=SourceSession(session, cfg, self.robot),
+                session=SourceSession(session, cfg, self.robot, stop=self.should_exit),
             ),
             "frame source",
         )
@@ -431,7 +431,7 @@ class RobotDaemon(Daemon):
         pacer = FramePacer(self.fps)
         limit = self.options.frames
         self.summary.started_at = time.perf_counter()
-        n = 0
+        n = dropped_seen = 0
         # Bounded by --frames, or by the stop flag (signals) otherwise.
         while limit is None or n < limit:
             # The wait for the next frame's start also finishes frames in flight that settle.
@@ -445,15 +445,27 @@ class RobotDaemon(Daemon):
                 log.info("%s: %s ended after %d frames", self.robot, self._source.description, n)
                 break
             stamp_ns = self._source.last_stamp_ns
-            self.run_frame(n, frame, stamp_ns=stamp_ns if stamp_ns is not None else time.time_ns())
+            # Frames the source dropped unread since the last read (a newer one had arrived).
+            total_dropped = self._source.dropped_stale
+            dropped, dropped_seen = total_dropped - dropped_seen, total_dropped
+            self.run_frame(
+                n,
+                frame,
+                stamp_ns=stamp_ns if stamp_ns is not None else time.time_ns(),
+                dropped_stale=dropped,
+            )
             n += 1
         self._pipeline.drain()
         self._settle_pending(block=True)
         self.summary.ended_at = time.perf_counter()
+        self.summary.dropped_stale = self._source.dropped_stale
+        self.summary.rejected_frames = self._source.rejected_frames()
         if self.should_exit.is_set() and limit is not None and n < limit:
             log.info("%s: stopped after %d of %d frames", self.robot, n, limit)
 
-    def run_frame(self, n: int, frame: CameraFrame, *, stamp_ns: int = 0) -> None:
+    def run_frame(
+        self, n: int, frame: CameraFrame, *, stamp_ns: int = 0, dropped_stale: int = 0
+    ) -> None:
         """Run one frame to completion, or hand it to the pipeline (`robotd.pipeline`), or (hedged,
         the robot's result first) to where it is served; its cloud reply is settled later."""
         started = time.perf_counter()
@@ -464,6 +476,7 @@ class RobotDaemon(Daemon):
         held = self.link.held
         epoch = held.epoch
         f = Frame(n, decision, entropy, feeds, started, cpu_started, epoch, stamp_ns)
+        f.dropped_stale = dropped_stale
         model = self.model
         if decision.action == PURE_ROBOT:
             f.outputs = self._compute(lambda options: model.run_full(feeds, run_options=options))

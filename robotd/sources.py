@@ -18,6 +18,9 @@ A source yields uint8 BGR frames (H×W×3, OpenCV's layout) one at a time, or st
 - `video:PATH`: a video file read with OpenCV, looped at its end (a file stands in for a camera,
   so `--frames N` is honoured whatever the file's length).
 - `camera:N`: the camera with index N through OpenCV.
+- `zenoh`: frames an application publishes on `ef/<fleet>/in/<robot>` (`robotd.zenoh_source`),
+  the newest first (older waiting frames are dropped and counted), fitted to the model's size
+  like the photographs (`fit_frame`).
 - `stereo:...`: a stereo pair a frame (`robotd.stereo_sources`: a rendered world, the Motorcycle
   pair, two image files, a scripted maneuver); its frames are `robotd.stereo_frame.StereoFrame`s
   of named views.
@@ -36,6 +39,7 @@ import abc
 import contextlib
 import enum
 import math
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -52,6 +56,7 @@ from robotd.source_names import (
     STEREO_PREFIX,
     SYNTHETIC,
     VIDEO_PREFIX,
+    ZENOH,
     needs_session,
 )
 from robotd.stereo_frame import CameraFrame
@@ -109,6 +114,8 @@ class SourceSession:
     session: zenoh.Session
     config: FleetConfig
     robot: str
+    # The daemon's stop flag: a source waiting for frames ends (EndOfStream) once it is set.
+    stop: threading.Event | None = None
 
 
 class FrameSource(abc.ABC):
@@ -122,10 +129,18 @@ class FrameSource(abc.ABC):
     """The capture stamp (ns since the epoch) of the frame `read()` returned last, where the
     source knows it (a camera message's header, a bag record); None: the robot stamps the frame
     with its own clock when it reads it."""
+    dropped_stale: int = 0
+    """Frames the source dropped, unread, because a newer one arrived first (a source fed by
+    others at their own rate, e.g. `zenoh`: the robot works on the newest frame); counted in
+    each frame's telemetry and the run summary."""
 
     @abc.abstractmethod
     def read(self) -> CameraFrame:
         """The next frame; SourceError when none can be read."""
+
+    def rejected_frames(self) -> dict[str, int]:
+        """Frames received but not decodable, by error code (a source fed by others)."""
+        return {}
 
     def on_result(self, result: FrameResult) -> None:  # noqa: B027 - most sources ignore it
         """Frame `result.frame` (the n-th frame read, from 0) was served and applied: a source
@@ -385,6 +400,23 @@ class CameraPath:
         )
 
 
+def fit_frame(image: np.ndarray, height: int, width: int) -> np.ndarray:
+    """`image` at `height`×`width` as the photo source frames a photograph: the largest centred
+    rectangle of the frame's aspect is kept (nothing is stretched), then scaled with area
+    interpolation when it shrinks, linear when it grows. An image of that size is returned as
+    it is."""
+    h, w = image.shape[:2]
+    if (h, w) == (height, width):
+        return image
+    rect_h, rect_w = fit_rect(h, w, height, width)
+    crop_h, crop_w = max(1, round(rect_h)), max(1, round(rect_w))
+    top, left = (h - crop_h) // 2, (w - crop_w) // 2
+    view = image[top : top + crop_h, left : left + crop_w]
+    shrink = crop_h > height or crop_w > width
+    interpolation = cv2.INTER_AREA if shrink else cv2.INTER_LINEAR
+    return cv2.resize(view, (width, height), interpolation=interpolation)
+
+
 def fit_rect(photo_h: int, photo_w: int, height: int, width: int) -> tuple[float, float]:
     """(h, w) of the largest rectangle of the frame's aspect that fits in the photograph."""
     aspect = width / height
@@ -521,16 +553,23 @@ def open_source(
     width: int,
     seed: int = 0,
     session: SourceSession | None = None,
+    views: tuple[str, ...] | None = None,
 ) -> FrameSource:
     """Open the source named by `spec` (synthetic[:OPTIONS], photo[:NAME][,OPTIONS], video:PATH,
-    camera:N, stereo:... or one fed over `session`); synthetic, photo and stereo frames are made
-    `height`×`width` (the model's input size)."""
+    camera:N, stereo:... or one fed over `session`: zenoh); synthetic, photo, stereo and zenoh
+    frames are made `height`×`width` (the model's input size). `views`: the model's image
+    inputs when it has several (a source fed over Zenoh takes frames of those images)."""
     spec = spec.strip()
-    if needs_session(spec) and session is None:
-        raise SourceError(
-            f"source {spec!r} receives its frames over Zenoh: it is opened by the robot daemon, "
-            "on its session"
-        )
+    if needs_session(spec):
+        if session is None:
+            raise SourceError(
+                f"source {spec!r} receives its frames over Zenoh: it is opened by the robot "
+                "daemon, on its session"
+            )
+        if spec == ZENOH:
+            from robotd.zenoh_source import ZenohSource  # imports the wire's image decoders
+
+            return ZenohSource(session, height=height, width=width, views=views)
     if spec.startswith(STEREO_PREFIX):
         # Imported here: it needs nav's world and renderer, which mono sources do not.
         from robotd.stereo_sources import open_stereo_source
@@ -550,8 +589,8 @@ def open_source(
     raise SourceError(
         f"unknown frame source {spec!r}; expected synthetic[:key=F,every=N], "
         "photo[:NAME][,motion=pan|zoom|shake|mixed][,speed=F], video:PATH, camera:INDEX, "
-        "stereo:world[,speed=F], stereo:motorcycle[,OPTIONS], stereo:LEFT,RIGHT[,OPTIONS] or "
-        "stereo:maneuver:N[:OPTIONS]"
+        "stereo:world[,speed=F], stereo:motorcycle[,OPTIONS], stereo:LEFT,RIGHT[,OPTIONS], "
+        "stereo:maneuver:N[:OPTIONS] or zenoh"
     )
 
 
