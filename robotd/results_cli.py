@@ -65,6 +65,8 @@ def results_command(
             if timeout is not None and not timeout > 0:
                 raise UserError(f"--timeout must be a positive number, got {timeout}")
             with RobotClient(config, robot) as client:
+                # On stderr: what is followed, once the subscriber is declared.
+                typer.echo(f"following {client.out_key}", err=True)
                 for n, result in enumerate(_follow(client, stop, timeout), start=1):
                     line = json.dumps(result_json(result)) if json_out else result_line(result)
                     typer.echo(line)
