@@ -100,7 +100,7 @@ class RobotClient:
         from common.session import open_session
 
         cfg = config if isinstance(config, FleetConfig) else load_fleet(Path(config))
-        cfg.machine(robot, role="robot")  # a UserError naming the robots when there is none
+        cfg.machine(robot, role=keys.Role.ROBOT)  # a UserError naming the robots when there is none
         self.config, self.robot = cfg, robot
         self.encoding = ImageEncoding(encoding)
         self.quality = quality

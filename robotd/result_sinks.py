@@ -103,7 +103,7 @@ def open_result_sinks(
     """The sinks robot `robot`'s configuration asks for, each with what to call it in logs,
     made on the daemon's open `session` (the caller hands each to the lifecycle): always the
     `out/<robot>` publisher."""
-    results = config.machine(robot, role="robot").results
+    results = config.machine(robot, role=keys.Role.ROBOT).results
     return [
         (ZenohResultSink(session, config.fleet, robot, results.codec), "results publisher"),
     ]
