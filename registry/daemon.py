@@ -69,7 +69,8 @@ from common.wire.telemetry import ProbeReport, TelemetryRecord
 from registry.control_loop import ControlLoop, Evaluate, Event
 from registry.latency import LatencyBound
 from registry.measurements import Measurements
-from registry.pools import pool_keeper, pool_planner
+from registry.pool_keeper import pool_keeper
+from registry.pools import pool_planner
 from registry.prober import Prober
 from registry.profile_saver import PacedSaver
 from registry.publications import PublicationReader
