@@ -46,7 +46,8 @@ from typing import IO, Any
 from common import keys
 from common.config import FleetConfig
 from common.errors import UserError
-from deploy.procs import DaemonError, DaemonProc, ProcessSet, elasticfog_argv, wait_until
+from deploy.procs import DaemonError, DaemonProc, ProcessSet, elasticfog_argv
+from deploy.readiness import wait_until
 from deploy.testbed import Testbed, require_root
 
 from .fleet import (

@@ -38,7 +38,7 @@ from common.wire.registry import (
     RerouteRequest,
     RouteChange,
 )
-from deploy.procs import wait_until
+from deploy.readiness import wait_until
 from tests.helpers import registry as reg
 from tests.helpers.registry import (
     DEADLINE_S,
