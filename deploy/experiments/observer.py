@@ -18,7 +18,8 @@ A failed request answers `{"id": N, "ok": false, "error": "one line"}`; the help
 It prints `{"event": "ready"}` once its session is open. End of input, `quit`, SIGINT or SIGTERM
 close the session and exit. Its traffic (liveliness, registry views, ctl) is small and crosses
 only the bench host's own link and the link of whoever it asks. In a TLS fleet it shows the
-registry's certificate (`deploy.local_fleet.observer_identity`), which carries the bench host's address.
+registry's certificate (`deploy.local_fleet.observer_identity`), which carries the bench host's
+address.
 """
 
 from __future__ import annotations
