@@ -264,6 +264,7 @@ def glitch(
     """A bandwidth glitch while the robot streams: before / on / after, frames to settle."""
     from deploy.experiments import glitch as gl
     from deploy.experiments.options import parse_floats
+    from deploy.experiments.single_edge import public
 
     a, b = _guard(lambda: parse_floats(f"{from_mbit},{to_mbit}", "--from-mbit/--to-mbit"))
     names = _policies(policies)
@@ -273,7 +274,7 @@ def glitch(
         gl.markdown,
         lambda r, d: gl.plot(r, d, "glitch"),
         as_json,
-        gl.public,
+        public,
     )
 
 
@@ -287,6 +288,7 @@ def table2(
 ) -> None:
     """ElasticROS Table II: the glitches 10→3, 5→1 and 10→1 Mbit/s."""
     from deploy.experiments import glitch as gl
+    from deploy.experiments.single_edge import public
 
     names = _policies(policies)
     _run(
@@ -295,7 +297,7 @@ def table2(
         gl.markdown,
         lambda r, d: gl.plot(r, d, "table2"),
         as_json,
-        gl.public,
+        public,
     )
 
 
@@ -309,9 +311,10 @@ def table3(
 ) -> None:
     """ElasticROS Table III: the robot's CPU quota drops to --robot-cpu, then recovers."""
     from deploy.experiments import table3 as t3
+    from deploy.experiments.single_edge import public
 
     names = _policies(policies)
-    _run(options, lambda: t3.run(options, names), t3.markdown, t3.plot, as_json, t3.public)
+    _run(options, lambda: t3.run(options, names), t3.markdown, t3.plot, as_json, public)
 
 
 @testbed_command("anycast", fixed={"robot_cpu": 1.0})
