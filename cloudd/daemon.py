@@ -57,6 +57,7 @@ import logging
 import signal
 import threading
 import time
+from dataclasses import dataclass
 
 import zenoh
 
@@ -104,6 +105,16 @@ CAPABILITIES = (CAP_INFER, CAP_PROBE, CAP_CTL, CAP_FAULT_INJECTION)
 
 INFLIGHT_WAIT_S = 0.4
 """How long shutdown lets admitted requests finish before closing the session."""
+
+
+@dataclass(frozen=True)
+class _Started:
+    """What startup made that queries, control and draining use."""
+
+    model: SplitModel
+    session: zenoh.Session
+    queue: FairQueue[Job]
+    admission: Admission
 
 
 class CloudDaemon(Daemon):
@@ -171,12 +182,12 @@ class CloudDaemon(Daemon):
         self._costs = BatchCosts()
         self.batch_stats = BatchStats()
 
-        # Made in startup (None before), released by the lifecycle.
+        # Made in startup, released by the lifecycle: the model as soon as it is loaded (a probe
+        # never comes before the session, but startup may stop in between), the rest in one
+        # `_Started` once the session and the workers are up.
         self._model: SplitModel | None = None
         self._cut_specs: list[list[TensorSpec]] = []
-        self._queue: FairQueue[Job] | None = None
-        self._admission: Admission | None = None
-        self._session: zenoh.Session | None = None
+        self._started: _Started | None = None
 
     # -- public ----------------------------------------------------------------------------
     @property
@@ -185,6 +196,13 @@ class CloudDaemon(Daemon):
         if self._model is None:
             raise RuntimeError("the model is loaded in startup()")
         return self._model
+
+    @property
+    def _parts(self) -> _Started:
+        """The started parts (RuntimeError before startup has opened the session)."""
+        if self._started is None:
+            raise RuntimeError("the cloud daemon is not started")
+        return self._started
 
     def stop(self, drain: bool = False) -> None:
         """Ask the daemon to stop (thread-safe); with `drain`, as on SIGTERM."""
@@ -205,7 +223,7 @@ class CloudDaemon(Daemon):
         snapshot, served = self._book.snapshot()
         states = {robot: st.state for robot, st in snapshot.items()}
         model = self._model
-        queue = self._queue
+        queue = self._started.queue if self._started is not None else None
         return ProbeReply(
             deployment=self.deployment,
             protocol_version=PROTOCOL_VERSION,
@@ -235,13 +253,16 @@ class CloudDaemon(Daemon):
         session = self._registry.open_session()
         if session is None:
             return  # stopped while waiting for the registry
-        self._session = self.hold(session, "zenoh session")
+        self.hold(session, "zenoh session")
         self._replies.start()
         # Delayed replies go out now; held queries are let go.
         self.on_release(self._replies.stop, what="timer thread")
         policy = BatchPolicy.from_config(self.machine.batching)
-        workers = self._start_workers(policy)
+        workers, admission = self._start_workers(policy)
         queue = workers.queue
+        self._started = _Started(
+            model=self.model, session=session, queue=queue, admission=admission
+        )
         for key, handler, what in [
             (self._probe.key, self._probe.on_query, "probe queryable"),
             (self._controller.key, self._controller.on_query, "ctl queryable"),
@@ -326,15 +347,14 @@ class CloudDaemon(Daemon):
             time.monotonic() - started,
         )
 
-    def _start_workers(self, policy: BatchPolicy) -> BatchWorkers[Job]:
-        """The queue, the service keys' admission and the workers running its batches."""
+    def _start_workers(self, policy: BatchPolicy) -> tuple[BatchWorkers[Job], Admission]:
+        """The queue, the workers running its batches and the service keys' admission."""
         # Each worker may run a whole batch; `queue` slots wait beyond that.
         slots = self.machine.workers * policy.max_batch + self.machine.queue
         queue: FairQueue[Job] = FairQueue(
             policy, slots=slots, costs=self._costs, batchable=self.model.batched
         )
-        self._queue = queue
-        self._admission = Admission(
+        admission = Admission(
             self.deployment,
             digest=self.model.digest,
             cut_specs=self._cut_specs,
@@ -368,16 +388,14 @@ class CloudDaemon(Daemon):
         )
         workers.start()
         self.on_release(self._stop_workers, workers, what="workers")
-        return workers
+        return workers, admission
 
     # -- service keys ----------------------------------------------------------------------
     def _declare_service(self, robot: str) -> None:
         """Declare `robot`'s service key and this deployment's pool member key for it (the
         Controller calls this before acking service). A robot of an anycast fleet queries the
         first; one in a round-robin pool sends each frame to one member's key."""
-        session, admission = self._session, self._admission
-        if session is None or admission is None:
-            raise RuntimeError("no session")
+        session, admission = self._parts.session, self._parts.admission
         fleet, service = self.cfg.fleet, self.cfg.service
         declared: list[zenoh.Queryable[None]] = []
         try:
@@ -424,9 +442,9 @@ class CloudDaemon(Daemon):
 
     def _drain(self) -> None:
         """Mark every robot draining and ask the registry to move them; bounded in time."""
-        session = self._session
-        if session is None:
-            return
+        if self._started is None:
+            return  # stopped before the session was open: nothing to drain
+        session = self._started.session
         serving = self._book.drain_all()
         log.info(
             "%s: draining (serving %s); asking the registry to move them",

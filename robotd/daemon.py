@@ -137,6 +137,16 @@ class RobotOptions:
         check_slowdown(self.robot_slowdown)
 
 
+@dataclass(frozen=True)
+class _Started:
+    """What startup made that the frame loop, the callbacks and shutdown use."""
+
+    model: SplitModel
+    policy: Policy
+    link: RegistryLink
+    loop: FrameLoop
+
+
 class RobotDaemon(Daemon):
     """`elasticfog robot`. `policy` and `on_result` let tests replace the policy and see each
     frame's outputs; `__init__` does no I/O."""
@@ -179,45 +189,52 @@ class RobotDaemon(Daemon):
         self._sink = TelemetrySink(robot_id, self.summary)
         # Where each applied frame's result goes (`robotd.result_sinks`), in the lifecycle.
         self._result_sinks: list[ResultSink] = []
-        # Made in startup, released by the lifecycle.
-        self.model: SplitModel
-        self._robot_model: RobotModel
-        self.policy: Policy
-        self._link: RegistryLink | None = None
-        self._source: FrameSource
-        self._requests: RequestSender
-        self._local: LocalRunner | None = None
-        self._runs: ModelRuns
         # Emulation (`robotd.emulation`): every robot-side model run goes through the slowdown;
         # phases switch it and the uplink at frame boundaries.
         self._slowdown = Slowdown(self.options.initial_slowdown, stop=self.should_exit)
-        self._emulation: Emulation
-        self._loop: FrameLoop | None = None
+        # Made in startup and released by the lifecycle; what the frame loop, the callbacks and
+        # shutdown use is one `_Started`, set once the frame loop is made (`_parts`). A callback
+        # declared before then is handed the part it needs.
+        self._started: _Started | None = None
+
+    # -- what startup made -----------------------------------------------------------------
+    @property
+    def _parts(self) -> _Started:
+        """The started parts (RuntimeError before startup has made the frame loop)."""
+        if self._started is None:
+            raise RuntimeError("the robot is not started")
+        return self._started
+
+    @property
+    def model(self) -> SplitModel:
+        """The split model (after startup)."""
+        return self._parts.model
+
+    @property
+    def policy(self) -> Policy:
+        """The split policy (after startup)."""
+        return self._parts.policy
 
     @property
     def loop(self) -> FrameLoop:
-        """The frame loop (made at the end of startup)."""
-        if self._loop is None:
-            raise RuntimeError("the frame loop is made in startup()")
-        return self._loop
+        """The frame loop (after startup)."""
+        return self._parts.loop
 
     @property
-    def frames_done(self) -> int:
-        """Frames finished and recorded so far."""
-        return self._loop.frames_done if self._loop is not None else 0
+    def link(self) -> RegistryLink:
+        """The link to the registry (after startup)."""
+        return self._parts.link
 
     # -- public ----------------------------------------------------------------------------
     @property
-    def link(self) -> RegistryLink:
-        """The link to the registry (made in startup, once the session is open)."""
-        if self._link is None:
-            raise RuntimeError("the registry link is made in startup()")
-        return self._link
+    def frames_done(self) -> int:
+        """Frames finished and recorded so far."""
+        return self._started.loop.frames_done if self._started is not None else 0
 
     @property
     def route(self) -> tuple[str | None, int]:
         """The deployment the registry last said serves this robot, and its epoch."""
-        return self._link.route if self._link is not None else (None, 0)
+        return self._started.link.route if self._started is not None else (None, 0)
 
     @property
     def result_sinks(self) -> tuple[ResultSink, ...]:
@@ -240,14 +257,13 @@ class RobotDaemon(Daemon):
     # -- lifecycle -------------------------------------------------------------------------
     def startup(self) -> None:
         cfg = self.config
-        self.model = self.hold(open_split_model(cfg, self.machine), "model sessions")
-        self._robot_model = robot_model = RobotModel(self.model, cfg.model)
-        warm_up(self.model, robot_model.sample_feeds)
-        self._local = local = LocalRunner(f"local-run-{self.robot}")
+        model = self.hold(open_split_model(cfg, self.machine), "model sessions")
+        robot_model = RobotModel(model, cfg.model)
+        warm_up(model, robot_model.sample_feeds)
+        local = LocalRunner(f"local-run-{self.robot}")
         local.start()
         self.on_release(local.stop, what="local-run thread")
-        self._runs = ModelRuns(self._slowdown, local)
-        self.policy = self._policy_override or build_policy(
+        policy = self._policy_override or build_policy(
             self.policy_spec,
             cfg,
             scaled_profile(
@@ -264,37 +280,21 @@ class RobotDaemon(Daemon):
         )
         if self.options.telemetry is not None:
             self._sink.file = self.hold(TelemetryFile(self.options.telemetry), "telemetry file")
-        self._open_zenoh()
-        log.info(
-            "%s: model %s (%d cuts, digest %s), policy %s, source %s, deadline %.3f s, "
-            "registry %s%s%s",
-            self.robot,
-            cfg.model,
-            self.model.num_cuts,
-            self.model.digest[:12],
-            self.policy.name,
-            self._source.description,
-            self.deadline_s,
-            cfg.registry.endpoint,
-            f", {self.max_in_flight} frames in flight" if self.max_in_flight > 1 else "",
-            # Phases describe themselves as they start.
-            "" if self.options.phases else emulation_note(self.uplink_mbit, self._slowdown.factor),
-        )
-        assert self._local is not None
-        self._loop = FrameLoop(
+        source, requests, link, emulation = self._open_zenoh(model, robot_model)
+        loop = FrameLoop(
             robot=self.robot,
-            model=self.model,
+            model=model,
             robot_model=robot_model,
-            policy=self.policy,
+            policy=policy,
             objective=self._objective,
             deadline_s=self.deadline_s,
-            source=self._source,
-            requests=self._requests,
-            link=self.link,
-            runs=self._runs,
-            local=self._local,
+            source=source,
+            requests=requests,
+            link=link,
+            runs=ModelRuns(self._slowdown, local),
+            local=local,
             slowdown=self._slowdown,
-            emulation=self._emulation,
+            emulation=emulation,
             sink=self._sink,
             summary=self.summary,
             cloud_time=self._cloud_time,
@@ -303,6 +303,22 @@ class RobotDaemon(Daemon):
             max_in_flight=self.max_in_flight,
             result_sinks=self._result_sinks,
             on_result=self._on_result,
+        )
+        self._started = _Started(model=model, policy=policy, link=link, loop=loop)
+        log.info(
+            "%s: model %s (%d cuts, digest %s), policy %s, source %s, deadline %.3f s, "
+            "registry %s%s%s",
+            self.robot,
+            cfg.model,
+            model.num_cuts,
+            model.digest[:12],
+            policy.name,
+            source.description,
+            self.deadline_s,
+            cfg.registry.endpoint,
+            f", {self.max_in_flight} frames in flight" if self.max_in_flight > 1 else "",
+            # Phases describe themselves as they start.
+            "" if self.options.phases else emulation_note(self.uplink_mbit, self._slowdown.factor),
         )
         self._warn_if_refused_past_limit()
         self._wait_for_fleet()
@@ -321,38 +337,44 @@ class RobotDaemon(Daemon):
                 ", ".join(f"{c} ({limit})" for c, limit in short.items()),
             )
 
-    def _open_zenoh(self) -> None:
+    def _open_zenoh(
+        self, model: SplitModel, robot_model: RobotModel
+    ) -> tuple[FrameSource, RequestSender, RegistryLink, Emulation]:
+        """The session and what is made on it; the token is announced last."""
         cfg = self.config
         session = self.hold(open_session(cfg, machine=self.robot), "zenoh session")
         for sink, what in open_result_sinks(cfg, self.robot, session):
             self.add_result_sink(sink, what)
         # Opened on the session (a source fed over Zenoh needs it), so released before it.
-        self._source = self.hold(
-            self._robot_model.open_source(
+        source = self.hold(
+            robot_model.open_source(
                 self.source_spec,
                 seed=self.options.seed,
                 session=SourceSession(session, cfg, self.robot, stop=self.should_exit),
             ),
             "frame source",
         )
-        self._requests = RequestSender(
+        requests = RequestSender(
             session,
             self._svc_key,
             robot=self.robot,
-            model_digest=self.model.digest,
+            model_digest=model.digest,
             deadline_s=self.deadline_s,
             max_reply_bytes=cfg.max_payload_bytes,
             uplink=None if self.uplink_mbit is None else TokenBucket.from_mbit(self.uplink_mbit),
             member_key=functools.partial(keys.svc_infer_at, self.fleet, cfg.service, self.robot),
         )
-        self._emulation = Emulation(
-            self.options.phases, self._slowdown, self._set_uplink, robot=self.robot
-        )
-        self._link = link = RegistryLink(
+
+        def set_uplink(bucket: TokenBucket | None) -> None:
+            """A phase's emulated uplink (None: requests are not paced)."""
+            requests.uplink = bucket
+
+        emulation = Emulation(self.options.phases, self._slowdown, set_uplink, robot=self.robot)
+        link = RegistryLink(
             session,
             cfg,
             self.robot,
-            model_digest=self.model.digest,
+            model_digest=model.digest,
             throttled=self.throttled,
             guard=self.guarded,
         )
@@ -369,7 +391,9 @@ class RobotDaemon(Daemon):
                 session,
                 self.fleet,
                 roles=("registry", "cloud"),
-                on_change=self.guarded(self._on_member, what="a membership change"),
+                on_change=self.guarded(
+                    functools.partial(self._on_member, link), what="a membership change"
+                ),
             ),
             "membership view",
         )
@@ -378,7 +402,7 @@ class RobotDaemon(Daemon):
         self._served.declare(self, session, self._svc_key)
         padding = self.options.probe_padding_bytes
         if padding is None:
-            padding = probe_padding_bytes([c.bytes for c in self.model.partition.cuts])
+            padding = probe_padding_bytes([c.bytes for c in model.partition.cuts])
         prober = Prober(
             session,
             self.fleet,
@@ -394,6 +418,7 @@ class RobotDaemon(Daemon):
         self.on_release(prober.stop, what="prober")
         # Ready: announce the robot last; the lifecycle takes the token down first at shutdown.
         self.announce(session.liveliness().declare_token(keys.alive_robot(self.fleet, self.robot)))
+        return source, requests, link, emulation
 
     def _wait_for_fleet(self) -> None:
         """Give the session a moment to meet the registry and the deployment serving this robot
@@ -415,18 +440,14 @@ class RobotDaemon(Daemon):
     def shutdown(self) -> None:
         """Let go of a hedged frame's reply still awaited (it may be waiting for the emulated
         uplink), then release everything startup made: the token first, then in reverse."""
-        if self._loop is not None:
-            self._loop.cancel()  # a hedged frame's reply awaited, frames in flight
+        if self._started is not None:
+            self._started.loop.cancel()  # a hedged frame's reply awaited, frames in flight
         super().shutdown()
 
     # -- callbacks -------------------------------------------------------------------------
-    def _on_member(self, change: MemberChange) -> None:
-        if change.role == "registry":
-            self.link.registry_changed(bool(change.alive_ids))
-
-    def _set_uplink(self, bucket: TokenBucket | None) -> None:
-        """A phase's emulated uplink (None: requests are not paced)."""
-        self._requests.uplink = bucket
+    def _on_member(self, link: RegistryLink, change: MemberChange) -> None:
+        if change.role == Role.REGISTRY:
+            link.registry_changed(bool(change.alive_ids))
 
     # -- the frame loop (`robotd.frame_loop`) ---------------------------------------------
     def main_loop(self) -> None:

@@ -11,7 +11,6 @@ cannot be decoded is counted by its error code and the robot keeps serving.
 from __future__ import annotations
 
 import threading
-import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -27,6 +26,7 @@ from common.partition.runtime import SplitModel
 from common.wire import encode_raw
 from common.wire.app_to_robot import FrameIn, ImageEncoding, ImageIn, decode_image, image_in
 from common.wire.robot_to_app import ServedBy
+from deploy import readiness
 from robotd.client import RobotClient
 from robotd.daemon import RobotDaemon, RobotOptions
 from robotd.sources import MAX_SOURCE_SIDE_PX, fit_frame
@@ -66,13 +66,7 @@ def photograph(height: int = 120, width: int = 160, shift: int = 0) -> np.ndarra
 
 def wait_until(condition: Callable[[], bool], timeout_s: float = WAIT_S) -> bool:
     """Whether `condition()` held within `timeout_s` (looked at every POLL_S)."""
-    deadline = time.monotonic() + timeout_s
-    pause = threading.Event()
-    while not condition():
-        if time.monotonic() >= deadline:
-            return False
-        pause.wait(POLL_S)
-    return True
+    return bool(readiness.wait_until(condition, timeout_s=timeout_s, what="the condition"))
 
 
 class RunningRobot:
@@ -188,7 +182,8 @@ def test_a_frame_that_cannot_be_decoded_is_counted_and_the_robot_keeps_serving(
     )
     two_images = FrameIn(stamp_ns=6, images={"a": jpeg, "b": jpeg})
     bad = (b"\xc1 not msgpack", encode_raw({"v": 99}), truncated.to_wire(), two_images.to_wire())
-    source = robot.daemon._source
+    assert robot.daemon.ready.wait(WAIT_S), "the robot did not start"
+    source = robot.daemon.loop.source
     for n, payload in enumerate(bad, start=1):
         # The client's session already reaches the robot's subscriber.
         client.session.put(keys.frames_in(FLEET, ROBOT), payload)
