@@ -25,7 +25,7 @@ from common.partition.runtime import SplitModel
 from common.photos import photo_bgr
 from common.wire.app_to_robot import FrameIn, ImageIn, decode_image, image_in
 from common.wire.robot_to_app import FP16_RELATIVE_ERROR, ServedBy
-from deploy.procs import wait_until
+from deploy.readiness import wait_until
 from robotd.client import Result, RobotClient
 from robotd.results_cli import top_k
 from robotd.sources import MAX_SOURCE_SIDE_PX, fit_frame

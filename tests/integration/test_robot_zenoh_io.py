@@ -30,6 +30,7 @@ from common.wire.robot_to_app import ServedBy
 from robotd.client import RobotClient
 from robotd.daemon import RobotDaemon, RobotOptions
 from robotd.sources import MAX_SOURCE_SIDE_PX, fit_frame
+from tests.helpers.onnx_graphs import save
 from tests.integration.conftest import Router
 from tests.integration.test_robotd import (
     FLEET,
@@ -38,7 +39,6 @@ from tests.integration.test_robotd import (
     fleet_config,
     tiny_conv_model,
 )
-from tests.unit.test_partition import save
 
 WAIT_S = 10.0
 TOLERANCE = 1e-4
