@@ -56,6 +56,9 @@ from robotd.telemetry_sink import TelemetrySink
 
 log = logging.getLogger("robotd")
 
+# While a source waits for its sender, frames in flight are looked at this often.
+FRAME_POLL_S = 0.005
+
 # What finishing an offloaded frame in flight needs: the frame, its cut position, the tensors sent.
 Offload = tuple[Frame, int, dict[str, np.ndarray]]
 
@@ -114,7 +117,7 @@ class FrameLoop:
         # Bounded by --frames, or by the stop flag (signals) otherwise.
         while limit is None or n < limit:
             # The wait for the next frame's start also finishes frames in flight that settle.
-            if not self._pipeline.idle(pacer.delay()):
+            if not self._pipeline.idle(pacer.delay()) or not self._await_frame():
                 break
             self._settle_pending(block=False)
             self.emulation.enter(n)
@@ -141,6 +144,16 @@ class FrameLoop:
         self.summary.rejected_frames = self.source.rejected_frames()
         if self.stop.is_set() and limit is not None and n < limit:
             log.info("%s: stopped after %d of %d frames", self.robot, n, limit)
+
+    def _await_frame(self) -> bool:
+        """Until the source has a frame to read (one fed by others waits for its sender),
+        finishing the frames in flight that settle meanwhile, so their results are not held
+        back by a quiet sender; False when the robot is stopping."""
+        while not self.source.wait_ready(FRAME_POLL_S):  # bounded by the stop flag
+            if not self._pipeline.idle(0.0):
+                return False
+            self._settle_pending(block=False)
+        return True
 
     def run_frame(
         self, n: int, frame: CameraFrame, *, stamp_ns: int = 0, dropped_stale: int = 0
