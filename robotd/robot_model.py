@@ -27,7 +27,7 @@ from common.wire.telemetry import FallbackReason
 from robotd.offload import CallResult
 from robotd.policies import Decision
 from robotd.robot_profile import measured_profile
-from robotd.sources import FrameSource, open_source_for
+from robotd.sources import FrameSource, SourceSession, open_source_for
 from robotd.stereo_frame import CameraFrame, StereoFrame
 
 
@@ -65,10 +65,13 @@ class RobotModel:
             policy_spec=policy_spec,
         )
 
-    def open_source(self, spec: str, *, seed: int) -> FrameSource:
-        """The frame source `spec` at the model's input size; a one-line UserError when its
-        views do not match the model's image inputs."""
-        return open_source_for(spec, self.inputs, seed=seed)
+    def open_source(
+        self, spec: str, *, seed: int, session: SourceSession | None = None
+    ) -> FrameSource:
+        """The frame source `spec` at the model's input size (one fed over Zenoh on the
+        daemon's `session`); a one-line UserError when its views do not match the model's
+        image inputs."""
+        return open_source_for(spec, self.inputs, seed=seed, session=session)
 
     def feeds(self, frame: CameraFrame) -> dict[str, np.ndarray]:
         """The model's input for camera frame `frame` (an image, or a stereo frame's views)."""

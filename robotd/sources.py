@@ -22,8 +22,10 @@ A source yields uint8 BGR frames (H×W×3, OpenCV's layout) one at a time, or st
   pair, two image files, a scripted maneuver); its frames are `robotd.stereo_frame.StereoFrame`s
   of named views.
 
-A source that cannot be opened is a `UserError` naming it. A source may end (`EndOfStream`) and
-may take each served frame's result (`on_result`, after the daemon's own).
+A source fed over Zenoh (`zenoh`, `ros2:...`: `robotd.source_names.needs_session`) is opened with
+the daemon's session (`SourceSession`), once that is open; opened without one it is a
+`SourceError`. A source that cannot be opened is a `UserError` naming it. A source may end
+(`EndOfStream`) and may take each served frame's result (`on_result`, after the daemon's own).
 `common.image_input.InputAdapter` turns a frame into the model's input; the photographs
 themselves are `common.photos`.
 """
@@ -34,6 +36,7 @@ import abc
 import contextlib
 import enum
 import math
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -43,10 +46,20 @@ import numpy as np
 from common.errors import UserError
 from common.image_input import ImageInputs
 from common.photos import PHOTOS, photo_bgr
-from robotd.source_names import CAMERA_PREFIX, PHOTO, STEREO_PREFIX, SYNTHETIC, VIDEO_PREFIX
+from robotd.source_names import (
+    CAMERA_PREFIX,
+    PHOTO,
+    STEREO_PREFIX,
+    SYNTHETIC,
+    VIDEO_PREFIX,
+    needs_session,
+)
 from robotd.stereo_frame import CameraFrame
 
 if TYPE_CHECKING:
+    import zenoh
+
+    from common.config import FleetConfig
     from robotd.frame import FrameResult
 
 DEFAULT_KEY_FRACTION = 0.25
@@ -85,6 +98,17 @@ class SourceError(UserError):
 class EndOfStream(Exception):
     """Raised by `read()` of a source that has no more frames: the robot's frame loop ends as
     it does after `--frames` (frames in flight finish, the daemon stops cleanly)."""
+
+
+@dataclass(frozen=True)
+class SourceSession:
+    """What a source fed over Zenoh needs from the robot daemon: its open session (whose
+    lifetime covers the source's: the source is released first), the fleet's config and the
+    robot's id (the keys it listens on are the robot's)."""
+
+    session: zenoh.Session
+    config: FleetConfig
+    robot: str
 
 
 class FrameSource(abc.ABC):
@@ -490,11 +514,23 @@ def parse_photo_options(spec: str) -> dict[str, Any]:
     return options
 
 
-def open_source(spec: str, *, height: int, width: int, seed: int = 0) -> FrameSource:
+def open_source(
+    spec: str,
+    *,
+    height: int,
+    width: int,
+    seed: int = 0,
+    session: SourceSession | None = None,
+) -> FrameSource:
     """Open the source named by `spec` (synthetic[:OPTIONS], photo[:NAME][,OPTIONS], video:PATH,
-    camera:N or stereo:...); synthetic, photo and stereo frames are made `height`×`width` (the
-    model's input size)."""
+    camera:N, stereo:... or one fed over `session`); synthetic, photo and stereo frames are made
+    `height`×`width` (the model's input size)."""
     spec = spec.strip()
+    if needs_session(spec) and session is None:
+        raise SourceError(
+            f"source {spec!r} receives its frames over Zenoh: it is opened by the robot daemon, "
+            "on its session"
+        )
     if spec.startswith(STEREO_PREFIX):
         # Imported here: it needs nav's world and renderer, which mono sources do not.
         from robotd.stereo_sources import open_stereo_source
@@ -519,11 +555,13 @@ def open_source(spec: str, *, height: int, width: int, seed: int = 0) -> FrameSo
     )
 
 
-def open_source_for(spec: str, inputs: ImageInputs, *, seed: int = 0) -> FrameSource:
+def open_source_for(
+    spec: str, inputs: ImageInputs, *, seed: int = 0, session: SourceSession | None = None
+) -> FrameSource:
     """`open_source` at the size of the model's image inputs; a one-line UserError (and the
     source closed) when its frames do not feed them: a mono source on a model with several
     image inputs, a stereo source on a one-input model, views not named like the inputs."""
-    source = open_source(spec, height=inputs.height, width=inputs.width, seed=seed)
+    source = open_source(spec, height=inputs.height, width=inputs.width, seed=seed, session=session)
     try:
         inputs.check_views(source.views, spec.strip())
     except UserError:
