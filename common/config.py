@@ -32,9 +32,11 @@ from pydantic import (
     PrivateAttr,
     ValidationError,
     ValidationInfo,
+    field_validator,
     model_validator,
 )
 
+from common import rmw_zenoh
 from common.defaults import (
     DEFAULT_CALIBRATION_FRAMES,
     DEFAULT_MAX_REQUEST_BYTES,
@@ -288,8 +290,42 @@ class CloudLimitsConfig(_Model):
 
 # Fields that only mean something for one role: setting them on the other is an error.
 _CLOUD_ONLY = frozenset({"workers", "queue", "fault", "batching", "limits"})
-_ROBOT_ONLY = frozenset({"source", "fps", "uplink_mbit", "max_in_flight"})
-_SOURCE = re.compile(r"^(synthetic(:.*)?|photo([:,].*)?|video:.+|camera:\d+|stereo:.+)$")
+_ROBOT_ONLY = frozenset({"source", "fps", "uplink_mbit", "max_in_flight", "results"})
+_SOURCE = re.compile(
+    r"^(synthetic(:.*)?|photo([:,].*)?|video:.+|camera:\d+|stereo:.+|zenoh|ros2:.+)$"
+)
+
+
+class ResultsConfig(_Model):
+    """Robot: where each applied frame's result is published besides the fleet's own key."""
+
+    ros2: str | None = Field(
+        default=None,
+        description="ROS 2 topic prefix: each model output on <prefix>/<output name> as "
+        "std_msgs/msg/Float32MultiArray (and an H×W or 1×1×H×W output also as a 32FC1 "
+        "sensor_msgs/msg/Image on <prefix>/<output name>/image), over rmw_zenoh; null: none.",
+    )
+
+    @field_validator("ros2")
+    @classmethod
+    def _ros2_prefix(cls, value: str | None) -> str | None:
+        return None if value is None else rmw_zenoh.topic_name(value)
+
+
+class Ros2Config(_Model):
+    """How the fleet's daemons take part in ROS 2 (rmw_zenoh's key space, docs/ros2.md)."""
+
+    domain_id: int | None = Field(
+        default=None,
+        ge=0,
+        le=rmw_zenoh.MAX_DOMAIN_ID,
+        description="ROS 2 domain id of the ros2: sources and results topics; null: the "
+        "ROS_DOMAIN_ID environment variable, else 0.",
+    )
+
+    def domain(self) -> int:
+        """The domain id in force (the config's, else ROS_DOMAIN_ID's, else 0)."""
+        return rmw_zenoh.domain_id(self.domain_id)
 
 
 class MachineConfig(_Model):
@@ -363,6 +399,10 @@ class MachineConfig(_Model):
         description="Robot: offloaded frames in flight at once (pipelining); 1: each frame's "
         "result is awaited before the next frame starts.",
     )
+    results: ResultsConfig = Field(
+        default_factory=ResultsConfig,
+        description="Robot: where each applied frame's result is published (ROS 2 topics).",
+    )
 
     @model_validator(mode="after")
     def _role_fields(self) -> MachineConfig:
@@ -375,7 +415,7 @@ class MachineConfig(_Model):
         if not _SOURCE.match(self.source):
             raise ValueError(
                 f"source: {self.source!r} is not a frame source; expected synthetic, "
-                "photo[:NAME], video:PATH, camera:INDEX or stereo:..."
+                "photo[:NAME], video:PATH, camera:INDEX, stereo:..., zenoh or ros2:TOPIC"
             )
         return self
 
@@ -637,6 +677,9 @@ class FleetConfig(_Model):
         description="Which lossy codecs may carry a crossing (measured on calibration frames).",
     )
     zenoh: ZenohConfig = Field(default_factory=ZenohConfig, description="Zenoh settings.")
+    ros2: Ros2Config = Field(
+        default_factory=Ros2Config, description="ROS 2 (rmw_zenoh) domain of ros2: topics."
+    )
     cli: CliConfig = Field(
         default_factory=CliConfig, description="How the views CLI connects (its certificate)."
     )

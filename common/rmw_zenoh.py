@@ -158,6 +158,18 @@ def topic_name(name: str) -> str:
     return text if text.startswith("/") else "/" + text
 
 
+def is_within(topic: str, prefix: str) -> bool:
+    """Whether `topic` is `prefix` or a topic below it (both fully qualified)."""
+    return topic == prefix or topic.startswith(prefix.rstrip("/") + "/")
+
+
+def name_token(name: str) -> str:
+    """`name` (e.g. an ONNX output's, `output.1`) as one ROS 2 name token: every character other
+    than letters, digits and '_' becomes '_', and a leading digit gets a '_' before it."""
+    token = re.sub(r"[^A-Za-z0-9_]", "_", name) or "_"
+    return "_" + token if token[0].isdigit() else token
+
+
 def node_name(name: str) -> str:
     """`name` if it is a valid ROS 2 node name, else Ros2NameError."""
     if not _NODE_NAME.match(name):
