@@ -36,6 +36,7 @@ import abc
 import contextlib
 import enum
 import math
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -49,10 +50,12 @@ from common.photos import PHOTOS, photo_bgr
 from robotd.source_names import (
     CAMERA_PREFIX,
     PHOTO,
+    ROS2_PREFIX,
     STEREO_PREFIX,
     SYNTHETIC,
     VIDEO_PREFIX,
     needs_session,
+    parse_ros2_source,
 )
 from robotd.stereo_frame import CameraFrame
 
@@ -109,6 +112,8 @@ class SourceSession:
     session: zenoh.Session
     config: FleetConfig
     robot: str
+    # Set when the daemon stops: a source waiting for its next frame gives up (EndOfStream).
+    stop: threading.Event | None = None
 
 
 class FrameSource(abc.ABC):
@@ -531,6 +536,11 @@ def open_source(
             f"source {spec!r} receives its frames over Zenoh: it is opened by the robot daemon, "
             "on its session"
         )
+    if spec.startswith(ROS2_PREFIX) and session is not None:
+        # Imported here: rosbags' type store is built only for a ROS 2 source.
+        from robotd.ros2_source import Ros2Source
+
+        return Ros2Source(parse_ros2_source(spec), session, session.stop)
     if spec.startswith(STEREO_PREFIX):
         # Imported here: it needs nav's world and renderer, which mono sources do not.
         from robotd.stereo_sources import open_stereo_source
