@@ -66,7 +66,7 @@ from typing import Any
 
 import numpy as np
 
-from common import keys
+from common import keys, rmw_zenoh
 from common.config import FleetConfig
 from common.daemon import Daemon
 from common.errors import UserError
@@ -98,6 +98,7 @@ from robotd.result_sinks import ResultSink, open_result_sinks
 from robotd.robot_model import RobotModel, open_split_model
 from robotd.robot_profile import build_policy, robot_profile, warm_up
 from robotd.service_match import ServiceMatch
+from robotd.source_names import check_results_topics
 from robotd.sources import EndOfStream, FrameSource, SourceSession
 from robotd.stereo_frame import CameraFrame, first_view
 from robotd.telemetry import SERVED_BY_CLOUD, RemoteTimes, RunSummary, TelemetryFile
@@ -135,6 +136,8 @@ class RobotOptions:
     robot_slowdown: float = 1.0
     phases: tuple[Phase, ...] = ()
     max_in_flight: int | None = None
+    # ROS 2 topic prefix of the results (`results: {ros2: ...}`); None: the machine's.
+    results_ros2: str | None = None
 
     @property
     def initial_slowdown(self) -> float:
@@ -186,6 +189,9 @@ class RobotDaemon(Daemon):
         uplink = self.options.uplink_mbit
         self.uplink_mbit = uplink if uplink is not None else self.machine.uplink_mbit
         self.policy_spec = self.options.policy or config.policy.kind
+        results_ros2 = self.options.results_ros2 or self.machine.results.ros2
+        self.results_ros2 = None if results_ros2 is None else rmw_zenoh.topic_name(results_ros2)
+        check_results_topics(self.source_spec, self.results_ros2, config.ros2.domain())
         self.name = f"robot {robot_id}"
         self.summary = RunSummary(robot_id)
         self.frames_done = 0
@@ -322,12 +328,17 @@ class RobotDaemon(Daemon):
         session = self.hold(open_session(cfg, machine=self.robot), "zenoh session")
         for sink, what in open_result_sinks(cfg, self.robot, session):
             self.add_result_sink(sink, what)
+        if self.results_ros2 is not None:
+            from robotd.ros2_results import Ros2ResultSink  # rosbags only where it is used
+
+            ros2_sink = Ros2ResultSink(session, cfg.ros2.domain(), self.robot, self.results_ros2)
+            self.add_result_sink(ros2_sink, f"ROS 2 results {self.results_ros2}")
         # Opened on the session (a source fed over Zenoh needs it), so released before it.
         self._source = self.hold(
             self._robot_model.open_source(
                 self.source_spec,
                 seed=self.options.seed,
-                session=SourceSession(session, cfg, self.robot),
+                session=SourceSession(session, cfg, self.robot, stop=self.should_exit),
             ),
             "frame source",
         )

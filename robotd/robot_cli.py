@@ -38,7 +38,8 @@ def robot_command(
         "--source",
         help="synthetic[:key=F,every=N], photo[:NAME][,motion=M] (real photographs through a "
         "moving camera), video:PATH, camera:N, or a stereo pair for a two-image model: "
-        "stereo:world, stereo:motorcycle, stereo:LEFT,RIGHT; default: the machine's.",
+        "stereo:world, stereo:motorcycle, stereo:LEFT,RIGHT, or a ROS 2 image topic "
+        "ros2:TOPIC[,type=image|compressed][,domain=ID]; default: the machine's.",
     ),
     frames: int | None = typer.Option(
         None, "--frames", help="Stop after this many frames (default: run until Ctrl-C)."
@@ -80,6 +81,14 @@ def robot_command(
         metavar="N",
         help="Offloaded frames in flight at once (pipelining); default: the machine's (1).",
     ),
+    results_ros2: str | None = typer.Option(
+        None,
+        "--results-ros2",
+        metavar="PREFIX",
+        help="Publish each frame's outputs on ROS 2 topics PREFIX/<output> (Float32MultiArray; "
+        "H×W outputs also as a 32FC1 Image on PREFIX/<output>/image); default: the machine's "
+        "results.ros2.",
+    ),
     seed: int = typer.Option(0, "--seed", help="Seed of the synthetic and photo frame sources."),
     json_out: bool = typer.Option(False, "--json", help="Print the summary as JSON on stdout."),
     log_level: str = typer.Option(
@@ -113,6 +122,7 @@ def robot_command(
                 robot_slowdown=robot_slowdown,
                 phases=loaded,
                 max_in_flight=max_in_flight,
+                results_ros2=results_ros2,
             )
             daemon = RobotDaemon(cfg, robot_id, options)
             code = daemon.run()
