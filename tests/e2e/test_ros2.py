@@ -99,12 +99,15 @@ class SdkPeer:
         return self.session.store.types[msg_type]
 
     def close(self) -> None:
-        from zenoh_ros2_sdk import ZenohSession
+        from zenoh_ros2_sdk import ZenohSession, get_registry
 
         for entity in reversed(self.entities):
             entity.close()
         self.session.close()
-        ZenohSession._instance = None  # the SDK keeps one session per process
+        # The SDK keeps one session (with its type store) per process, and its registry notes
+        # which types it put in that store: the next test's peer starts both afresh.
+        ZenohSession._instance = None
+        get_registry()._loaded_types.clear()
 
 
 @pytest.fixture
@@ -208,7 +211,7 @@ def _publish_and_check(
 ) -> None:
     """Publish each frame once its predecessor's result came (one frame at a time: the robot
     keeps only the newest), and compare each result with the whole model on the frame."""
-    for i, (stamp_ns, bgr) in enumerate(frames):
+    for i, (stamp_ns, bgr) in enumerate(frames, start=len(results.arrays)):
         # Publish until the robot's subscription is matched and the first result comes (a
         # message sent before the robot's subscriber reached the router is not delivered).
         deadline = time.monotonic() + WAIT_S
@@ -277,3 +280,97 @@ def test_compressed_frames_in(make_fleet, local_fleet, sdk_peer) -> None:
 
     _publish_and_check(publish, [(stamp, decoded)], results, robot)
     robot.check_alive()
+
+
+def test_bad_input_is_named_and_the_robot_keeps_serving(make_fleet, local_fleet, sdk_peer) -> None:
+    """Truncated CDR, a wrong type hash on the topic, an unknown encoding and a 0×0 image: each is
+    one named line in the robot's log, and the next good frame is served."""
+    from common.ros2_messages import typestore
+
+    _, lf, port = start_fleet(make_fleet, local_fleet, f"ros2:{CAMERA}")
+    peer = sdk_peer(port)
+    output = next(iter(reference(np.zeros((8, 8, 3), np.uint8))))
+    results = Results(peer, lf, output)
+    robot = lf.start_robot(ROBOT, "--policy", "cloud")
+    camera = peer.publisher(CAMERA, "sensor_msgs/msg/Image")
+    rgb = photograph(48, 64)
+    image_type = rmw_zenoh.TopicType.of("sensor_msgs/msg/Image")
+    key = rmw_zenoh.topic_key(0, CAMERA, image_type)
+
+    def image(encoding: str, height: int, width: int, data: np.ndarray) -> dict[str, Any]:
+        return dict(
+            header=header(peer, 1_700_000_000_000_000_000),
+            height=height,
+            width=width,
+            encoding=encoding,
+            is_bigendian=0,
+            step=width * 3,
+            data=data,
+        )
+
+    def good(stamp_ns: int) -> None:
+        camera.publish(
+            **{**image("rgb8", 48, 64, rgb.reshape(-1)), "header": header(peer, stamp_ns)}
+        )
+
+    _publish_and_check(good, [(1, cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))], results, robot)
+    msg_type = typestore().types["sensor_msgs/msg/Image"]
+    valid = bytes(
+        typestore().serialize_cdr(
+            msg_type(**image("rgb8", 48, 64, rgb.reshape(-1))), "sensor_msgs/msg/Image"
+        )
+    )
+    bad = {
+        "MalformedMessage": (key, valid[: len(valid) // 2]),
+        "WrongTypeHash": (key.rsplit("/", 1)[0] + "/RIHS01_" + "0" * 64, valid),
+        "UnknownEncoding": (key, None),
+        "EmptyImage": (key, None),
+    }
+    for name, (where, payload) in bad.items():
+        if name == "UnknownEncoding":
+            camera.publish(**image("yuv422", 48, 64, rgb.reshape(-1)))
+        elif name == "EmptyImage":
+            camera.publish(**image("rgb8", 0, 0, np.zeros(0, np.uint8)))
+        else:
+            lf.session.put(where, payload)
+        wait_until(
+            lambda name=name: f"message refused: {name}" in robot.log_text() or None,
+            timeout_s=WAIT_S,
+            what=f"the robot's line naming {name}",
+            procs=[robot],
+        )
+    served = len(results.arrays)
+    _publish_and_check(good, [(2, cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))], results, robot)
+    assert len(results.arrays) > served
+    lines = [line for line in robot.log_text().splitlines() if "message refused" in line]
+    assert len(lines) == len(bad) and all("Traceback" not in line for line in lines), lines
+    robot.check_alive()
+
+
+def test_results_topic_over_the_input_is_a_config_error(make_fleet, tmp_path: Path) -> None:
+    import subprocess
+
+    from deploy.procs import elasticfog_argv
+
+    fleet = make_fleet()
+    done = subprocess.run(
+        [
+            *elasticfog_argv(),
+            "robot",
+            "--config",
+            str(fleet.config),
+            "--id",
+            ROBOT,
+            "--source",
+            "ros2:/elasticfog/robot_1/camera",
+            "--results-ros2",
+            RESULTS,
+        ],
+        capture_output=True,
+        text=True,
+        timeout=WAIT_S,
+        check=False,
+    )
+    assert done.returncode == 2, done.stderr
+    assert "collides with the input topic /elasticfog/robot_1/camera" in done.stderr
+    assert "Traceback" not in done.stderr
