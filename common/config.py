@@ -15,6 +15,7 @@ Relative paths in the file (model, registry db, TLS files, video sources) are re
 from __future__ import annotations
 
 import difflib
+import enum
 import math
 import re
 import types
@@ -44,8 +45,9 @@ from common.defaults import (
     ZOO_PREFIX,
 )
 from common.errors import UserError
-from common.keys import DEFAULT_FLEET, validate_id
+from common.keys import DEFAULT_FLEET, MACHINE_ROLES, Role, validate_id
 from common.wire.codec import DEFAULT_MAX_PAYLOAD_BYTES
+from robotd.source_names import SourceError, parse_source
 
 DEFAULT_REGISTRY_ENDPOINT = f"tcp/127.0.0.1:{DEFAULT_REGISTRY_PORT}"
 DEFAULT_LEASE_MS = 1000
@@ -59,7 +61,6 @@ MAX_REQUEST_BYTES_LIMIT = 16 * 1024 * 1024
 
 LatencyStat = Literal["median", "mean", "p95", "max", "stddev"]
 LATENCY_STATS: tuple[str, ...] = typing.get_args(LatencyStat)
-Role = Literal["cloud", "robot"]
 InitialState = Literal["robot", "service", "standby"]
 
 # Zenoh endpoints: <protocol>/<address>[?metadata][#config]; IP protocols need host:port.
@@ -120,11 +121,19 @@ class CutsConfig(_Model):
     )
 
 
+class DispatchMode(str, enum.Enum):
+    """How the deployments serving one robot share its frames (`dispatch.mode`)."""
+
+    ANYCAST = "anycast"
+    ROUND_ROBIN = "round_robin"
+
+
 class DispatchConfig(_Model):
     """How the deployments serving one robot share its frames."""
 
-    mode: Literal["anycast", "round_robin"] = Field(
-        default="anycast",
+    mode: DispatchMode = Field(
+        default=DispatchMode.ANYCAST,
+        strict=False,  # the YAML's string becomes the member
         description="anycast: one deployment serves each robot; round_robin: a pool of "
         "deployments serves it together, each frame computed by exactly one member, in turn "
         "(the robot needs max_in_flight > 1 for the members to overlap).",
@@ -144,13 +153,13 @@ class DispatchConfig(_Model):
 
     @model_validator(mode="after")
     def _pool_needs_round_robin(self) -> DispatchConfig:
-        if self.pool_size is not None and self.mode != "round_robin":
-            raise ValueError(f"pool_size: only for mode round_robin (mode is {self.mode})")
+        if self.pool_size is not None and self.mode is not DispatchMode.ROUND_ROBIN:
+            raise ValueError(f"pool_size: only for mode round_robin (mode is {self.mode.value})")
         return self
 
     def pool_limit(self) -> int:
         """How many deployments may serve one robot (1 in anycast; 0: no limit)."""
-        if self.mode == "anycast":
+        if self.mode is DispatchMode.ANYCAST:
             return 1
         return self.pool_size or 0
 
@@ -291,9 +300,6 @@ class CloudLimitsConfig(_Model):
 # Fields that only mean something for one role: setting them on the other is an error.
 _CLOUD_ONLY = frozenset({"workers", "queue", "fault", "batching", "limits"})
 _ROBOT_ONLY = frozenset({"source", "fps", "uplink_mbit", "max_in_flight", "results"})
-_SOURCE = re.compile(
-    r"^(synthetic(:.*)?|photo([:,].*)?|video:.+|camera:\d+|stereo:.+|zenoh|ros2:.+)$"
-)
 
 
 class ResultsConfig(_Model):
@@ -332,6 +338,14 @@ class MachineConfig(_Model):
     """One machine of the fleet: a cloud deployment or a robot, with its overrides."""
 
     role: Role = Field(description="'cloud' (serves suffixes) or 'robot' (runs the frame loop).")
+
+    @field_validator("role", mode="before")
+    @classmethod
+    def _machine_role(cls, value: Any) -> Any:
+        if value not in MACHINE_ROLES:
+            raise ValueError(f"{value!r} is not a machine role; expected cloud or robot")
+        return Role(value)  # the model is strict: the YAML's string becomes the member here
+
     listen: list[Endpoint] = Field(
         default_factory=list,
         description="Zenoh endpoints this machine listens on; peers reach it there directly, so "
@@ -379,8 +393,9 @@ class MachineConfig(_Model):
     source: str = Field(
         default="synthetic",
         description=(
-            "Robot: frame source: synthetic[:OPTIONS], photo[:NAME], video:PATH, camera:INDEX "
-            "or stereo:world|motorcycle|LEFT,RIGHT[,OPTIONS]."
+            "Robot: frame source, a spec of robotd.source_names: synthetic[:OPTIONS], "
+            "photo[:NAME], video:PATH, camera:INDEX or stereo:world|motorcycle|LEFT,RIGHT"
+            "[,OPTIONS]."
         ),
     )
     fps: float | None = Field(
@@ -406,17 +421,15 @@ class MachineConfig(_Model):
 
     @model_validator(mode="after")
     def _role_fields(self) -> MachineConfig:
-        foreign = (_ROBOT_ONLY if self.role == "cloud" else _CLOUD_ONLY) & self.model_fields_set
+        foreign = (_ROBOT_ONLY if self.role is Role.CLOUD else _CLOUD_ONLY) & self.model_fields_set
         if foreign:
-            other = "robot" if self.role == "cloud" else "cloud"
-            raise ValueError(
-                f"{', '.join(sorted(foreign))}: only for {other} machines (role is {self.role!r})"
-            )
-        if not _SOURCE.match(self.source):
-            raise ValueError(
-                f"source: {self.source!r} is not a frame source; expected synthetic, "
-                "photo[:NAME], video:PATH, camera:INDEX, stereo:..., zenoh or ros2:TOPIC"
-            )
+            other = Role.ROBOT if self.role is Role.CLOUD else Role.CLOUD
+            fields = ", ".join(sorted(foreign))
+            raise ValueError(f"{fields}: only for {other} machines (role is {self.role.value!r})")
+        try:
+            parse_source(self.source)
+        except SourceError as exc:
+            raise ValueError(f"source: {exc}") from None
         return self
 
 
@@ -461,11 +474,23 @@ class PolicyConfig(_Model):
     kind: str = Field(
         default="elastic",
         min_length=1,
-        description="Policy name: elastic, robot, cloud, static:<k>, neurosurgeon, ans...",
+        description="Policy name, a row of robotd.policies.POLICIES: elastic, ans, "
+        "neurosurgeon, robot, cloud[:CODEC], static:K[:CODEC], option:N[:CODEC].",
     )
     params: dict[str, Any] = Field(
-        default_factory=dict, description="Policy parameters, checked by the policy itself."
+        default_factory=dict, description="Policy parameters, checked by the policy's model."
     )
+
+    @model_validator(mode="after")
+    def _known_policy(self) -> PolicyConfig:
+        # Imported here: the policies (numpy) are not needed to read the rest of the file.
+        from robotd.policies import check_policy
+
+        try:
+            check_policy(self.kind, self.params, real_time=True)
+        except UserError as exc:
+            raise ValueError(str(exc)) from None
+        return self
 
 
 class ObjectiveConfig(_Model):
@@ -735,11 +760,11 @@ class FleetConfig(_Model):
                 raise ValueError(
                     f"initial_policy: unknown machine {machine_id!r}; known machines: {known}"
                 )
-            if machine.role == "robot" and entry != "robot":
+            if machine.role is Role.ROBOT and entry != "robot":
                 raise ValueError(
                     f"initial_policy.{machine_id}: a robot's state is 'robot', not {entry!r}"
                 )
-            if machine.role == "cloud" and entry == "robot":
+            if machine.role is Role.CLOUD and entry == "robot":
                 raise ValueError(
                     f"initial_policy.{machine_id}: a cloud is 'service' or 'standby', not 'robot'"
                 )
@@ -777,8 +802,7 @@ class FleetConfig(_Model):
             if tls is not None:
                 tls.ca, tls.cert, tls.key = resolve(tls.ca), resolve(tls.cert), resolve(tls.key)
         for machine in self.machines.values():
-            if machine.source.startswith("video:"):
-                machine.source = f"video:{resolve(machine.source[len('video:') :])}"
+            machine.source = str(parse_source(machine.source).resolved(lambda p: str(resolve(p))))
 
     # -- helpers -----------------------------------------------------------------------------------
     @property
@@ -789,12 +813,12 @@ class FleetConfig(_Model):
     @property
     def robot_ids(self) -> list[str]:
         """Robot machine ids, in file order."""
-        return [i for i, m in self.machines.items() if m.role == "robot"]
+        return [i for i, m in self.machines.items() if m.role is Role.ROBOT]
 
     @property
     def cloud_ids(self) -> list[str]:
         """Cloud machine (deployment) ids, in file order."""
-        return [i for i, m in self.machines.items() if m.role == "cloud"]
+        return [i for i, m in self.machines.items() if m.role is Role.CLOUD]
 
     def short_of_in_flight(self, in_flight: int) -> dict[str, int]:
         """The deployments that admit fewer of one robot's requests at once than a robot with

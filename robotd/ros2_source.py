@@ -33,7 +33,7 @@ from common.ros2_messages import MessageType, Ros2MessageError, decode_frame, ty
 from common.throttled_log import ThrottledLog
 from robotd.newest_frame import NewestFrame
 from robotd.ros2_node import acquire_node
-from robotd.source_names import Ros2FrameType, Ros2SourceSpec
+from robotd.source_names import Ros2FrameType, Ros2Spec
 from robotd.sources import EndOfStream, FrameSource
 
 if TYPE_CHECKING:
@@ -61,7 +61,7 @@ class Ros2Source(FrameSource):
     """Frames from a ROS 2 image topic (see the module docstring)."""
 
     def __init__(
-        self, spec: Ros2SourceSpec, session: SourceSession, stop: threading.Event | None = None
+        self, spec: Ros2Spec, session: SourceSession, stop: threading.Event | None = None
     ) -> None:
         self.spec = spec
         self.domain = spec.domain if spec.domain is not None else session.config.ros2.domain()

@@ -11,17 +11,18 @@ from common.errors import UserError
 from robotd.newest_frame import NewestFrame
 from robotd.source_names import (
     Ros2FrameType,
-    Ros2SourceSpec,
+    Ros2Spec,
     check_results_topics,
     parse_ros2_source,
 )
 
 
 def test_topic_type_and_domain() -> None:
-    assert parse_ros2_source("ros2:/camera/image_raw") == Ros2SourceSpec("/camera/image_raw")
-    assert parse_ros2_source(" ros2:camera/image , type=compressed, domain=3 ") == Ros2SourceSpec(
-        "/camera/image", Ros2FrameType.COMPRESSED, 3
-    )
+    spec = parse_ros2_source("ros2:/camera/image_raw")
+    assert (spec.topic, spec.type, spec.domain) == ("/camera/image_raw", Ros2FrameType.IMAGE, None)
+    spec = parse_ros2_source(" ros2:camera/image , type=compressed, domain=3 ")
+    assert (spec.topic, spec.type, spec.domain) == ("/camera/image", Ros2FrameType.COMPRESSED, 3)
+    assert isinstance(spec, Ros2Spec)
 
 
 @pytest.mark.parametrize(
@@ -34,6 +35,8 @@ def test_topic_type_and_domain() -> None:
         ("ros2:/cam,domain=500", "0..232"),
         ("ros2:/cam,fps=3", "unknown option 'fps'"),
         ("ros2:/cam,type", "expected name=value"),
+        ("ros2", "not a ROS 2 topic name"),
+        ("ros3:/cam", "unknown frame source"),
     ],
 )
 def test_bad_specs_are_named(spec: str, named: str) -> None:

@@ -6,8 +6,13 @@ from __future__ import annotations
 
 import pytest
 
-from robotd.source_names import DEFAULT_CAMERA_SOURCE, calibration_source, needs_session
-from robotd.sources import SourceError, open_source
+from robotd.source_names import (
+    DEFAULT_CAMERA_SOURCE,
+    SourceError,
+    calibration_source,
+    needs_session,
+)
+from robotd.source_open import open_source
 
 
 @pytest.mark.parametrize(
@@ -27,8 +32,8 @@ def test_sources_fed_over_zenoh_need_the_session(spec: str, expected: bool) -> N
 
 
 def test_calibration_reads_photographs_for_a_source_fed_over_zenoh() -> None:
-    assert calibration_source("zenoh") == DEFAULT_CAMERA_SOURCE
-    assert calibration_source("synthetic:every=2") == "synthetic:every=2"
+    assert calibration_source("zenoh").text == DEFAULT_CAMERA_SOURCE
+    assert calibration_source("synthetic:every=2").text == "synthetic:every=2"
 
 
 def test_a_source_fed_over_zenoh_without_a_session_is_a_named_error() -> None:
