@@ -9,9 +9,10 @@ stop before the obstacle on its path, on the same path (ω scaled with v). The o
 (`linear.y`, `linear.z`, `angular.x`, `angular.y`) pass unchanged.
 
 d_coll comes from the robot's results on ROS 2 (`results: {ros2: PREFIX}` on a robot running
-`zoo:stereo`): the `Float32MultiArray` on `PREFIX/d_coll` (one distance per curvature bin, the
-bins of `nav.curvature.CurvatureBins` with their default k_max and as many bins as values), its
-frame's capture stamp in the rmw_zenoh attachment's source timestamp. An older frame than the one
+`zoo:stereo`): the `Float32MultiArray` on `PREFIX/d_coll` (one distance per curvature bin: the
+bins the fleet's model names in its metadata, `nav.bins.k_max_per_m` and `nav.bins.count`, else
+`nav.curvature.CurvatureBins`' default k_max with as many bins as values), its frame's capture
+stamp in the rmw_zenoh attachment's source timestamp. An older frame than the one
 held is ignored. The stamps are wall-clock time of the camera's host: its clock and this host's
 must agree (NTP/PTP) within a fraction of the deadline.
 
@@ -54,6 +55,7 @@ from nav.shared_control import AssistantParams, Command, Limit, SharedControl
 if TYPE_CHECKING:
     import zenoh
 
+    from common.config import FleetConfig
     from robotd.ros2_node import Ros2Node, Ros2Publisher, Ros2Subscription
 
 log = logging.getLogger("nav.assist")
@@ -74,8 +76,11 @@ class TeleopAssist:
     """Operator Twists in, safe Twists out, with the newest d_coll (see the module docstring).
     Thread-safe: d_coll and commands arrive on different Zenoh threads."""
 
-    def __init__(self, params: AssistantParams | None = None) -> None:
+    def __init__(
+        self, params: AssistantParams | None = None, bins: CurvatureBins | None = None
+    ) -> None:
         self.control = SharedControl(params=params)
+        self.bins = bins
         self._lock = threading.Lock()
         self.limit = Limit.NONE
 
@@ -83,9 +88,10 @@ class TeleopAssist:
         """Take d_coll of the frame captured at `stamp_ns` (ns since the epoch); False when it
         is older than the one held. A UserError for values that are not one distance per bin."""
         values = np.asarray(d_coll, dtype=np.float64).reshape(-1)
-        if values.size < 3 or values.size % 2 == 0:
+        if self.bins is None and (values.size < 3 or values.size % 2 == 0):
             raise UserError(f"d_coll has {values.size} values; expected an odd number >= 3")
-        profile = DcollProfile.from_bins(CurvatureBins(count=values.size), values)
+        bins = self.bins if self.bins is not None else CurvatureBins(count=values.size)
+        profile = DcollProfile.from_bins(bins, values)
         with self._lock:
             return self.control.observe(profile, stamp_ns / NS_PER_S)
 
@@ -102,6 +108,28 @@ class TeleopAssist:
         return SafeCommand(safe, decision.limit)
 
 
+def bins_of_model(props: dict[str, str]) -> CurvatureBins | None:
+    """The curvature bins a model's metadata names (`nav.bins.*`, as zoo:stereo writes them);
+    None when it names none."""
+    if "nav.bins.count" not in props or "nav.bins.k_max_per_m" not in props:
+        return None
+    try:
+        return CurvatureBins(float(props["nav.bins.k_max_per_m"]), int(props["nav.bins.count"]))
+    except ValueError:
+        raise UserError(f"the model's nav.bins metadata is not numbers: {props}") from None
+
+
+def _model_props(cfg: FleetConfig) -> dict[str, str]:
+    """The metadata of the fleet's model (a zoo model is exported once into the cache)."""
+    import onnx
+
+    from common.models import resolve_model
+
+    shape = tuple(cfg.input_shape) if cfg.input_shape else None
+    model = onnx.load(str(resolve_model(cfg.model, shape).path), load_external_data=False)
+    return {p.key: p.value for p in model.metadata_props}
+
+
 class AssistNode:
     """The assistant on the ROS 2 graph: node `elasticfog_assist_<robot>` with the two Twist
     topics and the d_coll subscription, on a Zenoh session the caller owns."""
@@ -116,6 +144,7 @@ class AssistNode:
         cmd_in: str,
         cmd_out: str,
         params: AssistantParams | None = None,
+        bins: CurvatureBins | None = None,
     ) -> None:
         from robotd.ros2_node import acquire_node
         from robotd.ros2_results import results_topic
@@ -124,7 +153,7 @@ class AssistNode:
         if self.cmd_in == self.cmd_out:
             raise UserError(f"--cmd-in and --cmd-out are both {self.cmd_in}")
         self.d_coll_topic = results_topic(rmw_zenoh.topic_name(results_prefix), D_COLL_OUTPUT)
-        self.assist = TeleopAssist(params)
+        self.assist = TeleopAssist(params, bins)
         self.forwarded = 0
         self.refused = 0
         self._throttled = ThrottledLog(log, label=lambda: "nav assist")
@@ -216,6 +245,7 @@ def run_assist(
             cmd_in=cmd_in,
             cmd_out=cmd_out,
             params=params,
+            bins=bins_of_model(_model_props(cfg)),
         )
         log.info(
             "nav assist for %s: %s -> %s, d_coll from %s, deadline %.2f s",

@@ -70,3 +70,17 @@ def test_reverse_passes_and_older_frames_are_ignored() -> None:
 def test_d_coll_not_one_value_per_bin_is_refused(values: np.ndarray) -> None:
     with pytest.raises(UserError, match="d_coll"):
         TeleopAssist().observe(values, _at(T0))
+
+
+def test_bins_from_zoo_stereo_metadata() -> None:
+    from nav.assist import bins_of_model
+    from nav.zoo_entry import build_stereo
+
+    props = {p.key: p.value for p in build_stereo((3, 120, 160)).metadata_props}
+    bins = bins_of_model(props)
+    assert bins is not None and bins.count == int(props["nav.bins.count"])
+    assert bins_of_model({}) is None
+    assist = TeleopAssist(bins=bins)
+    with pytest.raises(UserError, match="curvature bins"):
+        assist.observe(np.zeros(bins.count + 2), _at(T0))
+    assert assist.observe(np.full(bins.count, 5.0), _at(T0))
