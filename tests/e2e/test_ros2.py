@@ -7,7 +7,8 @@ they equal onnxruntime's output of the whole model on the same decoded image, an
 its frame's header stamp (the rmw_zenoh attachment's source timestamp, read with the SDK's own
 attachment decoder). The SDK's graph discovery (what `ros2 topic list` does) sees the robot's
 subscription and publishers. Bad input on the topic (truncated CDR, a wrong type hash, an unknown
-encoding, a 0×0 image) is a named line in the robot's log, and the robot keeps serving.
+encoding, a 0×0 image) is a named line in the robot's log, and the robot keeps serving. And
+`elasticfog nav assist` filters an SDK teleop's Twists with the d_coll a stereo robot publishes.
 
 The SDK looks for `.msg` files in a local folder (`get_registry(DIR)`) and would otherwise try
 to download them: `sdk_messages` writes the few it needs, as ROS 2 Jazzy defines them.
@@ -54,6 +55,8 @@ MSG_FILES = {
     "std_msgs/msg/MultiArrayDimension.msg": "string label\nuint32 size\nuint32 stride\n",
     "std_msgs/msg/MultiArrayLayout.msg": "MultiArrayDimension[] dim\nuint32 data_offset\n",
     "std_msgs/msg/Float32MultiArray.msg": "MultiArrayLayout layout\nfloat32[] data\n",
+    "geometry_msgs/msg/Vector3.msg": "float64 x\nfloat64 y\nfloat64 z\n",
+    "geometry_msgs/msg/Twist.msg": "Vector3 linear\nVector3 angular\n",
 }
 
 
@@ -374,3 +377,93 @@ def test_results_topic_over_the_input_is_a_config_error(make_fleet, tmp_path: Pa
     assert done.returncode == 2, done.stderr
     assert "collides with the input topic /elasticfog/robot_1/camera" in done.stderr
     assert "Traceback" not in done.stderr
+
+
+STEREO_MODEL = "zoo:stereo"
+STEREO_SHAPE = [3, 120, 160]
+
+
+def _wait_tokens(session: Any, patterns: list[str], procs: Any) -> None:
+    """Until a liveliness token matching each pattern is alive."""
+    import zenoh
+
+    seen: set[str] = set()
+
+    def on_token(sample: Any) -> None:
+        key = zenoh.KeyExpr(str(sample.key_expr))
+        seen.update(p for p in patterns if zenoh.KeyExpr(p).intersects(key))
+
+    sub = session.liveliness().declare_subscriber("@ros2_lv/**", on_token, history=True)
+    try:
+        wait_until(
+            lambda: len(seen) == len(patterns) or None,
+            timeout_s=WAIT_S,
+            what=f"tokens {patterns}",
+            procs=procs,
+        )
+    finally:
+        sub.undeclare()
+
+
+def test_nav_assist_filters_teleop_with_the_fleets_d_coll(
+    make_fleet, local_fleet, sdk_peer
+) -> None:
+    """A stereo robot (zoo:stereo on stereo:world) publishes d_coll on ROS 2; `elasticfog nav
+    assist` turns a zenoh-ros2-sdk teleop's Twists into safe ones that a zenoh-ros2-sdk base
+    receives: no forward motion until the first d_coll, then forward motion allowed, never faster
+    than asked."""
+    from common.partition import load_partition
+
+    load_partition(STEREO_MODEL, input_shape=tuple(STEREO_SHAPE))
+    fleet = make_fleet(
+        model=STEREO_MODEL,
+        input_shape=STEREO_SHAPE,
+        machines={ROBOT: {"source": "stereo:world", "results": {"ros2": RESULTS}}},
+    )
+    lf = local_fleet(fleet)
+    lf.start_registry()  # no cloud: the robot computes d_coll itself (--policy robot)
+    port = int(lf.registry_host_port[1])
+    peer = sdk_peer(port)
+    safe: list[tuple[float, float]] = []
+    cond = threading.Condition()
+
+    def on_safe(msg: Any) -> None:
+        with cond:
+            safe.append((float(msg.linear.x), float(msg.angular.z)))
+            cond.notify_all()
+
+    peer.subscriber("/cmd_vel", "geometry_msgs/msg/Twist", on_safe)
+    assist = lf.procs.start(
+        "assist",
+        ["nav", "assist", "--config", str(fleet.config), "--robot", ROBOT],
+    )
+    _wait_tokens(
+        lf.session,
+        ["@ros2_lv/0/*/*/*/MS/%/%/elasticfog_assist_robot_1/%cmd_vel_teleop/**"],
+        [assist],
+    )
+    teleop = peer.publisher("/cmd_vel_teleop", "geometry_msgs/msg/Twist")
+    vector = peer.types("geometry_msgs/msg/Vector3")
+
+    def drive(count: int) -> list[tuple[float, float]]:
+        start = len(safe)
+        deadline = time.monotonic() + WAIT_S
+        while len(safe) < start + count:  # bounded by the deadline
+            teleop.publish(linear=vector(x=0.3, y=0.0, z=0.0), angular=vector(x=0.0, y=0.0, z=0.1))
+            with cond:
+                cond.wait_for(lambda: len(safe) > start, timeout=0.2)
+            assert time.monotonic() < deadline, f"no safe command\n{assist.log_tail()}"
+        return safe[start:]
+
+    # No robot yet, so no d_coll: the assistant lets nothing move forward.
+    assert all(v == 0.0 for v, _ in drive(3))
+    robot = lf.start_robot(ROBOT, "--policy", "robot")
+    deadline = time.monotonic() + WAIT_S * 2
+    moving: list[tuple[float, float]] = []
+    while not moving:  # bounded by the deadline
+        moving = [c for c in drive(1) if c[0] > 0.0]
+        assert time.monotonic() < deadline, f"never allowed to move\n{robot.log_tail()}"
+    v, w = moving[0]
+    assert 0.0 < v <= 0.3 and w == pytest.approx(0.1 * v / 0.3), "same path, never faster"
+    robot.check_alive()
+    assist.check_alive()
