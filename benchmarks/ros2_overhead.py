@@ -123,7 +123,12 @@ def measure_overhead(frames: int, outputs: dict[str, np.ndarray], workdir: Path)
         done.set()
 
     try:
-        source = Ros2Source(parse_ros2_source(f"ros2:{CAMERA}"), SourceSession(robot, cfg, "r"))
+        source = Ros2Source(
+            parse_ros2_source(f"ros2:{CAMERA}"),
+            SourceSession(robot, cfg, "r"),
+            height=MODEL_SHAPE[1],
+            width=MODEL_SHAPE[2],
+        )
         sink = Ros2ResultSink(robot, 0, "r", PREFIX)
         key = rmw_zenoh.topic_key(0, results_topic(PREFIX, last), array_type)
         sub = planner.declare_subscriber(key, on_result)

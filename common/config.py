@@ -10,20 +10,18 @@ types are strict (`"10"` is not a number). `load_fleet` turns every problem into
 line naming the file and the field path, e.g.
 `fleet.yaml: latency_bound.stat: Input should be 'median', 'mean', 'p95', 'max' or 'stddev'`.
 Relative paths in the file (model, registry db, TLS files, video sources) are relative to the file.
+Reading the YAML and wording the errors is `common.yaml_files`.
 """
 
 from __future__ import annotations
 
-import difflib
 import enum
 import math
 import re
-import types
 import typing
 from pathlib import Path
-from typing import Annotated, Any, Literal, Union
+from typing import Annotated, Any, Literal
 
-import yaml
 from pydantic import (
     AfterValidator,
     BaseModel,
@@ -47,13 +45,13 @@ from common.defaults import (
 from common.errors import UserError
 from common.keys import DEFAULT_FLEET, MACHINE_ROLES, Role, validate_id
 from common.wire.codec import DEFAULT_MAX_PAYLOAD_BYTES
+from common.yaml_files import format_validation_error, read_yaml
 from robotd.source_names import SourceError, parse_source
 
 DEFAULT_REGISTRY_ENDPOINT = f"tcp/127.0.0.1:{DEFAULT_REGISTRY_PORT}"
 DEFAULT_LEASE_MS = 1000
 CLI_IDENTITY = "cli"
 """The views CLI's identity: the common name of its read-only certificate (`elasticfog certs`)."""
-MAX_ERRORS_SHOWN = 5
 MIN_REQUEST_BYTES = 1024
 """Below this a registration or a telemetry record (a few hundred bytes) would not fit."""
 MAX_REQUEST_BYTES_LIMIT = 16 * 1024 * 1024
@@ -297,25 +295,41 @@ class CloudLimitsConfig(_Model):
     )
 
 
-# Fields that only mean something for one role: setting them on the other is an error.
-_CLOUD_ONLY = frozenset({"workers", "queue", "fault", "batching", "limits"})
-_ROBOT_ONLY = frozenset({"source", "fps", "uplink_mbit", "max_in_flight", "results"})
+def _check_ros_topic(value: str | None) -> str | None:
+    """A results prefix as a fully qualified ROS 2 topic name (`common.rmw_zenoh.topic_name`)."""
+    return None if value is None else rmw_zenoh.topic_name(value)
+
+
+def _check_result_codec(value: str) -> str:
+    from common.wire.errors import WireError
+    from common.wire.robot_to_app import result_codec
+
+    try:
+        return result_codec(value)
+    except WireError as exc:
+        raise ValueError(exc.reason) from None
 
 
 class ResultsConfig(_Model):
-    """Robot: where each applied frame's result is published besides the fleet's own key."""
+    """Robot: how each applied frame's result is published (`ef/<fleet>/out/<robot>`, and on
+    ROS 2 topics with `ros2`)."""
 
-    ros2: str | None = Field(
+    codec: Annotated[str, AfterValidator(_check_result_codec)] = Field(
+        default="raw",
+        description="Codec of the outputs on ef/<fleet>/out/<robot>: raw (exact), fp16 "
+        "(relative error <= 2**-11) or zstd (raw+zstd, exact); lossy codecs are refused.",
+    )
+    ros2: Annotated[str | None, AfterValidator(_check_ros_topic)] = Field(
         default=None,
-        description="ROS 2 topic prefix: each model output on <prefix>/<output name> as "
-        "std_msgs/msg/Float32MultiArray (and an H×W or 1×1×H×W output also as a 32FC1 "
+        description="ROS 2 topic prefix: each output also published on <prefix>/<output name> "
+        "as std_msgs/msg/Float32MultiArray (and an H×W or 1×1×H×W output also as a 32FC1 "
         "sensor_msgs/msg/Image on <prefix>/<output name>/image), over rmw_zenoh; null: none.",
     )
 
-    @field_validator("ros2")
-    @classmethod
-    def _ros2_prefix(cls, value: str | None) -> str | None:
-        return None if value is None else rmw_zenoh.topic_name(value)
+
+# Fields that only mean something for one role: setting them on the other is an error.
+_CLOUD_ONLY = frozenset({"workers", "queue", "fault", "batching", "limits"})
+_ROBOT_ONLY = frozenset({"source", "fps", "uplink_mbit", "max_in_flight", "results"})
 
 
 class Ros2Config(_Model):
@@ -394,8 +408,8 @@ class MachineConfig(_Model):
         default="synthetic",
         description=(
             "Robot: frame source, a spec of robotd.source_names: synthetic[:OPTIONS], "
-            "photo[:NAME], video:PATH, camera:INDEX or stereo:world|motorcycle|LEFT,RIGHT"
-            "[,OPTIONS]."
+            "photo[:NAME], video:PATH, camera:INDEX, stereo:world|motorcycle|LEFT,RIGHT"
+            "[,OPTIONS] or zenoh (frames an application publishes on ef/<fleet>/in/<robot>)."
         ),
     )
     fps: float | None = Field(
@@ -416,7 +430,7 @@ class MachineConfig(_Model):
     )
     results: ResultsConfig = Field(
         default_factory=ResultsConfig,
-        description="Robot: where each applied frame's result is published (ROS 2 topics).",
+        description="Robot: how each applied frame's result is published.",
     )
 
     @model_validator(mode="after")
@@ -926,68 +940,10 @@ def _base_dir(info: ValidationInfo) -> Path:
     return Path(base) if base is not None else Path.cwd()
 
 
-# -- loading ---------------------------------------------------------------------------------------
-YAML_ESCAPES: tuple[type[Exception], ...] = (
-    ValueError,
-    LookupError,
-    AttributeError,
-    TypeError,
-    RecursionError,
-)
-"""What PyYAML's safe loading raises on bad text besides YAMLError (found by
-tests/unit/test_fuzz_config.py): ValueError for a 13th month or a 5000-digit integer, KeyError for
-`!!bool maybe`, AttributeError for `!!timestamp x`, RecursionError for thousands of nested
-brackets. Every YAML loader catches these too, so bad text is a UserError, not a traceback."""
-
-
-def yaml_escape_problem(exc: Exception) -> str:
-    """One of YAML_ESCAPES as one line."""
-    if isinstance(exc, RecursionError):
-        return "nested too deeply"
-    text = " ".join(str(exc).split())
-    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
-
-
-class _StrictLoader(yaml.SafeLoader):
-    """SafeLoader that refuses duplicate keys (PyYAML keeps the last one silently)."""
-
-
-def _no_duplicates(loader: _StrictLoader, node: yaml.MappingNode, deep: bool = False) -> Any:
-    seen: set[Any] = set()
-    for key_node, _ in node.value:
-        key = loader.construct_object(key_node, deep=deep)
-        try:
-            duplicate = key in seen
-        except TypeError:  # a list or map as a key: construct_mapping below names the problem
-            continue
-        if duplicate:
-            mark = key_node.start_mark
-            raise yaml.constructor.ConstructorError(None, None, f"duplicate key {key!r}", mark)
-        seen.add(key)
-    return loader.construct_mapping(node, deep=deep)
-
-
-_StrictLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _no_duplicates)
-
-
 def load_fleet(path: str | Path) -> FleetConfig:
     """Read and check a fleet.yaml; UserError (one line, file and field) on any problem."""
     path = Path(path)
-    name = str(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise UserError(f"{name}: no such file (create one with `elasticfog init DIR`)") from None
-    except IsADirectoryError:
-        raise UserError(f"{name}: is a directory, expected a fleet.yaml file") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise UserError(f"{name}: cannot read: {exc}") from None
-    try:
-        data = yaml.load(text, Loader=_StrictLoader)  # a SafeLoader subclass
-    except yaml.YAMLError as exc:
-        raise UserError(f"{name}: invalid YAML: {_yaml_problem(exc)}") from None
-    except YAML_ESCAPES as exc:
-        raise UserError(f"{name}: invalid YAML: {yaml_escape_problem(exc)}") from None
+    data = read_yaml(path, missing="no such file (create one with `elasticfog init DIR`)")
     return fleet_from_dict(data, source=path)
 
 
@@ -1003,90 +959,6 @@ def fleet_from_dict(data: Any, *, source: str | Path | None = None) -> FleetConf
     try:
         config = FleetConfig.model_validate(data, context={"base_dir": base})
     except ValidationError as exc:
-        raise UserError(f"{name}: {format_validation_error(exc)}") from None
+        raise UserError(f"{name}: {format_validation_error(exc, FleetConfig)}") from None
     config._source = Path(source) if source is not None else None
     return config
-
-
-def _yaml_problem(exc: yaml.YAMLError) -> str:
-    mark = getattr(exc, "problem_mark", None)
-    problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
-    where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
-    return f"{where}{problem}"
-
-
-def format_validation_error(exc: ValidationError) -> str:
-    """Pydantic errors as one line: `field.path: problem; other.path: problem`."""
-    parts = []
-    errors = exc.errors(include_url=False)
-    for error in errors[:MAX_ERRORS_SHOWN]:
-        loc = tuple(error["loc"])
-        message = str(error["msg"]).removeprefix("Value error, ").removeprefix("Assertion failed, ")
-        if error["type"] == "extra_forbidden":
-            message = _unknown_key_message(loc)
-        elif error["type"] == "missing":
-            message = "required key is missing"
-        path = _format_loc(loc)
-        parts.append(f"{path}: {message}" if path else message)
-    if len(errors) > MAX_ERRORS_SHOWN:
-        parts.append(f"and {len(errors) - MAX_ERRORS_SHOWN} more")
-    return "; ".join(parts)
-
-
-def _format_loc(loc: tuple[Any, ...]) -> str:
-    out = ""
-    for part in loc:
-        if isinstance(part, int):
-            out += f"[{part}]"
-        elif part == "[key]":
-            out += " (key)"
-        else:
-            # A key with a newline or a control character is quoted: the error stays one line.
-            text = str(part) if str(part).isprintable() else repr(part)
-            out += f".{text}" if out else text
-    return out
-
-
-def _unknown_key_message(loc: tuple[Any, ...]) -> str:
-    known = _known_keys(loc[:-1])
-    if not known:
-        return "unknown key"
-    close = difflib.get_close_matches(str(loc[-1]), known, n=1, cutoff=0.6)
-    if close:
-        return f"unknown key; did you mean {close[0]!r}?"
-    return f"unknown key; known keys here: {', '.join(known)}"
-
-
-def _known_keys(loc: tuple[Any, ...]) -> list[str]:
-    """Field names of the model found at `loc` (walking FleetConfig's annotations)."""
-    current: Any = FleetConfig
-    index = 0
-    while index <= len(loc):
-        current = _unwrap(current)
-        if isinstance(current, type) and issubclass(current, BaseModel):
-            if index == len(loc):
-                return list(current.model_fields)
-            field = current.model_fields.get(loc[index]) if isinstance(loc[index], str) else None
-            if field is None:
-                return []
-            current, index = field.annotation, index + 1
-        elif typing.get_origin(current) in (dict, list) and index < len(loc):
-            current, index = typing.get_args(current)[-1], index + 1
-        else:
-            return []
-    return []
-
-
-def _unwrap(annotation: Any) -> Any:
-    """X | None -> X; Annotated[X, ...] -> X."""
-    while True:
-        origin = typing.get_origin(annotation)
-        if origin is Annotated:
-            annotation = typing.get_args(annotation)[0]
-        elif origin in (Union, types.UnionType):
-            members = [a for a in typing.get_args(annotation) if a is not type(None)]
-            if len(members) != 1:
-                return annotation
-            annotation = members[0]
-        else:
-            return annotation

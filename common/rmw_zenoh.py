@@ -150,10 +150,10 @@ def topic_name(name: str) -> str:
     """`name` as a fully qualified ROS 2 topic name (leading '/'), or Ros2NameError. Relative
     names are taken from the root namespace; '~' and substitutions are not accepted."""
     text = name.strip()
-    if not _TOPIC.match(text):
+    if not _TOPIC.match(text) or "__" in text:
         raise Ros2NameError(
             f"{name!r} is not a ROS 2 topic name: tokens of letters, digits and '_' (not starting "
-            "with a digit) separated by single '/', e.g. /camera/image_raw"
+            "with a digit, no '__') separated by single '/', e.g. /camera/image_raw"
         )
     return text if text.startswith("/") else "/" + text
 

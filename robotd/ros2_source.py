@@ -8,15 +8,18 @@ with the type it reads: `sensor_msgs/msg/Image` (rgb8, bgr8, mono8, rgba8, bgra8
 Listening past the type lets a publisher of another type, or of the same type with another hash
 (another ROS distribution's definition), be named in the log instead of never heard.
 
-Camera semantics (`robotd.newest_frame`): the frame loop always takes the newest message; one
-that arrives while another waits replaces it and the replaced one is counted (`dropped_stale`).
-Messages are decoded when the loop takes them (`common.ros2_messages`), so frames dropped cost
-no decoding. The header stamp is the frame's capture stamp (`last_stamp_ns`) and its frame id is
-kept for the results published as Images.
+Camera semantics, as the `zenoh` source's (`robotd.newest_frame`): the frame loop always takes
+the newest message; one that arrives while another waits replaces it and the replaced one is
+counted (`dropped_stale`, in each frame's telemetry and the run summary). Messages are decoded
+when the loop takes them (`common.ros2_messages`), so frames dropped cost no decoding, and fitted
+to the model's input size as the photo source frames its photographs (`robotd.sources.fit_frame`:
+the largest centred rectangle of the model's aspect, scaled). The header stamp is the frame's
+capture stamp (`last_stamp_ns`) and its frame id is kept for the results published as Images.
 
 Bad input (a wrong type or type hash, truncated CDR, an unknown encoding, an empty image, bytes
-that do not decode) is one throttled line naming it and a count by error name; the loop waits
-for the next message and the daemon keeps serving. The counts are logged when the source closes.
+that do not decode) is one throttled line naming it and a count by error name
+(`rejected_frames`, in the run summary); the loop waits for the next message and the daemon
+keeps serving. The counts are logged when the source closes.
 """
 
 from __future__ import annotations
@@ -34,7 +37,7 @@ from common.throttled_log import ThrottledLog
 from robotd.newest_frame import NewestFrame
 from robotd.ros2_node import acquire_node
 from robotd.source_names import Ros2FrameType, Ros2Spec
-from robotd.sources import EndOfStream, FrameSource
+from robotd.sources import EndOfStream, FrameSource, fit_frame
 
 if TYPE_CHECKING:
     import zenoh
@@ -61,9 +64,16 @@ class Ros2Source(FrameSource):
     """Frames from a ROS 2 image topic (see the module docstring)."""
 
     def __init__(
-        self, spec: Ros2Spec, session: SourceSession, stop: threading.Event | None = None
+        self,
+        spec: Ros2Spec,
+        session: SourceSession,
+        stop: threading.Event | None = None,
+        *,
+        height: int,
+        width: int,
     ) -> None:
         self.spec = spec
+        self.height, self.width = height, width
         self.domain = spec.domain if spec.domain is not None else session.config.ros2.domain()
         self.message = _MESSAGE[spec.type]
         self.topic_type = rmw_zenoh.TopicType.of(self.message.value, typestore())
@@ -86,10 +96,8 @@ class Ros2Source(FrameSource):
             self._node.release()
             raise
 
-    @property
-    def dropped_stale(self) -> int:
-        """Messages replaced by a newer one before the frame loop took them."""
-        return self._frames.dropped_stale
+    def rejected_frames(self) -> dict[str, int]:
+        return dict(self.refused)
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         # A Zenoh callback thread: nothing may escape it.
@@ -123,6 +131,7 @@ class Ros2Source(FrameSource):
     def read(self) -> np.ndarray:
         while True:  # bounded: each turn takes a new message, or ends at stop/close
             payload = self._frames.take(self._stop)
+            self.dropped_stale = self._frames.dropped_stale
             if payload is None:
                 raise EndOfStream
             try:
@@ -133,9 +142,10 @@ class Ros2Source(FrameSource):
             self.taken += 1
             self.last_stamp_ns = frame.stamp_ns
             self._node.remember_frame(frame.stamp_ns, frame.header.frame_id)
-            return frame.image
+            return fit_frame(frame.image, self.height, self.width)
 
     def close(self) -> None:
+        self.dropped_stale = self._frames.dropped_stale
         self._frames.close()
         self._subscription.close()
         self._node.release()

@@ -41,14 +41,13 @@ STEREO_WORLD = "world"
 STEREO_MOTORCYCLE = "motorcycle"
 # `stereo:maneuver:N`: maneuver N of the navigation circuit, driven live (`robotd.maneuver_source`).
 STEREO_MANEUVER = "maneuver"
-MANEUVER_FORM = "stereo:maneuver:N[:lap=L][:assist=on|off][:t_dead=S][:out=PATH]"
-MANEUVER_OPTIONS = ("lap", "assist", "out", "t_dead")
 # `zenoh`: frames an application publishes on `ef/<fleet>/in/<robot>` (`robotd.zenoh_source`).
 ZENOH = "zenoh"
 # `ros2:<topic>[,OPTIONS]`: a ROS 2 image topic over rmw_zenoh's key space (`robotd.ros2_source`).
 ROS2 = "ros2"
-ROS2_PREFIX = ROS2 + ":"
 ROS2_FORM = "ros2:TOPIC[,type=image|compressed][,domain=ID]"
+MANEUVER_FORM = "stereo:maneuver:N[:lap=L][:assist=on|off][:t_dead=S][:out=PATH]"
+MANEUVER_OPTIONS = ("lap", "assist", "out", "t_dead")
 
 
 class SourceError(UserError):
@@ -80,6 +79,13 @@ class SourceSpec:
         """This spec with its file paths passed through `resolve` (the fleet file makes them
         relative to itself); kinds without paths return themselves."""
         return self
+
+    @property
+    def needs_session(self) -> bool:
+        """Whether the source receives its frames over the robot daemon's Zenoh session: it is
+        opened once the session is open (`robotd.sources.SourceSession`), and is not opened a
+        second time for the start's calibration frames."""
+        return False
 
     def __str__(self) -> str:
         return self.text
@@ -150,7 +156,11 @@ class StereoManeuverSpec(SourceSpec):
 
 @dataclass(frozen=True)
 class ZenohSpec(SourceSpec):
-    """`zenoh`: frames published on the robot's `in` key."""
+    """`zenoh`: frames from `ef/<fleet>/in/<robot>`."""
+
+    @property
+    def needs_session(self) -> bool:
+        return True
 
 
 class Ros2FrameType(str, enum.Enum):
@@ -169,6 +179,10 @@ class Ros2Spec(SourceSpec):
     topic: str = "/"
     type: Ros2FrameType = Ros2FrameType.IMAGE
     domain: int | None = None
+
+    @property
+    def needs_session(self) -> bool:
+        return True
 
 
 # -- the kinds -----------------------------------------------------------------------------------
@@ -344,7 +358,7 @@ def _t_dead(spec: str, text: str | None) -> float | None:
 
 def _parse_zenoh(spec: str, args: str) -> ZenohSpec:
     if args.strip():
-        raise SourceError(f"source {spec!r}: zenoh takes no options")
+        raise SourceError(f"source {spec!r}: zenoh takes no options (its key is the robot's)")
     return ZenohSpec(spec)
 
 
@@ -413,17 +427,16 @@ def parse_source(spec: str | SourceSpec) -> SourceSpec:
 
 
 def needs_session(spec: str | SourceSpec) -> bool:
-    """Whether source `spec` receives its frames over the daemon's Zenoh session: such a source
-    is opened once the session is open (`robotd.sources.SourceSession`), and cannot be opened a
-    second time for the start's calibration frames."""
-    return isinstance(parse_source(spec), ZenohSpec | Ros2Spec)
+    """Whether source `spec` receives its frames over the daemon's Zenoh session."""
+    return parse_source(spec).needs_session
 
 
 def calibration_source(spec: str | SourceSpec) -> SourceSpec:
     """The source the start's codec measurement reads its frames from: the robot's own, except
     for a source fed over the session (no frame may have arrived yet, and frames taken for the
     measurement would be lost to the run), measured on the camera-like photographs instead."""
-    return parse_source(DEFAULT_CAMERA_SOURCE if needs_session(spec) else spec)
+    parsed = parse_source(spec)
+    return parse_source(DEFAULT_CAMERA_SOURCE) if parsed.needs_session else parsed
 
 
 def parse_ros2_source(spec: str | SourceSpec) -> Ros2Spec:

@@ -140,7 +140,9 @@ def test_gid_is_16_bytes_stable_per_token() -> None:
     assert len(a) == 16 and a != b and a == rmw_zenoh.gid_of("@ros2_lv/0/x/0/1/MP/a")
 
 
-@pytest.mark.parametrize("name", ["", "/", "//a", "a//b", "a/", "1abc", "a b", "~/x", "a/{n}"])
+@pytest.mark.parametrize(
+    "name", ["", "/", "//a", "a//b", "a/", "1abc", "a b", "~/x", "a/{n}", "a__b"]
+)
 def test_bad_topic_names(name: str) -> None:
     with pytest.raises(Ros2NameError):
         rmw_zenoh.topic_name(name)

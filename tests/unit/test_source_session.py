@@ -11,6 +11,7 @@ from robotd.source_names import (
     SourceError,
     calibration_source,
     needs_session,
+    parse_source,
 )
 from robotd.source_open import open_source
 
@@ -20,7 +21,6 @@ from robotd.source_open import open_source
     [
         ("zenoh", True),
         (" zenoh ", True),
-        ("ros2:/camera/image_raw", True),
         ("photo", False),
         ("synthetic", False),
         ("video:zenoh.mp4", False),
@@ -32,8 +32,13 @@ def test_sources_fed_over_zenoh_need_the_session(spec: str, expected: bool) -> N
 
 
 def test_calibration_reads_photographs_for_a_source_fed_over_zenoh() -> None:
-    assert calibration_source("zenoh").text == DEFAULT_CAMERA_SOURCE
-    assert calibration_source("synthetic:every=2").text == "synthetic:every=2"
+    assert calibration_source("zenoh") == parse_source(DEFAULT_CAMERA_SOURCE)
+    assert calibration_source("synthetic:every=2") == parse_source("synthetic:every=2")
+
+
+def test_zenoh_takes_no_options() -> None:
+    with pytest.raises(SourceError, match="takes no options"):
+        parse_source("zenoh:fast")
 
 
 def test_a_source_fed_over_zenoh_without_a_session_is_a_named_error() -> None:
