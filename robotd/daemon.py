@@ -94,6 +94,8 @@ log = logging.getLogger("robotd")
 # the first frames are not finished locally only because the session was still meeting peers.
 REGISTRY_WAIT_S = 2.0
 ROUTE_WAIT_S = 3.0
+# While a source waits for its sender, frames in flight are looked at this often.
+FRAME_POLL_S = 0.005
 
 
 @dataclass

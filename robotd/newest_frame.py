@@ -48,6 +48,15 @@ class NewestFrame(Generic[T]):
             item, self._item = self._item, None
             return item
 
+    def wait_ready(self, timeout_s: float, stop: threading.Event | None = None) -> bool:
+        """Whether `take` would return at once (a frame waits, or the slot is closed or
+        stopping), after waiting up to `timeout_s` for a frame."""
+        with self._cond:
+            stopping = self._closed or (stop is not None and stop.is_set())
+            if self._item is None and not stopping:
+                self._cond.wait(timeout_s)
+            return self._item is not None or self._closed or (stop is not None and stop.is_set())
+
     def close(self) -> None:
         """No more frames: a `take` waiting returns None."""
         with self._cond:

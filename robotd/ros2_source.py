@@ -96,6 +96,9 @@ class Ros2Source(FrameSource):
             self._node.release()
             raise
 
+    def wait_ready(self, timeout_s: float) -> bool:
+        return self._frames.wait_ready(timeout_s, self._stop)
+
     def rejected_frames(self) -> dict[str, int]:
         return dict(self.refused)
 

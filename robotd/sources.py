@@ -85,6 +85,8 @@ PHOTO_SHAKE_ROT_PERIOD_FRAMES = 7.1
 PHOTO_PERIOD_JITTER = 0.2
 MAX_PHOTO_SPEED = 20.0
 MAX_SOURCE_SIDE_PX = 8192
+# `fit_frame` shrinks with area interpolation from this ratio on, linearly below it.
+AREA_SHRINK = 2.0
 
 
 class EndOfStream(Exception):
@@ -124,6 +126,11 @@ class FrameSource(abc.ABC):
     @abc.abstractmethod
     def read(self) -> CameraFrame:
         """The next frame; SourceError when none can be read."""
+
+    def wait_ready(self, timeout_s: float) -> bool:
+        """Whether `read()` has a frame without waiting, after waiting up to `timeout_s` for
+        one (a source fed by others at their pace); True for sources that make their frames."""
+        return True
 
     def rejected_frames(self) -> dict[str, int]:
         """Frames received but not decodable, by error code (a source fed by others)."""
@@ -381,8 +388,10 @@ class CameraPath:
 def fit_frame(image: np.ndarray, height: int, width: int) -> np.ndarray:
     """`image` at `height`×`width` as the photo source frames a photograph: the largest centred
     rectangle of the frame's aspect is kept (nothing is stretched), then scaled with area
-    interpolation when it shrinks, linear when it grows. An image of that size is returned as
-    it is."""
+    interpolation when it shrinks by `AREA_SHRINK` or more (what anti-aliasing needs), linear
+    otherwise (as the photo source's warp: a JPEG decoded at a reduced DCT scale is within 2x
+    of the model's size, and area interpolation at a ratio such as 240 -> 224 costs ten times
+    a linear one). An image of that size is returned as it is."""
     h, w = image.shape[:2]
     if (h, w) == (height, width):
         return image
@@ -390,8 +399,8 @@ def fit_frame(image: np.ndarray, height: int, width: int) -> np.ndarray:
     crop_h, crop_w = max(1, round(rect_h)), max(1, round(rect_w))
     top, left = (h - crop_h) // 2, (w - crop_w) // 2
     view = image[top : top + crop_h, left : left + crop_w]
-    shrink = crop_h > height or crop_w > width
-    interpolation = cv2.INTER_AREA if shrink else cv2.INTER_LINEAR
+    shrink = min(crop_h / height, crop_w / width)
+    interpolation = cv2.INTER_AREA if shrink >= AREA_SHRINK else cv2.INTER_LINEAR
     return cv2.resize(view, (width, height), interpolation=interpolation)
 
 

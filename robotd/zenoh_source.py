@@ -96,6 +96,13 @@ class ZenohSource(FrameSource):
                     exc.reason,
                 )
 
+    def wait_ready(self, timeout_s: float) -> bool:
+        with self._ready:
+            if self._waiting is None and not self._closed and not self._stop.is_set():
+                self._ready.wait(timeout_s)
+            # Stopping: read() ends the stream at once.
+            return self._waiting is not None or self._closed or self._stop.is_set()
+
     def _next(self) -> bytes:
         with self._ready:
             while self._waiting is None:
@@ -134,6 +141,7 @@ class ZenohSource(FrameSource):
             image,
             max_side_px=MAX_SOURCE_SIDE_PX,
             max_bytes=self.max_bytes,
+            fit=(self.height, self.width),
             where=f"frame_in.images.{name}",
         )
         return fit_frame(bgr, self.height, self.width)

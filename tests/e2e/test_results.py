@@ -105,7 +105,8 @@ def test_results_from_the_cloud_then_the_robot_with_the_senders_stamps(
         lf.kill("edge-2")
         by_robot = served_until(client, ServedBy.ROBOT, sent, FRAMES_PER_PATH)
     for result in by_cloud + by_robot:
-        bgr = decode_image(sent[result.stamp_ns], max_side_px=MAX_SOURCE_SIDE_PX)
+        fit = (inputs.height, inputs.width)
+        bgr = decode_image(sent[result.stamp_ns], max_side_px=MAX_SOURCE_SIDE_PX, fit=fit)
         want = model.run_full(inputs.feeds(fit_frame(bgr, inputs.height, inputs.width)))
         for name, value in want.items():
             np.testing.assert_allclose(result.outputs[name], value, atol=TOLERANCE)

@@ -118,6 +118,16 @@ def test_mono8_and_jpeg_frames_decode_to_bgr() -> None:
     assert np.abs(jpeg.astype(int) - image.astype(int)).mean() < 4
 
 
+def test_a_jpeg_decodes_at_the_smallest_scale_that_covers_the_fit() -> None:
+    jpeg = image_in(photo(480, 640), "jpeg")
+    assert decode_image(jpeg, max_side_px=MAX_SIDE_PX, fit=(224, 224)).shape == (240, 320, 3)
+    assert decode_image(jpeg, max_side_px=MAX_SIDE_PX, fit=(112, 112)).shape == (120, 160, 3)
+    assert decode_image(jpeg, max_side_px=MAX_SIDE_PX, fit=(300, 300)).shape == (300, 400, 3)  # 5/8
+    # A wide fit of a tall image: the rectangle is the image's width, which must stay >= 200.
+    tall = image_in(photo(640, 480), "jpeg")
+    assert decode_image(tall, max_side_px=MAX_SIDE_PX, fit=(100, 200)).shape == (320, 240, 3)
+
+
 def test_bad_frames_are_named_errors() -> None:
     good = image_in(photo(), "jpeg")
     data = bytes(good.data)

@@ -73,3 +73,13 @@ def test_a_wait_for_the_next_frame_ends_at_stop_or_close() -> None:
     slot = NewestFrame[int]()
     threading.Timer(0.05, slot.close).start()
     assert slot.take() is None
+
+
+def test_wait_ready_says_whether_a_frame_waits() -> None:
+    slot = NewestFrame[int]()
+    assert not slot.wait_ready(0.01)
+    slot.put(1)
+    assert slot.wait_ready(0.0)
+    stop = threading.Event()
+    stop.set()
+    assert NewestFrame[int]().wait_ready(5.0, stop)
