@@ -44,6 +44,7 @@ from common.defaults import (
 from common.errors import UserError
 from common.keys import DEFAULT_FLEET, validate_id
 from common.wire.codec import DEFAULT_MAX_PAYLOAD_BYTES
+from robotd.source_names import SourceError, parse_source
 
 DEFAULT_REGISTRY_ENDPOINT = f"tcp/127.0.0.1:{DEFAULT_REGISTRY_PORT}"
 DEFAULT_LEASE_MS = 1000
@@ -289,7 +290,6 @@ class CloudLimitsConfig(_Model):
 # Fields that only mean something for one role: setting them on the other is an error.
 _CLOUD_ONLY = frozenset({"workers", "queue", "fault", "batching", "limits"})
 _ROBOT_ONLY = frozenset({"source", "fps", "uplink_mbit", "max_in_flight"})
-_SOURCE = re.compile(r"^(synthetic(:.*)?|photo([:,].*)?|video:.+|camera:\d+|stereo:.+)$")
 
 
 class MachineConfig(_Model):
@@ -343,8 +343,9 @@ class MachineConfig(_Model):
     source: str = Field(
         default="synthetic",
         description=(
-            "Robot: frame source: synthetic[:OPTIONS], photo[:NAME], video:PATH, camera:INDEX "
-            "or stereo:world|motorcycle|LEFT,RIGHT[,OPTIONS]."
+            "Robot: frame source, a spec of robotd.source_names: synthetic[:OPTIONS], "
+            "photo[:NAME], video:PATH, camera:INDEX or stereo:world|motorcycle|LEFT,RIGHT"
+            "[,OPTIONS]."
         ),
     )
     fps: float | None = Field(
@@ -372,11 +373,10 @@ class MachineConfig(_Model):
             raise ValueError(
                 f"{', '.join(sorted(foreign))}: only for {other} machines (role is {self.role!r})"
             )
-        if not _SOURCE.match(self.source):
-            raise ValueError(
-                f"source: {self.source!r} is not a frame source; expected synthetic, "
-                "photo[:NAME], video:PATH, camera:INDEX or stereo:..."
-            )
+        try:
+            parse_source(self.source)
+        except SourceError as exc:
+            raise ValueError(f"source: {exc}") from None
         return self
 
 
@@ -734,8 +734,7 @@ class FleetConfig(_Model):
             if tls is not None:
                 tls.ca, tls.cert, tls.key = resolve(tls.ca), resolve(tls.cert), resolve(tls.key)
         for machine in self.machines.values():
-            if machine.source.startswith("video:"):
-                machine.source = f"video:{resolve(machine.source[len('video:') :])}"
+            machine.source = str(parse_source(machine.source).resolved(lambda p: str(resolve(p))))
 
     # -- helpers -----------------------------------------------------------------------------------
     @property

@@ -92,6 +92,7 @@ from robotd.request_sender import RequestSender
 from robotd.robot_model import RobotModel, open_split_model
 from robotd.robot_profile import build_policy, robot_profile, warm_up
 from robotd.service_match import ServiceMatch
+from robotd.source_names import SourceSpec, parse_source
 from robotd.sources import EndOfStream, FrameSource
 from robotd.stereo_frame import CameraFrame, first_view
 from robotd.telemetry import SERVED_BY_CLOUD, RemoteTimes, RunSummary, TelemetryFile
@@ -115,7 +116,7 @@ Offload = tuple[Frame, int, dict[str, np.ndarray]]
 class RobotOptions:
     """Run options of the robot daemon; None takes the machine's value from fleet.yaml."""
 
-    source: str | None = None
+    source: str | SourceSpec | None = None
     frames: int | None = None
     fps: float | None = None
     policy: str | None = None
@@ -175,7 +176,7 @@ class RobotDaemon(Daemon):
         self.options.check()
         self.fleet = config.fleet
         self.deadline_s = config.deadline_s
-        self.source_spec = self.options.source or self.machine.source
+        self.source_spec = parse_source(self.options.source or self.machine.source)
         self.fps = self.options.fps if self.options.fps is not None else self.machine.fps
         uplink = self.options.uplink_mbit
         self.uplink_mbit = uplink if uplink is not None else self.machine.uplink_mbit

@@ -92,9 +92,12 @@ def robot_command(
     from common.config import load_fleet
     from robotd.daemon import RobotDaemon, RobotOptions
     from robotd.emulation import check_slowdown, load_phases
+    from robotd.source_names import parse_source
 
     try:
         with logging_to_stderr(log_level):
+            # The source first: a bad --source is named before the fleet file is read.
+            parsed_source = None if source is None else parse_source(source)
             cfg = load_fleet(config)
             check_slowdown(robot_slowdown)
             loaded = (
@@ -103,7 +106,7 @@ def robot_command(
                 else tuple(load_phases(phases, uplink_mbit=uplink_mbit, slowdown=robot_slowdown))
             )
             options = RobotOptions(
-                source=source,
+                source=parsed_source,
                 frames=frames,
                 fps=fps,
                 policy=policy,
