@@ -82,7 +82,7 @@ from robotd.failure_runs import FailureRuns
 from robotd.frame import Frame, FrameResult
 from robotd.model_runs import ModelRuns
 from robotd.offload import FINISH_GRACE_S, STOP_POLL_S, LocalRunner
-from robotd.pacing import FramePacer, TokenBucket
+from robotd.pacing import FramePacer, TimelinePacer, TokenBucket
 from robotd.pipeline import FramePipeline, InFlight, ResultOrder
 from robotd.policies import PURE_ROBOT, FrameContext, Objective, Policy
 from robotd.pool_turns import PoolTurns
@@ -396,7 +396,7 @@ class RobotDaemon(Daemon):
 
     # -- the frame loop --------------------------------------------------------------------
     def main_loop(self) -> None:
-        pacer = FramePacer(self.fps)
+        pacer = self._pacer()
         limit = self.options.frames
         self.summary.started_at = time.perf_counter()
         n = 0
@@ -420,6 +420,14 @@ class RobotDaemon(Daemon):
         self.summary.ended_at = time.perf_counter()
         if self.should_exit.is_set() and limit is not None and n < limit:
             log.info("%s: stopped after %d of %d frames", self.robot, n, limit)
+
+    def _pacer(self) -> FramePacer | TimelinePacer:
+        """--fps, else the source's own timeline (a bag's, a video file's), else the machine's
+        fps (none: as fast as frames complete)."""
+        if self.options.fps is None and self._source.next_offset_s() is not None:
+            log.info("%s: frames at the source's own pace", self.robot)
+            return TimelinePacer(self._source.next_offset_s)
+        return FramePacer(self.fps)
 
     def run_frame(self, n: int, frame: CameraFrame, *, stamp_ns: int = 0) -> None:
         """Run one frame to completion, or hand it to the pipeline (`robotd.pipeline`), or (hedged,

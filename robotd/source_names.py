@@ -33,6 +33,7 @@ PHOTO = "photo"
 # keep `synthetic` (their defaults do not change), whose entropy they control.
 DEFAULT_CAMERA_SOURCE = PHOTO
 VIDEO_PREFIX = "video:"
+VIDEO_OPTIONS = ("loop",)
 CAMERA_PREFIX = "camera:"
 STEREO_PREFIX = "stereo:"
 # `stereo:world`: pairs rendered in nav's world; `stereo:motorcycle`: Middlebury's real pair.
@@ -97,13 +98,16 @@ class PhotoSpec(SourceSpec):
 
 @dataclass(frozen=True)
 class VideoSpec(SourceSpec):
-    """`video:PATH`."""
+    """`video:PATH[,loop=true|false]`: loop (the default) starts the file again at its end;
+    without, the run ends there."""
 
     path: Path = Path()
+    loop: bool = True
 
     def resolved(self, resolve: Callable[[str], str]) -> VideoSpec:
         path = resolve(str(self.path))
-        return replace(self, text=f"{VIDEO_PREFIX}{path}", path=Path(path))
+        options = "" if self.loop else ",loop=false"
+        return replace(self, text=f"{VIDEO_PREFIX}{path}{options}", path=Path(path))
 
 
 @dataclass(frozen=True)
@@ -231,9 +235,19 @@ def _parse_photo(spec: str, args: str) -> PhotoSpec:
 
 
 def _parse_video(spec: str, args: str) -> VideoSpec:
-    if not args.strip():
+    path, loop = args, True
+    # Options follow the path after commas; a comma not followed by a known option is the path's.
+    while True:
+        head, comma, tail = path.rpartition(",")
+        name, eq, value = (part.strip() for part in tail.partition("="))
+        if not comma or not eq or name not in VIDEO_OPTIONS:
+            break
+        if value not in ("true", "false"):
+            raise SourceError(f"source {spec!r}: loop={value!r}; expected true or false")
+        loop, path = value == "true", head
+    if not path.strip():
         raise SourceError(f"source {spec!r}: video needs a file, e.g. video:run.mp4")
-    return VideoSpec(spec, path=Path(args.strip()).expanduser())
+    return VideoSpec(spec, path=Path(path.strip()).expanduser(), loop=loop)
 
 
 def _parse_camera(spec: str, args: str) -> CameraSpec:
@@ -320,7 +334,7 @@ KINDS: dict[str, SourceKind] = {
         SourceKind(
             PHOTO, "photo[:NAME][,motion=pan|zoom|shake|mixed][,speed=F]", _parse_photo, ":,"
         ),
-        SourceKind("video", "video:PATH", _parse_video),
+        SourceKind("video", "video:PATH[,loop=false]", _parse_video),
         SourceKind("camera", "camera:INDEX", _parse_camera),
         SourceKind("stereo", STEREO_FORMS, _parse_stereo),
     )

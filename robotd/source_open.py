@@ -50,7 +50,7 @@ def open_source(spec: str | SourceSpec, *, height: int, width: int, seed: int = 
                 **_given(name=parsed.name, motion=parsed.motion, speed=parsed.speed),
             )
         case VideoSpec():
-            return VideoSource(parsed.path)
+            return VideoSource(parsed.path, loop=parsed.loop)
         case CameraSpec():
             return CameraSource(parsed.index)
         case StereoWorldSpec() | StereoPairSpec() | StereoManeuverSpec():
