@@ -344,8 +344,8 @@ class MachineConfig(_Model):
         default="synthetic",
         description=(
             "Robot: frame source, a spec of robotd.source_names: synthetic[:OPTIONS], "
-            "photo[:NAME], video:PATH, camera:INDEX or stereo:world|motorcycle|LEFT,RIGHT"
-            "[,OPTIONS]."
+            "photo[:NAME], video:PATH[,loop=false], bag:PATH[:TOPIC] (a rosbag2 recording), "
+            "camera:INDEX or stereo:world|motorcycle|LEFT,RIGHT[,OPTIONS]."
         ),
     )
     fps: float | None = Field(

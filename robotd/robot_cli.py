@@ -37,14 +37,18 @@ def robot_command(
         None,
         "--source",
         help="synthetic[:key=F,every=N], photo[:NAME][,motion=M] (real photographs through a "
-        "moving camera), video:PATH, camera:N, or a stereo pair for a two-image model: "
+        "moving camera), video:PATH[,loop=false], bag:PATH[:TOPIC] (a rosbag2 recording), "
+        "camera:N, or a stereo pair for a two-image model: "
         "stereo:world, stereo:motorcycle, stereo:LEFT,RIGHT; default: the machine's.",
     ),
     frames: int | None = typer.Option(
         None, "--frames", help="Stop after this many frames (default: run until Ctrl-C)."
     ),
     fps: float | None = typer.Option(
-        None, "--fps", help="Frames per second; default: the machine's (none: as fast as done)."
+        None,
+        "--fps",
+        help="Frames per second; default: a video's or a bag's own pace, else the machine's "
+        "(none: as fast as done).",
     ),
     policy: str | None = typer.Option(
         None,

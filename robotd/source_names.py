@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import enum
 import math
+import re
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -33,6 +34,7 @@ PHOTO = "photo"
 # keep `synthetic` (their defaults do not change), whose entropy they control.
 DEFAULT_CAMERA_SOURCE = PHOTO
 VIDEO_PREFIX = "video:"
+BAG_PREFIX = "bag:"
 VIDEO_OPTIONS = ("loop",)
 CAMERA_PREFIX = "camera:"
 STEREO_PREFIX = "stereo:"
@@ -108,6 +110,20 @@ class VideoSpec(SourceSpec):
         path = resolve(str(self.path))
         options = "" if self.loop else ",loop=false"
         return replace(self, text=f"{VIDEO_PREFIX}{path}{options}", path=Path(path))
+
+
+@dataclass(frozen=True)
+class BagSpec(SourceSpec):
+    """`bag:PATH[:TOPIC]`: a rosbag2 folder or file; TOPIC (made absolute) None: the bag's one
+    image topic."""
+
+    path: Path = Path()
+    topic: str | None = None
+
+    def resolved(self, resolve: Callable[[str], str]) -> BagSpec:
+        path = resolve(str(self.path))
+        topic = "" if self.topic is None else f":{self.topic}"
+        return replace(self, text=f"{BAG_PREFIX}{path}{topic}", path=Path(path))
 
 
 @dataclass(frozen=True)
@@ -250,6 +266,28 @@ def _parse_video(spec: str, args: str) -> VideoSpec:
     return VideoSpec(spec, path=Path(path.strip()).expanduser(), loop=loop)
 
 
+# A ROS 2 topic name (after its leading `/`): tokens of letters, digits and `_` between `/`s, none
+# starting with a digit (ROS 2's rules; `~` and substitutions are for launch files, not bags).
+_TOPIC = re.compile(r"[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*")
+
+
+def _parse_bag(spec: str, args: str) -> BagSpec:
+    """`PATH[:TOPIC]`: a topic holds no `:`, so the last `:` ends the path when a topic name
+    follows it (a path with a `:` in it then needs the topic named)."""
+    path, topic = args.strip(), None
+    head, colon, tail = path.rpartition(":")
+    if colon and _TOPIC.fullmatch(tail.strip().lstrip("/")):
+        path, topic = head.strip(), "/" + tail.strip().lstrip("/")
+    elif colon and tail.strip().startswith("/"):
+        raise SourceError(
+            f"source {spec!r}: {tail.strip()!r} is not a ROS 2 topic name (letters, digits and _ "
+            "between /s)"
+        )
+    if not path:
+        raise SourceError(f"source {spec!r}: bag needs a path, e.g. bag:run_0 or bag:run.mcap")
+    return BagSpec(spec, path=Path(path).expanduser(), topic=topic)
+
+
 def _parse_camera(spec: str, args: str) -> CameraSpec:
     if not args.strip().isdigit():
         raise SourceError(f"source {spec!r}: camera needs an index, e.g. camera:0")
@@ -335,6 +373,7 @@ KINDS: dict[str, SourceKind] = {
             PHOTO, "photo[:NAME][,motion=pan|zoom|shake|mixed][,speed=F]", _parse_photo, ":,"
         ),
         SourceKind("video", "video:PATH[,loop=false]", _parse_video),
+        SourceKind("bag", "bag:PATH[:TOPIC]", _parse_bag),
         SourceKind("camera", "camera:INDEX", _parse_camera),
         SourceKind("stereo", STEREO_FORMS, _parse_stereo),
     )

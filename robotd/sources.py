@@ -19,6 +19,8 @@ A source yields uint8 BGR frames (H×W×3, OpenCV's layout) one at a time, or st
   (its timeline, `next_offset_s`, unless `--fps` is given) and looped at its end (a file stands
   in for a camera, so `--frames N` is honoured whatever the file's length); with `loop=false` the
   run ends at the end of the file.
+- `bag:PATH[:TOPIC]`: a rosbag2 recording's image topic, at its recorded rate
+  (`robotd.bag_source`).
 - `camera:N`: the camera with index N through OpenCV.
 - `stereo:...`: a stereo pair a frame (`robotd.stereo_sources`: a rendered world, the Motorcycle
   pair, two image files, a scripted maneuver); its frames are `robotd.stereo_frame.StereoFrame`s

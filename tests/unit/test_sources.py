@@ -297,7 +297,7 @@ def test_camera_that_cannot_be_opened_is_a_clear_error() -> None:
 def test_unknown_source_names_the_accepted_forms() -> None:
     with pytest.raises(
         UserError,
-        match=r"expected synthetic.*photo\[:NAME\].*video:PATH\[,loop=false\], "
+        match=r"expected synthetic.*photo\[:NAME\].*video:PATH\[,loop=false\], bag:PATH\[:TOPIC\], "
         r"camera:INDEX, stereo:world.*"
         r"stereo:LEFT,RIGHT",
     ):
