@@ -12,7 +12,8 @@ unless `--fps` is given. The bag ends the run (`EndOfStream`).
 Bad input: a path that is not a bag (`NotABag`), a topic the bag lacks, a topic of another type,
 or several image topics and none named (`BagTopicError`) are one-line errors at start, listing
 the bag's topics. A record that does not decode (truncated, another type, an unknown encoding) is
-a throttled one-line warning, counted and skipped: the frames around it are served. A bag whose
+a throttled one-line warning, counted by error code (`rejected_frames`: the run summary's
+"frames rejected") and skipped: the frames around it are served. A bag whose
 reading fails midway (a storage file cut short) ends there with a one-line error; the frames
 read until then have been served.
 """
@@ -20,6 +21,7 @@ read until then have been served.
 from __future__ import annotations
 
 import logging
+from collections import Counter
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -51,7 +53,7 @@ class BagSource(FrameSource):
 
     def __init__(self, path: str | Path, topic: str | None = None) -> None:
         self.path = Path(path)
-        self.refused = 0
+        self.rejected: Counter[str] = Counter()  # records refused, by error code
         self.frames_read = 0
         self._throttled = ThrottledLog(log, label=lambda: f"bag {self.path}")
         self._reader = _open_reader(self.path)
@@ -88,6 +90,14 @@ class BagSource(FrameSource):
         self.frames_read += 1
         return frame
 
+    @property
+    def refused(self) -> int:
+        """Records refused so far (not decodable)."""
+        return sum(self.rejected.values())
+
+    def rejected_frames(self) -> dict[str, int]:
+        return dict(self.rejected)
+
     def close(self) -> None:
         if self.refused:
             log.warning(
@@ -121,7 +131,7 @@ class BagSource(FrameSource):
             try:
                 decoded = decode_frame(MessageType(connection.msgtype), raw)
             except Ros2MessageError as exc:
-                self.refused += 1
+                self.rejected[exc.code.value] += 1
                 self._throttled.warning(
                     "bag %s: record at %d ns on %s refused: %s: %s",
                     self.path,

@@ -31,7 +31,7 @@ from common.models import cache_dir, read_cached_json, write_cached_json
 from common.partition.runtime import SplitModel
 from robotd.policies import RAW_CODEC, fixed_action
 from robotd.policies.nav_options import nav_option
-from robotd.source_names import CameraSpec, SourceError, SourceSpec, parse_source
+from robotd.source_names import CameraSpec, SourceError, SourceSpec, calibration_source
 from robotd.source_open import open_source_for
 from robotd.sources import EndOfStream
 from robotd.stereo_frame import StereoFrame
@@ -61,9 +61,10 @@ def calibration_frames(
     source: str | SourceSpec, inputs: ImageInputs, count: int, seed: int
 ) -> list[dict[str, np.ndarray]]:
     """`count` model feeds from a fresh instance of `source` (every CALIBRATION_STRIDE-th
-    frame, except for a camera, whose frames are taken as they come); a stereo source's views
-    feed the model's inputs of their names."""
-    source = parse_source(source)
+    frame, except for a camera, whose frames are taken as they come; a source fed over Zenoh
+    is measured on photographs, `robotd.source_names.calibration_source`); a stereo source's
+    views feed the model's inputs of their names."""
+    source = calibration_source(source)
     stride = 1 if isinstance(source, CameraSpec) else CALIBRATION_STRIDE
     frames = _read_feeds(source, inputs, count, stride, seed)
     if len(frames) < count and stride > 1:

@@ -4,12 +4,15 @@ Lifecycle (`common.daemon.Daemon`: startup -> main loop -> shutdown, in reverse 
 
 1. Load the split model (one set of shared-weight onnxruntime sessions, every cut warmed up),
    start the low-priority local-run thread, build the policy from a robot-side profile, open the
-   frame source and the `--telemetry` file.
+   `--telemetry` file.
 2. Open a Zenoh *peer* session connected to the registry endpoint only (the robot's config names
    no cloud host: it finds deployments through the registry's router and queries its anycast
-   service key). Declare the telemetry and probe publishers, the route subscriber (handled by
-   the registry link), one membership view of the registry and the clouds (`common.membership`),
-   and a querier on the service key whose matching listener says when a deployment serves it.
+   service key). Make the result sinks (`robotd.result_sinks`) and open the frame source on it
+   (`robotd.sources.SourceSession`: a source fed over Zenoh needs the session; every source is
+   opened here, so each is released before the session). Declare the telemetry and probe
+   publishers, the route subscriber (handled by the registry link), one membership view of the
+   registry and the clouds (`common.membership`), and a querier on the service key whose
+   matching listener says when a deployment serves it.
 3. Start the prober, then announce the liveliness token `alive/robot/<id>`.
 4. Wait (bounded, cut short by a signal) for the registry, start the registry link's watcher
    (`robotd.registry_link`), then wait for a deployment serving the robot.
@@ -41,7 +44,9 @@ loaded at startup, its camera input, cut positions, replies checked against its 
 `robotd.service_match` (whether a deployment serves the service key), `robotd.request_sender`
 (the request on the service key, through the emulated uplink), `robotd.frame` (a frame's
 accounting), `robotd.telemetry_sink` (where each frame's record and each probe report go),
-`robotd.failure_runs` (runs of cloud failures, and when they call for a reroute),
+`robotd.result_sinks` (where each applied frame's result goes: the sinks the robot's config
+asks for, made on the session, and any an embedder adds), `robotd.failure_runs` (runs of cloud
+failures, and when they call for a reroute),
 `robotd.robot_profile` (the startup profile and policy) and `robotd.emulation` (on one host: a
 robot `--robot-slowdown` times slower than the host, every robot-side model run stretched by a
 wait, and `--phases` that change it and the emulated uplink at frame boundaries; the telemetry
@@ -65,6 +70,7 @@ from common import keys
 from common.config import FleetConfig
 from common.daemon import Daemon
 from common.errors import UserError
+from common.keys import Role
 from common.membership import MemberChange, MembershipView
 from common.partition.runtime import SplitModel
 from common.session import open_session
@@ -89,11 +95,12 @@ from robotd.pool_turns import PoolTurns
 from robotd.probes import PROBE_INTERVAL_S, CloudTime, Prober, probe_padding_bytes
 from robotd.registry_link import REGISTRY_RETRY_INITIAL_S, RegistryLink
 from robotd.request_sender import RequestSender
+from robotd.result_sinks import ResultSink, open_result_sinks
 from robotd.robot_model import RobotModel, open_split_model
 from robotd.robot_profile import build_policy, robot_profile, warm_up
 from robotd.service_match import ServiceMatch
 from robotd.source_names import SourceSpec, parse_source
-from robotd.sources import EndOfStream, FrameSource
+from robotd.sources import EndOfStream, FrameSource, SourceSession
 from robotd.stereo_frame import CameraFrame, first_view
 from robotd.telemetry import SERVED_BY_CLOUD, RemoteTimes, RunSummary, TelemetryFile
 from robotd.telemetry_sink import TelemetrySink
@@ -170,7 +177,7 @@ class RobotDaemon(Daemon):
     ) -> None:
         super().__init__()
         self.config = config
-        self.machine = config.machine(robot_id, role="robot")
+        self.machine = config.machine(robot_id, role=Role.ROBOT)
         self.robot = robot_id
         self.options = options or RobotOptions()
         self.options.check()
@@ -201,6 +208,8 @@ class RobotDaemon(Daemon):
         )
         # Publications, file and summary of the frames; what they go to is made in startup.
         self._sink = TelemetrySink(robot_id, self.summary)
+        # Where each applied frame's result goes (`robotd.result_sinks`), in the lifecycle.
+        self._result_sinks: list[ResultSink] = []
         # Made in startup, released by the lifecycle.
         self.model: SplitModel
         self._robot_model: RobotModel
@@ -232,6 +241,24 @@ class RobotDaemon(Daemon):
     def registry_reachable(self) -> bool:
         return self._link is not None and self._link.reachable
 
+    @property
+    def result_sinks(self) -> tuple[ResultSink, ...]:
+        """The sinks each applied frame's result is published to, in the order added."""
+        return tuple(self._result_sinks)
+
+    def add_result_sink(self, sink: ResultSink, what: str = "result sink") -> ResultSink:
+        """Publish every applied frame's result to `sink` from now on; the lifecycle takes it
+        off the list and closes it at shutdown (in reverse order with the rest)."""
+        self._result_sinks.append(sink)
+
+        def release() -> None:
+            if sink in self._result_sinks:
+                self._result_sinks.remove(sink)
+            sink.close()
+
+        self.on_release(release, what=what)
+        return sink
+
     # -- lifecycle -------------------------------------------------------------------------
     def startup(self) -> None:
         cfg = self.config
@@ -256,10 +283,6 @@ class RobotDaemon(Daemon):
                 self._slowdown.factor,
             ),
             self._objective,
-        )
-        self._source = self.hold(
-            robot_model.open_source(self.source_spec, seed=self.options.seed),
-            "frame source",
         )
         if self.options.telemetry is not None:
             self._sink.file = self.hold(TelemetryFile(self.options.telemetry), "telemetry file")
@@ -299,6 +322,17 @@ class RobotDaemon(Daemon):
     def _open_zenoh(self) -> None:
         cfg = self.config
         session = self.hold(open_session(cfg, machine=self.robot), "zenoh session")
+        for sink, what in open_result_sinks(cfg, self.robot, session):
+            self.add_result_sink(sink, what)
+        # Opened on the session (a source fed over Zenoh needs it), so released before it.
+        self._source = self.hold(
+            self._robot_model.open_source(
+                self.source_spec,
+                seed=self.options.seed,
+                session=SourceSession(session, cfg, self.robot, stop=self.should_exit),
+            ),
+            "frame source",
+        )
         self._requests = RequestSender(
             session,
             self._svc_key,
@@ -399,7 +433,7 @@ class RobotDaemon(Daemon):
         pacer = self._pacer()
         limit = self.options.frames
         self.summary.started_at = time.perf_counter()
-        n = 0
+        n = dropped_seen = 0
         # Bounded by --frames, or by the stop flag (signals) otherwise.
         while limit is None or n < limit:
             # The wait for the next frame's start also finishes frames in flight that settle.
@@ -413,11 +447,21 @@ class RobotDaemon(Daemon):
                 log.info("%s: %s ended after %d frames", self.robot, self._source.description, n)
                 break
             stamp_ns = self._source.last_stamp_ns
-            self.run_frame(n, frame, stamp_ns=stamp_ns if stamp_ns is not None else time.time_ns())
+            # Frames the source dropped unread since the last read (a newer one had arrived).
+            total_dropped = self._source.dropped_stale
+            dropped, dropped_seen = total_dropped - dropped_seen, total_dropped
+            self.run_frame(
+                n,
+                frame,
+                stamp_ns=stamp_ns if stamp_ns is not None else time.time_ns(),
+                dropped_stale=dropped,
+            )
             n += 1
         self._pipeline.drain()
         self._settle_pending(block=True)
         self.summary.ended_at = time.perf_counter()
+        self.summary.dropped_stale = self._source.dropped_stale
+        self.summary.rejected_frames = self._source.rejected_frames()
         if self.should_exit.is_set() and limit is not None and n < limit:
             log.info("%s: stopped after %d of %d frames", self.robot, n, limit)
 
@@ -429,7 +473,9 @@ class RobotDaemon(Daemon):
             return TimelinePacer(self._source.next_offset_s)
         return FramePacer(self.fps)
 
-    def run_frame(self, n: int, frame: CameraFrame, *, stamp_ns: int = 0) -> None:
+    def run_frame(
+        self, n: int, frame: CameraFrame, *, stamp_ns: int = 0, dropped_stale: int = 0
+    ) -> None:
         """Run one frame to completion, or hand it to the pipeline (`robotd.pipeline`), or (hedged,
         the robot's result first) to where it is served; its cloud reply is settled later."""
         started = time.perf_counter()
@@ -440,6 +486,7 @@ class RobotDaemon(Daemon):
         held = self.link.held
         epoch = held.epoch
         f = Frame(n, decision, entropy, feeds, started, cpu_started, epoch, stamp_ns)
+        f.dropped_stale = dropped_stale
         model = self.model
         if decision.action == PURE_ROBOT:
             f.outputs = self._compute(lambda options: model.run_full(feeds, run_options=options))
@@ -621,7 +668,9 @@ class RobotDaemon(Daemon):
     # -- after a frame ---------------------------------------------------------------------
     def _emit(self, f: Frame) -> None:
         """Feed the policy, publish and record the frame, act on a run of cloud failures, and
-        hand an applied frame's result to `on_result`, then to the source."""
+        hand an applied frame's result to `on_result`, the result sinks, then the source. A
+        stale frame (a newer one's result was applied first) reaches none of them: it is
+        counted in its record and the summary."""
         res = f.result
         remote = RemoteTimes.of(res)
         compute_s = f.prefix_s + (f.local_s or 0.0)
@@ -642,7 +691,22 @@ class RobotDaemon(Daemon):
             result = FrameResult(f.n, f.feeds, f.outputs, record, f.served_by, f.hedged, f.stamp_ns)
             if self._on_result is not None:
                 self._on_result(result)
+            for sink in self._result_sinks:
+                self._publish(sink, result)
             self._source.on_result(result)
+
+    def _publish(self, sink: ResultSink, result: FrameResult) -> None:
+        """Hand `result` to `sink`; a sink that fails is a throttled line, never the loop's end."""
+        try:
+            sink.publish(result)
+        except Exception:
+            self.throttled.error(
+                "%s: result sink %s failed on frame %d",
+                self.robot,
+                type(sink).__name__,
+                result.frame,
+                exc_info=True,
+            )
 
 
 def _wait_until(

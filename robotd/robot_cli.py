@@ -24,10 +24,13 @@ from common.logs import DEFAULT_LOG_LEVEL, LOG_LEVEL_ENV, LOG_LEVEL_HELP, loggin
 
 
 def register(app: typer.Typer) -> None:
-    """Add `robot` to the root app."""
+    """Add `robot` (and `results`, which follows a robot's results) to the root app."""
+    from robotd import results_cli
+
     app.command("robot", help="Run a robot: split each frame between the robot and the cloud.")(
         robot_command
     )
+    results_cli.register(app)
 
 
 def robot_command(
@@ -38,8 +41,9 @@ def robot_command(
         "--source",
         help="synthetic[:key=F,every=N], photo[:NAME][,motion=M] (real photographs through a "
         "moving camera), video:PATH[,loop=false], bag:PATH[:TOPIC] (a rosbag2 recording), "
-        "camera:N, or a stereo pair for a two-image model: "
-        "stereo:world, stereo:motorcycle, stereo:LEFT,RIGHT; default: the machine's.",
+        "camera:N, a stereo pair for a two-image model: stereo:world, stereo:motorcycle, "
+        "stereo:LEFT,RIGHT, or zenoh (frames an application publishes on "
+        "ef/<fleet>/in/<robot>); default: the machine's.",
     ),
     frames: int | None = typer.Option(
         None, "--frames", help="Stop after this many frames (default: run until Ctrl-C)."
@@ -94,15 +98,20 @@ def robot_command(
     # Heavy imports (pydantic, zenoh, onnxruntime, cv2) where the command runs: `elasticfog --help`
     # must stay fast.
     from common.config import load_fleet
-    from robotd.daemon import RobotDaemon, RobotOptions
-    from robotd.emulation import check_slowdown, load_phases
+    from robotd.policies import check_policy
     from robotd.source_names import parse_source
 
     try:
         with logging_to_stderr(log_level):
-            # The source first: a bad --source is named before the fleet file is read.
+            # The names first, then the fleet file, before the daemon's imports (zenoh,
+            # onnxruntime): a typo fails in well under two seconds.
             parsed_source = None if source is None else parse_source(source)
+            if policy is not None:
+                check_policy(policy, real_time=True)
             cfg = load_fleet(config)
+            from robotd.daemon import RobotDaemon, RobotOptions
+            from robotd.emulation import check_slowdown, load_phases
+
             check_slowdown(robot_slowdown)
             loaded = (
                 ()

@@ -106,6 +106,7 @@ def test_a_bag_with_bad_records_serves_every_good_one(
     bag = write_bag(tmp_path / "run", records, "sqlite3")
     daemon, results = run_robot(zenoh_router.endpoint, model_file, f"bag:{bag}")
     assert daemon.summary.frames == 4
+    assert daemon.summary.rejected_frames == {"malformed": 1}
     kept = [r for i, r in enumerate(records) if i != 2]
     assert [r.stamp_ns for r in results] == [r.time_ns - LAG_NS for r in kept]
 
