@@ -137,6 +137,8 @@ class RobotOptions:
     robot_slowdown: float = 1.0
     phases: tuple[Phase, ...] = ()
     max_in_flight: int | None = None
+    # `--record`: each applied frame's input and result written to this MCAP file (or folder).
+    record: Path | None = None
 
     @property
     def initial_slowdown(self) -> float:
@@ -158,6 +160,10 @@ class RobotOptions:
         if self.max_in_flight is not None and self.max_in_flight < 1:
             raise UserError(f"--max-in-flight must be at least 1, got {self.max_in_flight}")
         check_slowdown(self.robot_slowdown)
+        if self.record is not None:
+            from robotd.recorder import check_record_path
+
+            check_record_path(self.record)
 
 
 class RobotDaemon(Daemon):
@@ -324,6 +330,16 @@ class RobotDaemon(Daemon):
         session = self.hold(open_session(cfg, machine=self.robot), "zenoh session")
         for sink, what in open_result_sinks(cfg, self.robot, session):
             self.add_result_sink(sink, what)
+        if self.options.record is not None:
+            from robotd.recorder import McapRecorder  # rosbags only where it is used
+
+            recorder = McapRecorder(
+                self.options.record,
+                self.robot,
+                self._robot_model.inputs,
+                results_ros2=self.machine.results.ros2,
+            )
+            self.add_result_sink(recorder, f"recording {self.options.record}")
         # Opened on the session (a source fed over Zenoh needs it), so released before it.
         self._source = self.hold(
             self._robot_model.open_source(

@@ -88,6 +88,14 @@ def robot_command(
         metavar="N",
         help="Offloaded frames in flight at once (pipelining); default: the machine's (1).",
     ),
+    record: Path | None = typer.Option(
+        None,
+        "--record",
+        metavar="OUT.mcap",
+        help="Record each applied frame's input (CompressedImage) and outputs (Float32MultiArray, "
+        "32FC1 Image) to this MCAP file (any other name: a rosbag2 folder), for ros2 bag play, "
+        "Foxglove and MCAP readers.",
+    ),
     seed: int = typer.Option(0, "--seed", help="Seed of the synthetic and photo frame sources."),
     json_out: bool = typer.Option(False, "--json", help="Print the summary as JSON on stdout."),
     log_level: str = typer.Option(
@@ -129,6 +137,7 @@ def robot_command(
                 robot_slowdown=robot_slowdown,
                 phases=loaded,
                 max_in_flight=max_in_flight,
+                record=record,
             )
             daemon = RobotDaemon(cfg, robot_id, options)
             code = daemon.run()

@@ -348,3 +348,28 @@ def test_input_adapter_resizes_and_scales_to_the_model_input() -> None:
 def test_input_adapter_refuses_inputs_that_are_not_images(spec: TensorSpec) -> None:
     with pytest.raises(UserError, match=r"model input 'x' .* is not an image"):
         InputAdapter(spec)
+
+
+@pytest.mark.parametrize(
+    ("dtype", "shape"),
+    [
+        ("float32", (1, 3, 24, 32)),
+        ("float32", (1, 24, 32, 3)),
+        ("uint8", (3, 24, 32)),
+        ("float32", (1, 1, 24, 32)),
+    ],
+)
+def test_input_adapter_image_gives_back_the_frame_the_model_saw(
+    dtype: str, shape: tuple[int, ...]
+) -> None:
+    """What a recording of a run's input shows (`--record`): the adapter's inverse."""
+    frame = PhotoSource(24, 32, seed=0).read()
+    adapter = InputAdapter(TensorSpec("image", dtype, shape))
+    image = adapter.image(adapter(frame))
+    assert image.shape == (24, 32, 3) and image.dtype == np.uint8
+    expected = (
+        frame
+        if adapter.channels == 3
+        else cv2.cvtColor(cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY), cv2.COLOR_GRAY2BGR)
+    )
+    np.testing.assert_array_equal(image, expected)  # float32 holds every level exactly
