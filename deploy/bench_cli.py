@@ -52,9 +52,11 @@ ROBOT_CPU_OPTION = typer.Option(
 )
 MODEL_OPTION = typer.Option(DEFAULT_MODEL, "--model", help="zoo:NAME or an ONNX file.")
 SHAPE_OPTION = typer.Option(
-    "x".join(map(str, DEFAULT_INPUT_SHAPE)),
+    None,
     "--input-shape",
-    help="Camera image CxHxW (zoo models take it as uint8 1xHxWxC; a file: its dynamic dims).",
+    help=f"Camera image CxHxW. Default: {'x'.join(map(str, DEFAULT_INPUT_SHAPE))} for a zoo model "
+    "(which takes it as uint8 1xHxWxC) and for a file's dynamic dimensions; a file whose "
+    "dimensions are fixed has its own shape.",
 )
 PLOTS_OPTION = typer.Option(DEFAULT_PLOTS_DIR, "--plots-dir", help="Where PNG plots are written.")
 NO_PLOTS_OPTION = typer.Option(False, "--no-plots", help="Write no plots.")
@@ -83,7 +85,7 @@ def _options(
     frames: int | None,
     robot_cpu: float,
     model: str,
-    input_shape: str,
+    input_shape: str | None,
     plots_dir: Path,
     no_plots: bool,
     workdir: Path | None,
@@ -101,7 +103,7 @@ def _options(
         err = Console(stderr=True)
         options = BenchOptions(
             model=model,
-            input_shape=parse_shape(input_shape),
+            input_shape=() if input_shape is None else parse_shape(input_shape),
             robot_cpu=robot_cpu,
             frames=frames,
             quick=quick,
@@ -187,7 +189,7 @@ def table1(
     frames: int | None = FRAMES_OPTION,
     robot_cpu: float = ROBOT_CPU_OPTION,
     model: str = MODEL_OPTION,
-    input_shape: str = SHAPE_OPTION,
+    input_shape: str | None = SHAPE_OPTION,
     plots_dir: Path = PLOTS_OPTION,
     no_plots: bool = NO_PLOTS_OPTION,
     workdir: Path | None = WORKDIR_OPTION,
@@ -227,7 +229,7 @@ def glitch(
     frames: int | None = FRAMES_OPTION,
     robot_cpu: float = ROBOT_CPU_OPTION,
     model: str = MODEL_OPTION,
-    input_shape: str = SHAPE_OPTION,
+    input_shape: str | None = SHAPE_OPTION,
     plots_dir: Path = PLOTS_OPTION,
     no_plots: bool = NO_PLOTS_OPTION,
     workdir: Path | None = WORKDIR_OPTION,
@@ -272,7 +274,7 @@ def table2(
     frames: int | None = FRAMES_OPTION,
     robot_cpu: float = ROBOT_CPU_OPTION,
     model: str = MODEL_OPTION,
-    input_shape: str = SHAPE_OPTION,
+    input_shape: str | None = SHAPE_OPTION,
     plots_dir: Path = PLOTS_OPTION,
     no_plots: bool = NO_PLOTS_OPTION,
     workdir: Path | None = WORKDIR_OPTION,
@@ -315,7 +317,7 @@ def table3(
     frames: int | None = FRAMES_OPTION,
     robot_cpu: float = ROBOT_CPU_OPTION,
     model: str = MODEL_OPTION,
-    input_shape: str = SHAPE_OPTION,
+    input_shape: str | None = SHAPE_OPTION,
     plots_dir: Path = PLOTS_OPTION,
     no_plots: bool = NO_PLOTS_OPTION,
     workdir: Path | None = WORKDIR_OPTION,
@@ -347,7 +349,7 @@ def anycast(
     quick: bool = QUICK_OPTION,
     frames: int | None = FRAMES_OPTION,
     model: str = MODEL_OPTION,
-    input_shape: str = SHAPE_OPTION,
+    input_shape: str | None = SHAPE_OPTION,
     plots_dir: Path = PLOTS_OPTION,
     no_plots: bool = NO_PLOTS_OPTION,
     workdir: Path | None = WORKDIR_OPTION,

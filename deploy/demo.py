@@ -45,6 +45,7 @@ import typer
 from rich.console import Console
 
 from common.errors import UserError
+from common.path_options import model_path
 from deploy.demo_summary import (
     Failover,
     answered_by,
@@ -457,6 +458,8 @@ def demo(
         tls=tls,
     )
     try:
+        if options.model is not None:
+            options.model = model_path(options.model)  # the working directory's, not the demo's
         if plot is not None and plot.suffix.lower() != ".png":
             raise UserError(f"--plot {plot}: expected a .png file")
         if plot is not None and not plot.resolve().parent.is_dir():
