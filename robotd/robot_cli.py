@@ -18,6 +18,7 @@ from pathlib import Path
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 
 from common.errors import UserError
 from common.logs import DEFAULT_LOG_LEVEL, LOG_LEVEL_ENV, LOG_LEVEL_HELP, logging_to_stderr
@@ -142,7 +143,11 @@ def robot_command(
             daemon = RobotDaemon(cfg, robot_id, options)
             code = daemon.run()
     except UserError as exc:
-        Console(stderr=True).print(f"[red]error:[/red] {exc}", highlight=False, soft_wrap=True)
+        # The message as written: a spec like `bag:run:front` holds what Rich would take for an
+        # emoji code (`:run:`) or markup (`[...]`).
+        Console(stderr=True).print(
+            f"[red]error:[/red] {escape(str(exc))}", highlight=False, soft_wrap=True, emoji=False
+        )
         raise typer.Exit(exc.exit_code) from None
     if json_out:
         typer.echo(json.dumps(daemon.summary.to_json()))

@@ -13,10 +13,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from typer.testing import CliRunner
 
+from common.cli import app
 from robotd.daemon import FrameResult, RobotDaemon, RobotOptions
 from tests.integration.conftest import Router
 from tests.integration.test_robotd import DEPLOYMENT, ROBOT, fleet_config, tiny_conv_model
+from tests.integration.test_robotd_cli import write_fleet
 from tests.unit.bag_support import STORAGES, Record, camera_records, photo_frames, write_bag
 from tests.unit.test_partition import save
 
@@ -129,3 +132,31 @@ def test_a_video_without_loop_plays_at_its_own_rate_and_ends_the_run(
     # At the config's 2 fps the 12 frames would take 5.5 s.
     assert took < (VIDEO_FRAMES - 1) / CONFIG_FPS / 2
     assert all(np.isfinite(r.outputs["logits"]).all() for r in results)
+
+
+@pytest.mark.parametrize(
+    ("topic", "message"),
+    [
+        ("", "2 image topics (/front, /rear); name one: bag:{bag}:TOPIC"),
+        (":/side", "has no topic /side; its topics: /front (sensor_msgs/msg/Image), /rear"),
+    ],
+)
+def test_a_bag_topic_error_is_one_line_as_written_and_exit_code_2(
+    zenoh_router: Router,
+    model_file: Path,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    topic: str,
+    message: str,
+) -> None:
+    """Regression: the CLI's error line took `:two:` in `bag:two:TOPIC` for an emoji code."""
+    frames = photo_frames(2, 32, 40)
+    records = camera_records(frames, topic="/front") + camera_records(frames, topic="/rear")
+    bag = write_bag(tmp_path / "two", records).name
+    fleet = write_fleet(tmp_path, zenoh_router.endpoint, model_file)
+    monkeypatch.chdir(tmp_path)
+    args = ["robot", "--config", str(fleet), "--id", ROBOT, "--source", f"bag:{bag}{topic}"]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 2, result.output
+    errors = [line for line in result.stderr.splitlines() if line.startswith("error:")]
+    assert len(errors) == 1 and message.format(bag=bag) in errors[0], result.stderr
