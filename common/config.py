@@ -408,8 +408,9 @@ class MachineConfig(_Model):
         default="synthetic",
         description=(
             "Robot: frame source, a spec of robotd.source_names: synthetic[:OPTIONS], "
-            "photo[:NAME], video:PATH, camera:INDEX, stereo:world|motorcycle|LEFT,RIGHT"
-            "[,OPTIONS] or zenoh (frames an application publishes on ef/<fleet>/in/<robot>)."
+            "photo[:NAME], video:PATH[,loop=false], bag:PATH[:TOPIC] (a rosbag2 recording), "
+            "camera:INDEX, stereo:world|motorcycle|LEFT,RIGHT[,OPTIONS] or zenoh (frames an "
+            "application publishes on ef/<fleet>/in/<robot>)."
         ),
     )
     fps: float | None = Field(

@@ -15,7 +15,7 @@ What:
 - `encode_float32_multi_array`: a model output as std_msgs/msg/Float32MultiArray, one layout
   dimension per axis (labelled `axis0`, `axis1`, ... unless labels are given);
   `decode_float32_multi_array` reads one back. `encode_image_32fc1`: an output of shape 1×1×H×W or
-  H×W (`is_image_shaped`) as a 32FC1 sensor_msgs/msg/Image with a given header.
+  H×W (`is_image_shaped`; not 1×C: a vector) as a 32FC1 sensor_msgs/msg/Image with a header.
 - `encode_twist` / `decode_twist`: geometry_msgs/msg/Twist as a `Twist`.
 - `type_hash` (RIHS01_<sha256>) and `dds_type_name` (e.g. `sensor_msgs::msg::dds_::Image_`) of
   each `MessageType`.
@@ -416,9 +416,12 @@ def decode_float32_multi_array(payload: bytes | memoryview) -> tuple[np.ndarray,
 
 
 def is_image_shaped(shape: Sequence[int]) -> bool:
-    """Whether an output of this shape is also published as a 32FC1 Image: 1×1×H×W or H×W."""
+    """Whether an output of this shape is also published as a 32FC1 Image: 1×1×H×W, or H×W with
+    both sides over 1 (a 1×C or N×1 output, a classifier's scores, is a vector, not an image)."""
     dims = tuple(shape)
-    return (len(dims) == 2 or (len(dims) == 4 and dims[:2] == (1, 1))) and 0 not in dims
+    if len(dims) == 4:
+        return dims[:2] == (1, 1) and 0 not in dims
+    return len(dims) == 2 and min(dims) > 1
 
 
 def encode_image_32fc1(array: np.ndarray, header: Header) -> bytes:

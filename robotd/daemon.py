@@ -71,7 +71,7 @@ from robotd.frame import FrameResult
 from robotd.frame_loop import FrameLoop
 from robotd.model_runs import ModelRuns
 from robotd.offload import LocalRunner
-from robotd.pacing import TokenBucket
+from robotd.pacing import FramePacer, TimelinePacer, TokenBucket
 from robotd.policies import Objective, Policy
 from robotd.probes import PROBE_INTERVAL_S, CloudTime, Prober, probe_padding_bytes
 from robotd.registry_link import REGISTRY_RETRY_INITIAL_S, RegistryLink
@@ -94,8 +94,6 @@ log = logging.getLogger("robotd")
 # the first frames are not finished locally only because the session was still meeting peers.
 REGISTRY_WAIT_S = 2.0
 ROUTE_WAIT_S = 3.0
-# While a source waits for its sender, frames in flight are looked at this often.
-FRAME_POLL_S = 0.005
 
 
 @dataclass
@@ -118,6 +116,8 @@ class RobotOptions:
     max_in_flight: int | None = None
     # ROS 2 topic prefix of the results (`results: {ros2: ...}`); None: the machine's.
     results_ros2: str | None = None
+    # `--record`: each applied frame's input and result written to this MCAP file (or folder).
+    record: Path | None = None
 
     @property
     def initial_slowdown(self) -> float:
@@ -139,6 +139,10 @@ class RobotOptions:
         if self.max_in_flight is not None and self.max_in_flight < 1:
             raise UserError(f"--max-in-flight must be at least 1, got {self.max_in_flight}")
         check_slowdown(self.robot_slowdown)
+        if self.record is not None:
+            from robotd.recorder import check_record_path
+
+            check_record_path(self.record)
 
 
 class RobotDaemon(Daemon):
@@ -342,6 +346,16 @@ class RobotDaemon(Daemon):
 
             ros2_sink = Ros2ResultSink(session, cfg.ros2.domain(), self.robot, self.results_ros2)
             self.add_result_sink(ros2_sink, f"ROS 2 results {self.results_ros2}")
+        if self.options.record is not None:
+            from robotd.recorder import McapRecorder  # rosbags only where it is used
+
+            recorder = McapRecorder(
+                self.options.record,
+                self.robot,
+                self._robot_model.inputs,
+                results_ros2=self.results_ros2,
+            )
+            self.add_result_sink(recorder, f"recording {self.options.record}")
         # Opened on the session (a source fed over Zenoh needs it), so released before it.
         self._source = self.hold(
             self._robot_model.open_source(
@@ -446,4 +460,12 @@ class RobotDaemon(Daemon):
 
     # -- the frame loop (`robotd.frame_loop`) ---------------------------------------------
     def main_loop(self) -> None:
-        self.loop.run(frames=self.options.frames, fps=self.fps)
+        self.loop.run(frames=self.options.frames, fps=self.fps, pacer=self._pacer())
+
+    def _pacer(self) -> FramePacer | TimelinePacer | None:
+        """The source's own timeline (a bag's, a video file's) unless --fps is given; None: the
+        fps (the machine's, none: as fast as frames complete)."""
+        if self.options.fps is None and self._source.next_offset_s() is not None:
+            log.info("%s: frames at the source's own pace", self.robot)
+            return TimelinePacer(self._source.next_offset_s)
+        return None

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import enum
 import math
+import re
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -34,6 +35,8 @@ PHOTO = "photo"
 # keep `synthetic` (their defaults do not change), whose entropy they control.
 DEFAULT_CAMERA_SOURCE = PHOTO
 VIDEO_PREFIX = "video:"
+BAG_PREFIX = "bag:"
+VIDEO_OPTIONS = ("loop",)
 CAMERA_PREFIX = "camera:"
 STEREO_PREFIX = "stereo:"
 # `stereo:world`: pairs rendered in nav's world; `stereo:motorcycle`: Middlebury's real pair.
@@ -110,13 +113,30 @@ class PhotoSpec(SourceSpec):
 
 @dataclass(frozen=True)
 class VideoSpec(SourceSpec):
-    """`video:PATH`."""
+    """`video:PATH[,loop=true|false]`: loop (the default) starts the file again at its end;
+    without, the run ends there."""
 
     path: Path = Path()
+    loop: bool = True
 
     def resolved(self, resolve: Callable[[str], str]) -> VideoSpec:
         path = resolve(str(self.path))
-        return replace(self, text=f"{VIDEO_PREFIX}{path}", path=Path(path))
+        options = "" if self.loop else ",loop=false"
+        return replace(self, text=f"{VIDEO_PREFIX}{path}{options}", path=Path(path))
+
+
+@dataclass(frozen=True)
+class BagSpec(SourceSpec):
+    """`bag:PATH[:TOPIC]`: a rosbag2 folder or file; TOPIC (made absolute) None: the bag's one
+    image topic."""
+
+    path: Path = Path()
+    topic: str | None = None
+
+    def resolved(self, resolve: Callable[[str], str]) -> BagSpec:
+        path = resolve(str(self.path))
+        topic = "" if self.topic is None else f":{self.topic}"
+        return replace(self, text=f"{BAG_PREFIX}{path}{topic}", path=Path(path))
 
 
 @dataclass(frozen=True)
@@ -275,9 +295,41 @@ def _parse_photo(spec: str, args: str) -> PhotoSpec:
 
 
 def _parse_video(spec: str, args: str) -> VideoSpec:
-    if not args.strip():
+    path, loop = args, True
+    # Options follow the path after commas; a comma not followed by a known option is the path's.
+    while True:
+        head, comma, tail = path.rpartition(",")
+        name, eq, value = (part.strip() for part in tail.partition("="))
+        if not comma or not eq or name not in VIDEO_OPTIONS:
+            break
+        if value not in ("true", "false"):
+            raise SourceError(f"source {spec!r}: loop={value!r}; expected true or false")
+        loop, path = value == "true", head
+    if not path.strip():
         raise SourceError(f"source {spec!r}: video needs a file, e.g. video:run.mp4")
-    return VideoSpec(spec, path=Path(args.strip()).expanduser())
+    return VideoSpec(spec, path=Path(path.strip()).expanduser(), loop=loop)
+
+
+# A ROS 2 topic name (after its leading `/`): tokens of letters, digits and `_` between `/`s, none
+# starting with a digit (ROS 2's rules; `~` and substitutions are for launch files, not bags).
+_TOPIC = re.compile(r"[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*")
+
+
+def _parse_bag(spec: str, args: str) -> BagSpec:
+    """`PATH[:TOPIC]`: a topic holds no `:`, so the last `:` ends the path when a topic name
+    follows it (a path with a `:` in it then needs the topic named)."""
+    path, topic = args.strip(), None
+    head, colon, tail = path.rpartition(":")
+    if colon and _TOPIC.fullmatch(tail.strip().lstrip("/")):
+        path, topic = head.strip(), "/" + tail.strip().lstrip("/")
+    elif colon and tail.strip().startswith("/"):
+        raise SourceError(
+            f"source {spec!r}: {tail.strip()!r} is not a ROS 2 topic name (letters, digits and _ "
+            "between /s)"
+        )
+    if not path:
+        raise SourceError(f"source {spec!r}: bag needs a path, e.g. bag:run_0 or bag:run.mcap")
+    return BagSpec(spec, path=Path(path).expanduser(), topic=topic)
 
 
 def _parse_camera(spec: str, args: str) -> CameraSpec:
@@ -395,7 +447,8 @@ KINDS: dict[str, SourceKind] = {
         SourceKind(
             PHOTO, "photo[:NAME][,motion=pan|zoom|shake|mixed][,speed=F]", _parse_photo, ":,"
         ),
-        SourceKind("video", "video:PATH", _parse_video),
+        SourceKind("video", "video:PATH[,loop=false]", _parse_video),
+        SourceKind("bag", "bag:PATH[:TOPIC]", _parse_bag),
         SourceKind("camera", "camera:INDEX", _parse_camera),
         SourceKind("stereo", STEREO_FORMS, _parse_stereo),
         SourceKind(ZENOH, ZENOH, _parse_zenoh),

@@ -15,6 +15,7 @@ from typing import Any
 from common.errors import UserError
 from common.image_input import ImageInputs
 from robotd.source_names import (
+    BagSpec,
     CameraSpec,
     PhotoSpec,
     Ros2Spec,
@@ -79,7 +80,12 @@ def open_source(
                 **_given(name=parsed.name, motion=parsed.motion, speed=parsed.speed),
             )
         case VideoSpec():
-            return VideoSource(parsed.path)
+            return VideoSource(parsed.path, loop=parsed.loop)
+        case BagSpec():
+            # Imported here: rosbags is loaded only by a robot that reads a bag.
+            from robotd.bag_source import BagSource
+
+            return BagSource(parsed.path, parsed.topic)
         case CameraSpec():
             return CameraSource(parsed.index)
         case StereoWorldSpec() | StereoPairSpec() | StereoManeuverSpec():

@@ -298,7 +298,9 @@ def test_image_shaped_outputs_become_32fc1_images(shape: tuple[int, ...]) -> Non
     np.testing.assert_array_equal(pixels, disparity.reshape(6, 8))
 
 
-@pytest.mark.parametrize("shape", [(1, 3, 6, 8), (2, 1, 6, 8), (48,), (1, 6, 8), (0, 8)])
+@pytest.mark.parametrize(
+    "shape", [(1, 3, 6, 8), (2, 1, 6, 8), (48,), (1, 6, 8), (0, 8), (1, 1000), (8, 1)]
+)
 def test_other_outputs_are_not_images(shape: tuple[int, ...]) -> None:
     assert not rm.is_image_shaped(shape)
     with pytest.raises(rm.BadMessageValue, match="is not an image"):
