@@ -17,9 +17,9 @@ the largest centred rectangle of the model's aspect, scaled). The header stamp i
 capture stamp (`last_stamp_ns`) and its frame id is kept for the results published as Images.
 
 Bad input (a wrong type or type hash, truncated CDR, an unknown encoding, an empty image, bytes
-that do not decode) is one throttled line naming it and a count by error name
-(`rejected_frames`, in the run summary); the loop waits for the next message and the daemon
-keeps serving. The counts are logged when the source closes.
+that do not decode) is one throttled line naming it, counted by error code as the `zenoh`
+source's (`rejected_frames`, in the run summary); the loop waits for the next message and the
+daemon keeps serving. The counts by error name are logged when the source closes.
 """
 
 from __future__ import annotations
@@ -34,6 +34,7 @@ import numpy as np
 from common import rmw_zenoh
 from common.ros2_messages import MessageType, Ros2MessageError, decode_frame, typestore
 from common.throttled_log import ThrottledLog
+from common.wire.errors import ErrorCode
 from robotd.newest_frame import NewestFrame
 from robotd.ros2_node import acquire_node
 from robotd.source_names import Ros2FrameType, Ros2Spec
@@ -55,9 +56,14 @@ _MESSAGE = {
 class WrongTopicType(Ros2MessageError):
     """A message on the topic of another type than the source reads."""
 
+    code = ErrorCode.BAD_VALUE
+
 
 class WrongTypeHash(Ros2MessageError):
-    """A message of the right type name whose RIHS01 hash differs (another definition of it)."""
+    """A message of the right type name whose RIHS01 hash differs (another definition of it,
+    as a message of another schema version)."""
+
+    code = ErrorCode.SCHEMA_VERSION
 
 
 class Ros2Source(FrameSource):
@@ -78,7 +84,9 @@ class Ros2Source(FrameSource):
         self.message = _MESSAGE[spec.type]
         self.topic_type = rmw_zenoh.TopicType.of(self.message.value, typestore())
         self.description = f"ros2 {spec.topic} ({self.message.value}, domain {self.domain})"
+        # Refused messages by error name (the log's words) and by error code (the summary's).
         self.refused: Counter[str] = Counter()
+        self.rejected: Counter[str] = Counter()
         self.taken = 0
         self._stop = stop
         self._frames = NewestFrame[bytes]()
@@ -100,7 +108,7 @@ class Ros2Source(FrameSource):
         return self._frames.wait_ready(timeout_s, self._stop)
 
     def rejected_frames(self) -> dict[str, int]:
-        return dict(self.refused)
+        return dict(self.rejected)
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         # A Zenoh callback thread: nothing may escape it.
@@ -129,6 +137,7 @@ class Ros2Source(FrameSource):
     def _refuse(self, exc: Ros2MessageError) -> None:
         name = type(exc).__name__
         self.refused[name] += 1
+        self.rejected[exc.code.value] += 1
         self._throttled.warning("%s: message refused: %s: %s", self.description, name, exc)
 
     def read(self) -> np.ndarray:
