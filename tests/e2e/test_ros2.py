@@ -265,6 +265,17 @@ def test_image_frames_in_float32_results_out(make_fleet, local_fleet, sdk_peer) 
     assert topics.get(CAMERA) and "sensor_msgs/msg/Image" in topics[CAMERA]
     results_topic = f"{RESULTS}/{rmw_zenoh.name_token(output)}"
     assert "std_msgs/msg/Float32MultiArray" in topics.get(results_topic, [])
+    # `ros2 topic info -v`'s view: the robot's node subscribes to the camera, publishes results.
+    from zenoh_ros2_sdk import get_topic_info
+
+    camera_info = get_topic_info(CAMERA, domain_id=0, router_port=port, timeout=1.0, verbose=True)
+    results_info = get_topic_info(
+        results_topic, domain_id=0, router_port=port, timeout=1.0, verbose=True
+    )
+    assert camera_info is not None and results_info is not None
+    node = rmw_zenoh.node_name_for(ROBOT)
+    assert [(e.node_name, e.node_namespace) for e in camera_info.subscribers] == [(node, "/")]
+    assert [(e.node_name, e.node_namespace) for e in results_info.publishers] == [(node, "/")]
     robot.check_alive()
 
 
