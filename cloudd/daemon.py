@@ -110,7 +110,8 @@ class CloudDaemon(Daemon):
     """One deployment of the fleet's service: `CloudDaemon(cfg, "edge-1").run()`.
 
     `fault` overrides the machine's configured fault injection at start; `drop_seed` seeds the
-    drop decisions (tests). `ready` is set once the daemon serves (its token is declared).
+    drop decisions (tests). `ready` (the lifecycle's) is set once startup is done: the daemon
+    serves.
     `limits` are the machine's limits, `refusals` counts what they (and the rest) refused.
 
     The daemon keeps the lifecycle and wires its parts: `RobotBook` (per-robot state, counters,
@@ -137,7 +138,6 @@ class CloudDaemon(Daemon):
         if fault is None:
             fault = FaultSpec(**self.machine.fault.model_dump())
         self.faults = FaultInjector(fault, seed=drop_seed)
-        self.ready = threading.Event()
         self.drained = threading.Event()
         self._registry = RegistryLink(cfg, deployment, stop=self.should_exit)
         self.registry_seen = self._registry.seen
@@ -260,7 +260,6 @@ class CloudDaemon(Daemon):
         self.announce(
             session.liveliness().declare_token(keys.alive_cloud(self.cfg.fleet, self.deployment))
         )
-        self.ready.set()
         log.info(
             "%s: ready: service %r, %d cuts warm, %d workers, %d slots, at most %d per robot, "
             "%s, %s, faults: %s",
@@ -287,7 +286,6 @@ class CloudDaemon(Daemon):
     def shutdown(self) -> None:
         """Refuse new work, then release everything startup made: the token first (the registry
         reroutes at once instead of waiting for a timeout), then in reverse order. Safe twice."""
-        self.ready.clear()
         self._book.close()
         super().shutdown()
         self.refusals.log_summary(self.deployment)

@@ -232,11 +232,6 @@ def dep_probe_all(fleet: str) -> str:
     return _join(prefix(fleet), "dep", "*", "probe")
 
 
-def dep_ctl_all(fleet: str) -> str:
-    """`ef/<fleet>/dep/*/ctl`: every deployment's control key (only the registry queries them)."""
-    return _join(prefix(fleet), "dep", "*", "ctl")
-
-
 # -- tele: what robots publish ---------------------------------------------------------------------
 def tele(fleet: str, robot: str) -> str:
     """`ef/<fleet>/tele/<robot>`: one telemetry record per frame."""

@@ -30,7 +30,7 @@ from common.membership import MemberChange
 from common.throttled_log import ThrottledLog
 from common.wire import registry as msg
 from registry.measurements import Measurements
-from registry.pools import PoolKeeper
+from registry.pool_keeper import PoolKeeper
 from registry.prober import Probed, Prober
 from registry.registration import Registrar, RegistrationState
 from registry.replies import answer, error_payload

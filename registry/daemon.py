@@ -49,7 +49,6 @@ import functools
 import gc
 import logging
 import queue
-import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -69,7 +68,8 @@ from common.wire.telemetry import ProbeReport, TelemetryRecord
 from registry.control_loop import ControlLoop, Evaluate, Event
 from registry.latency import LatencyBound
 from registry.measurements import Measurements
-from registry.pools import pool_keeper, pool_planner
+from registry.pool_keeper import pool_keeper
+from registry.pools import pool_planner
 from registry.prober import Prober
 from registry.profile_saver import PacedSaver
 from registry.publications import PublicationReader
@@ -161,8 +161,6 @@ class RegistryDaemon(Daemon):
         self.max_request_bytes = cfg.registry.max_request_bytes
         # Error replies and dropped publications, by input and code (Zenoh threads count).
         self.refusals = Refusals()
-        # Set once the registry's token is declared: it serves from then on.
-        self.ready = threading.Event()
         self.scheduler = Scheduler(self.bound, self.params)
         self.measurements = Measurements(
             self.bound.window,
@@ -278,7 +276,6 @@ class RegistryDaemon(Daemon):
             "membership view",
         )
         self.announce(session.liveliness().declare_token(keys.alive_registry(fleet, self.id)))
-        self.ready.set()
         log.info(
             "registry %s of fleet %s: listening on %s, RIB %s (%d routes restored)",
             self.id,
@@ -363,7 +360,6 @@ class RegistryDaemon(Daemon):
         """Token first, then everything startup made in reverse: the membership view, the
         queryables and subscribers, queued requests (refused), the prober, the session, the
         measurements (saved), the RIB. Safe twice."""
-        self.ready.clear()
         super().shutdown()
         self._started = None
         refused = self.refusals.summary()

@@ -231,10 +231,6 @@ class RobotDaemon(Daemon):
         return self._link.route if self._link is not None else (None, 0)
 
     @property
-    def registry_reachable(self) -> bool:
-        return self._link is not None and self._link.reachable
-
-    @property
     def result_sinks(self) -> tuple[ResultSink, ...]:
         """The sinks each applied frame's result is published to, in the order added."""
         return tuple(self._result_sinks)

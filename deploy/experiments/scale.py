@@ -43,7 +43,8 @@ from common.config import FleetConfig, load_fleet
 from common.errors import UserError
 from deploy.cpu_pinning import CpuSplit, off_set_threads, pin_process, split_for_cloud, usable_cpus
 from deploy.load_generator import ARRIVALS, LoadGenerator, summarize
-from deploy.procs import DaemonProc, LocalFleet, write_local_fleet
+from deploy.local_fleet import LocalFleet, write_local_fleet
+from deploy.procs import DaemonProc
 
 from . import scale_defaults as defaults
 from .options import bench_workdir, model_path, option_dir

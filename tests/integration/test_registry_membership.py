@@ -23,9 +23,8 @@ from common import keys
 from common.config import FleetConfig
 from common.session import open_session
 from common.wire import decode
-from tests.integration import test_registry as reg
-from tests.integration.conftest import find_free_port, loopback_endpoint
-from tests.integration.test_registry import (
+from tests.helpers import registry as reg
+from tests.helpers.registry import (
     LEASE_MS,
     QUERY_TIMEOUT_S,
     WAIT_S,
@@ -35,6 +34,7 @@ from tests.integration.test_registry import (
     view,
     write_fleet,
 )
+from tests.integration.conftest import find_free_port, loopback_endpoint
 
 peer = reg.peer
 start_registry = reg.start_registry

@@ -14,6 +14,7 @@ import zenoh
 from common import keys
 from robotd.daemon import FrameResult, RobotDaemon, RobotOptions
 from robotd.result_sinks import ResultSink
+from tests.helpers.onnx_graphs import save
 from tests.integration.conftest import Router
 from tests.integration.test_robotd import (
     FLEET,
@@ -23,7 +24,6 @@ from tests.integration.test_robotd import (
     fleet_config,
     tiny_conv_model,
 )
-from tests.unit.test_partition import save
 
 
 @pytest.fixture(scope="module")

@@ -30,6 +30,7 @@ from common.wire.robot_to_app import ServedBy
 from robotd.client import RobotClient
 from robotd.daemon import RobotDaemon, RobotOptions
 from robotd.sources import MAX_SOURCE_SIDE_PX, fit_frame
+from tests.helpers.onnx_graphs import save
 from tests.integration.conftest import Router
 from tests.integration.test_robotd import (
     FLEET,
@@ -38,13 +39,13 @@ from tests.integration.test_robotd import (
     fleet_config,
     tiny_conv_model,
 )
-from tests.unit.test_partition import save
 
 WAIT_S = 10.0
 TOLERANCE = 1e-4
 FRAMES = 4
 BURST = 30
 POLL_S = 0.01
+SMALL_LIMIT_BYTES = 1 << 20
 
 
 @pytest.fixture(scope="module")
@@ -233,3 +234,22 @@ def test_a_pipelined_frames_result_comes_without_waiting_for_the_next_frame(
     finally:
         robot.stop()
         dep.close()
+
+
+def test_a_frame_over_the_payload_limit_is_refused_before_it_is_copied(
+    zenoh_router: Router, model_file: Path, fake_registry: zenoh.Session
+) -> None:
+    cfg = fleet_config(zenoh_router.endpoint, model_file, max_payload_bytes=SMALL_LIMIT_BYTES)
+    robot = RunningRobot(cfg)
+    try:
+        with RobotClient(cfg, ROBOT, encoding=ImageEncoding.BGR8) as client:
+            assert client.wait_for_robot(WAIT_S)
+            client.send(np.zeros((600, 800, 3), np.uint8))  # 1.4 MB raw
+            source = robot.daemon._source
+            assert wait_until(lambda: source.rejected_frames() == {"too_large": 1})
+            small = image_in(photograph(), "jpeg")
+            result = client.infer(decode_image(small, max_side_px=MAX_SOURCE_SIDE_PX), WAIT_S)
+            assert result.served_by is ServedBy.ROBOT
+    finally:
+        robot.stop()
+    assert robot.daemon.summary.rejected_frames == {"too_large": 1}

@@ -177,3 +177,27 @@ def test_top5_of_a_vector_and_of_each_row() -> None:
     assert top_k(row) == [[(1, 5.0), (3, 4.0), (2, 3.0), (5, 2.0), (6, 1.0)]]
     assert top_k(np.stack([row, -row]))[1][0] == (4, 1.0)  # type: ignore[index]
     assert top_k(np.zeros((1, 1, 4, 4), np.float32)) is None
+
+
+def test_a_result_line_names_the_frame_its_path_and_each_outputs_top5() -> None:
+    from robotd.client import Result
+    from robotd.results_cli import result_json, result_line
+
+    logits = np.array([[0.1, 5.0, 3.0, 4.0, -1.0, 2.0, 1.0]], dtype=np.float32)
+    disparity = np.zeros((1, 1, 4, 6), np.float32)
+    message = result_message({"logits": logits, "disparity": disparity}, "raw")
+    result = Result(message, {"logits": logits, "disparity": disparity}, received_ns=1)
+    line = result_line(result)
+    assert line.startswith("frame 3  stamp 1700000000000000001 (")
+    assert "served_by robot  action P  latency 10.0 ms" in line
+    assert "logits [1, 7] top5 1:5 3:4 2:3 5:2 6:1" in line
+    assert line.endswith("disparity [1, 1, 4, 6]")
+    obj = result_json(result)
+    assert obj["stamp_ns"] == message.stamp_ns and obj["served_by"] == "robot"
+    assert obj["outputs"]["logits"]["top5"] == [[(1, 5.0), (3, 4.0), (2, 3.0), (5, 2.0), (6, 1.0)]]
+    assert obj["outputs"]["disparity"] == {
+        "dtype": "float32",
+        "shape": [1, 1, 4, 6],
+        "codec": "raw",
+        "top5": None,
+    }
