@@ -70,7 +70,7 @@ def read_bag(path: Path, *, bounded: bool = True) -> tuple[int, int] | None:
     return run_decoder(read, (SourceError,), max_bytes=MEMORY_BYTES if bounded else None)
 
 
-@budget(60)
+@budget(40)
 @given(
     storage=st.sampled_from(STORAGES),
     compressed=st.booleans(),
@@ -99,7 +99,7 @@ _payloads = st.one_of(
 )
 
 
-@budget(40)
+@budget(25)
 @given(storage=st.sampled_from(STORAGES), payloads=st.lists(_payloads, min_size=1, max_size=4))
 def test_records_of_any_bytes_are_frames_or_counted(storage: str, payloads: list[bytes]) -> None:
     good = camera_records(photo_frames(2, 8, 8))

@@ -192,13 +192,13 @@ _kinds_and_payloads = st.sampled_from(sorted(MESSAGES)).flatmap(
 )
 
 
-@budget(200)
+@budget(120)
 @given(message=_kinds_and_payloads)
 def test_messages_with_any_fields(message: tuple[str, bytes]) -> None:
     decode_checked(*message)
 
 
-@budget(200)
+@budget(120)
 @given(message=_kinds_and_payloads, edits=byte_edits)
 def test_corrupt_messages(message: tuple[str, bytes], edits: list[tuple[int, int, bytes]]) -> None:
     kind, payload = message
