@@ -40,7 +40,7 @@ from robotd.failure_runs import FailureRuns
 from robotd.frame import Frame, FrameResult
 from robotd.model_runs import ModelRuns
 from robotd.offload import FINISH_GRACE_S, STOP_POLL_S, LocalRunner
-from robotd.pacing import FramePacer
+from robotd.pacing import FramePacer, TimelinePacer
 from robotd.pipeline import FramePipeline, InFlight, ResultOrder
 from robotd.policies import PURE_ROBOT, FrameContext, Objective, Policy
 from robotd.pool_turns import PoolTurns
@@ -107,10 +107,17 @@ class FrameLoop:
             pending.call.cancel()
         self._pipeline.cancel()
 
-    def run(self, *, frames: int | None, fps: float | None) -> None:
-        """Frames until `frames` (None: no limit), the source's end or the stop flag, paced at
-        `fps` (None: as fast as frames complete); then the frames in flight are finished."""
-        pacer = FramePacer(fps)
+    def run(
+        self,
+        *,
+        frames: int | None,
+        fps: float | None,
+        pacer: FramePacer | TimelinePacer | None = None,
+    ) -> None:
+        """Frames until `frames` (None: no limit), the source's end or the stop flag, paced by
+        `pacer` (a recording's timeline), else at `fps` (None: as fast as frames complete); then
+        the frames in flight are finished."""
+        pacer = pacer if pacer is not None else FramePacer(fps)
         limit = frames
         self.summary.started_at = time.perf_counter()
         n = dropped_seen = 0
