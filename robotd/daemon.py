@@ -367,7 +367,7 @@ class RobotDaemon(Daemon):
             recorder = McapRecorder(
                 self.options.record,
                 self.robot,
-                self._robot_model.inputs,
+                robot_model.inputs,
                 results_ros2=self.results_ros2,
             )
             self.add_result_sink(recorder, f"recording {self.options.record}")
@@ -482,7 +482,7 @@ class RobotDaemon(Daemon):
     def _pacer(self) -> FramePacer | TimelinePacer | None:
         """The source's own timeline (a bag's, a video file's) unless --fps is given; None: the
         fps (the machine's, none: as fast as frames complete)."""
-        if self.options.fps is None and self._source.next_offset_s() is not None:
+        if self.options.fps is None and self.loop.source.next_offset_s() is not None:
             log.info("%s: frames at the source's own pace", self.robot)
-            return TimelinePacer(self._source.next_offset_s)
+            return TimelinePacer(self.loop.source.next_offset_s)
         return None
