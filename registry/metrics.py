@@ -1,9 +1,10 @@
 """The registry daemon's Prometheus metrics (docs/metrics.md, "registry").
 
-Counted by the control loop where it acts, one call each: `round(seconds)` after every
-scheduling round, `route_change(reason, previous)` for every route that changed (a failover is
-one that moved a robot off a deployment that failed it: `deployment_lost` or `timeouts`),
-`probe_report()` for every robot probe report read. Read from the RIB at scrape time: robots and
+Counted where the registry acts, one call each: `round(seconds)` after every scheduling round
+(the daemon's main loop, which ticks it), `route_change(reason, previous)` for every route that
+changed (`registry.control_loop`; a failover is one that moved a robot off a deployment that
+failed it: `deployment_lost` or `timeouts`), `probe_report()` for every robot probe report read
+(the daemon's subscriber). Read from the RIB at scrape time: robots and
 deployments alive, the RIB's rows per table, robots routed per deployment and each deployment's
 last known load and capacity.
 

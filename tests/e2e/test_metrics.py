@@ -25,7 +25,8 @@ from prometheus_client.parser import text_string_to_metric_families
 
 from deploy.demo import METRICS_DAEMONS, answered_by, read_telemetry
 from deploy.demo import ROBOT_ID as DEMO_ROBOT
-from deploy.procs import elasticfog_argv, free_tcp_port, wait_until
+from deploy.procs import elasticfog_argv, free_tcp_port
+from deploy.readiness import wait_until
 
 pytestmark = [pytest.mark.e2e, pytest.mark.usefixtures("e2e_watchdog")]
 

@@ -11,7 +11,7 @@ from typer.testing import CliRunner, Result
 
 from common.cli import app
 from common.models import file_digest
-from tests.unit.test_partition import diamond, late_input, make_model, node, save, vi
+from tests.helpers.onnx_graphs import diamond, late_input, make_model, node, save, vi
 from tests.unit.test_prep import conv_net
 
 runner = CliRunner()
@@ -38,7 +38,7 @@ def test_zoo_list_json() -> None:
     rows = json.loads(result.stdout)
     names = [r["name"] for r in rows]
     assert names[:5] == ["vgg", "resnet", "mobilenet", "resnet18", "mobilenet_v2"]
-    assert "stereo" in names[5:]  # graph models follow the torch networks
+    assert "stereo" in names[5:]  # graph models from entry points follow the zoo's own networks
     assert sum(r["default"] for r in rows) == 1
 
 
