@@ -252,6 +252,10 @@ class RobotDaemon(Daemon):
         """The deployment the registry last said serves this robot, and its epoch."""
         return self._started.link.route if self._started is not None else (None, 0)
 
+    def _frame_source(self) -> FrameSource | None:
+        """The frame source once the frame loop holds it (the metrics read its counts)."""
+        return self._started.loop.source if self._started is not None else None
+
     @property
     def result_sinks(self) -> tuple[ResultSink, ...]:
         """The sinks each applied frame's result is published to, in the order added."""
@@ -277,7 +281,9 @@ class RobotDaemon(Daemon):
             self, self.machine.metrics, self.options.metrics_port, who=f"robot {self.robot}"
         )
         if self.metrics is not None:
-            self._sink.metrics = RobotMetrics(self.metrics.registry, self.robot, lambda: self.route)
+            self._sink.metrics = RobotMetrics(
+                self.metrics.registry, self.robot, lambda: self.route, source=self._frame_source
+            )
         model = self.hold(open_split_model(cfg, self.machine), "model sessions")
         robot_model = RobotModel(model, cfg.model)
         warm_up(model, robot_model.sample_feeds)

@@ -4,7 +4,9 @@
 beside the run summary, so the two count the same frames): frames by action and by which result
 served them, fallbacks by reason, the end-to-end latency histogram, bytes sent, stale results
 dropped and frames answered per deployment. The route (epoch and deployment) is read at scrape
-time from the registry link, so it costs the loop nothing.
+time from the registry link, and the source's own counts (frames it dropped unread because a
+newer one arrived, `dropped_stale`, and frames it refused, by error code) from the frame source:
+the same counters the run summary takes at the end, so the two agree, and the loop pays nothing.
 
 Per frame: a dict lookup of the label set's child (made once per label set: prometheus_client's
 `labels()` builds a key each call), two or three locked increments and one histogram observe, a
@@ -14,28 +16,36 @@ few microseconds (benchmarks/metrics_overhead.py; docs/metrics.md).
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
+from typing import TYPE_CHECKING
 
 from prometheus_client import CollectorRegistry, Counter, Histogram
-from prometheus_client.core import GaugeMetricFamily, InfoMetricFamily, Metric
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, InfoMetricFamily, Metric
 
 from common.metrics import LATENCY_BUCKETS_S, NAMESPACE, ReadCollector
 from common.wire.telemetry import FallbackReason, TelemetryRecord
+
+if TYPE_CHECKING:
+    from robotd.sources import FrameSource
 
 NO_DEPLOYMENT = "none"
 """The route's deployment label when the registry routes the robot to no deployment (local)."""
 
 
 class RobotMetrics:
-    """The metrics of robot `robot` in `registry`; `route()` gives (deployment or None, epoch)."""
+    """The metrics of robot `robot` in `registry`; `route()` gives (deployment or None, epoch),
+    `source()` the frame source once it is open (None before)."""
 
     def __init__(
         self,
         registry: CollectorRegistry,
         robot: str,
         route: Callable[[], tuple[str | None, int]],
+        *,
+        source: Callable[[], FrameSource | None] = lambda: None,
     ) -> None:
         self.robot = robot
         self._route = route
+        self._source = source
         ns = NAMESPACE
         self._frames = Counter(
             "frames",
@@ -96,6 +106,7 @@ class RobotMetrics:
         for known in FallbackReason:
             self._fallbacks_by[known.value] = self._fallbacks.labels(robot, known.value)
         registry.register(ReadCollector(self._read_route, "the robot's route"))
+        registry.register(ReadCollector(self._read_source, "the frame source's counts"))
 
     def frame(self, record: TelemetryRecord, served_by: str) -> None:
         """Count one completed frame (its telemetry record, which result served it)."""
@@ -138,6 +149,27 @@ class RobotMetrics:
         )
         info.add_metric([self.robot], {"deployment": deployment or NO_DEPLOYMENT})
         yield info
+
+    def _read_source(self) -> Iterator[Metric]:
+        source = self._source()
+        dropped = CounterMetricFamily(
+            f"{NAMESPACE}_robot_dropped_stale_frames",
+            "Frames the source dropped unread because a newer one arrived first (a source fed "
+            "by others: zenoh, ros2:), as the run summary's dropped_stale.",
+            labels=["robot"],
+        )
+        dropped.add_metric([self.robot], source.dropped_stale if source is not None else 0)
+        yield dropped
+        rejected = CounterMetricFamily(
+            f"{NAMESPACE}_robot_rejected_frames",
+            "Frames the source received but refused, by error code, as the run summary's "
+            "rejected_frames.",
+            labels=["robot", "code"],
+        )
+        counts = source.rejected_frames() if source is not None else {}
+        for code, n in sorted(counts.items()):
+            rejected.add_metric([self.robot, code], n)
+        yield rejected
 
 
 __all__ = ["NO_DEPLOYMENT", "RobotMetrics"]

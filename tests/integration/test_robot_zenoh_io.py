@@ -103,7 +103,7 @@ def robot_and_client(
     zenoh_router: Router, model_file: Path, fake_registry: zenoh.Session
 ) -> Iterator[tuple[RunningRobot, RobotClient]]:
     cfg = fleet_config(zenoh_router.endpoint, model_file)
-    robot = RunningRobot(cfg)
+    robot = RunningRobot(cfg, metrics_port=0)  # any free port: its counts are read here too
     client = RobotClient(cfg, ROBOT)
     try:
         assert client.wait_for_robot(WAIT_S), "the robot's zenoh source never subscribed"
@@ -111,6 +111,19 @@ def robot_and_client(
     finally:
         client.close()
         robot.stop()
+
+
+def source_counts(daemon: RobotDaemon) -> tuple[float, dict[str, float]]:
+    """(dropped_stale, rejected frames by code) as the robot's /metrics registry has them."""
+    assert daemon.metrics is not None, "the robot serves no metrics"
+    dropped, rejected = 0.0, {}
+    for family in daemon.metrics.registry.collect():
+        for sample in family.samples:
+            if sample.name == "elasticfog_robot_dropped_stale_frames_total":
+                dropped = sample.value
+            elif sample.name == "elasticfog_robot_rejected_frames_total":
+                rejected[sample.labels["code"]] = sample.value
+    return dropped, rejected
 
 
 def reference(model: SplitModel, image: ImageIn) -> dict[str, np.ndarray]:
@@ -156,7 +169,7 @@ def test_the_robot_takes_the_newest_frame_and_counts_every_dropped_one(
     """A burst faster than the robot serves (each frame stretched by --robot-slowdown): every
     frame sent is served or counted as dropped; results come in stamp order."""
     cfg = fleet_config(zenoh_router.endpoint, model_file)
-    robot = RunningRobot(cfg, robot_slowdown=200.0)
+    robot = RunningRobot(cfg, robot_slowdown=200.0, metrics_port=0)
     try:
         with RobotClient(cfg, ROBOT, encoding=ImageEncoding.BGR8) as client:
             assert client.wait_for_robot(WAIT_S)
@@ -176,6 +189,8 @@ def test_the_robot_takes_the_newest_frame_and_counts_every_dropped_one(
     assert summary["dropped_stale"] > 0
     assert summary["frames"] + summary["dropped_stale"] == BURST
     assert summary["rejected_frames"] == {}
+    # The metrics count what the summary counts.
+    assert source_counts(robot.daemon) == (summary["dropped_stale"], {})
 
 
 def test_a_frame_that_cannot_be_decoded_is_counted_and_the_robot_keeps_serving(
@@ -206,6 +221,7 @@ def test_a_frame_that_cannot_be_decoded_is_counted_and_the_robot_keeps_serving(
         "corrupt_payload": 1,
         "bad_value": 1,
     }
+    assert source_counts(robot.daemon) == (0, robot.daemon.summary.rejected_frames)
 
 
 def test_a_pipelined_frames_result_comes_without_waiting_for_the_next_frame(

@@ -20,6 +20,8 @@ from common.wire.telemetry import FallbackReason, TelemetryRecord
 from registry.metrics import RegistryMetrics
 from registry.scheduler import Reason
 from robotd.metrics import NO_DEPLOYMENT, RobotMetrics
+from robotd.sources import FrameSource
+from robotd.stereo_frame import CameraFrame
 
 ROBOT = "robot-1"
 
@@ -122,3 +124,34 @@ def test_every_refusal_and_error_code_has_an_outcome() -> None:
     assert error_outcome(ErrorCode.NOT_SERVING) is Outcome.NOT_SERVING
     assert error_outcome(ErrorCode.INTERNAL) is Outcome.ERROR
     assert error_outcome(None) is Outcome.ERROR
+
+
+class CountingSource(FrameSource):
+    """A source fed by others, reduced to the counts it keeps (dropped and refused frames)."""
+
+    def __init__(self) -> None:
+        self.rejected: dict[str, int] = {}
+
+    def read(self) -> CameraFrame:
+        raise AssertionError("the metrics never read a frame")
+
+    def rejected_frames(self) -> dict[str, int]:
+        return dict(self.rejected)
+
+
+def test_a_robots_source_counts_are_read_from_the_source_at_scrape_time() -> None:
+    """dropped_stale and rejected_frames are the source's counters, the ones the run summary
+    takes at the end: 0 before the source is open, then whatever it holds at each scrape."""
+    registry = new_registry()
+    held: dict[str, FrameSource | None] = {"source": None}
+    RobotMetrics(registry, ROBOT, lambda: (None, 0), source=lambda: held["source"])
+    dropped = "elasticfog_robot_dropped_stale_frames_total"
+    rejected = "elasticfog_robot_rejected_frames_total"
+    assert registry.get_sample_value(dropped, {"robot": ROBOT}) == 0
+    source = CountingSource()
+    held["source"] = source
+    source.dropped_stale = 7
+    source.rejected = {"too_large": 2, "bad_value": 1}
+    assert value(registry, dropped, robot=ROBOT) == 7
+    assert value(registry, rejected, robot=ROBOT, code="too_large") == 2
+    assert value(registry, rejected, robot=ROBOT, code="bad_value") == 1
