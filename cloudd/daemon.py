@@ -82,6 +82,7 @@ from common.daemon import Daemon
 from common.membership import MembershipView
 from common.partition import TensorSpec
 from common.partition.runtime import SplitModel
+from common.providers import ProviderCheck
 from common.wire.registry import (
     CAP_CTL,
     CAP_FAULT_INJECTION,
@@ -169,6 +170,9 @@ class CloudDaemon(Daemon):
         )
         self._costs = BatchCosts()
         self.batch_stats = BatchStats()
+        self.providers: ProviderCheck | None = None
+        """The providers the suffix sessions got (after startup; `fell_back` with
+        `providers_fallback: allow` when they did not get an accelerator asked for)."""
 
         # Made in startup (None before), released by the lifecycle.
         self._model: SplitModel | None = None
@@ -220,6 +224,8 @@ class CloudDaemon(Daemon):
             epochs={robot: st.wire_epoch for robot, st in snapshot.items()},
             served=served,
             refused=self.refusals.snapshot(),
+            providers=self.providers.got if self.providers is not None else (),
+            providers_fallback=self.providers is not None and self.providers.fell_back,
         )
 
     def control(self, request: CtlRequest) -> CtlReply:
@@ -298,16 +304,17 @@ class CloudDaemon(Daemon):
         log.info("%s: loading %s", self.deployment, self.cfg.model)
         model = open_split_model(self.cfg, self.machine)
         self._model = self.hold(model, "model sessions")
-        cut_specs = warm_suffixes(
+        warm = warm_suffixes(
             model,
             self.machine,
             deployment=self.deployment,
             model_name=self.cfg.model,
             stop=self.should_exit,
         )
-        if cut_specs is None:
+        if warm is None:
             return
-        self._cut_specs = cut_specs
+        self._cut_specs = cut_specs = warm.cut_specs
+        self.providers = warm.providers
         oversized = self.limits.oversized_tensors(cut_specs)
         if oversized:
             log.warning(
@@ -318,12 +325,13 @@ class CloudDaemon(Daemon):
                 self.limits.tensor_bytes,
             )
         log.info(
-            "%s: model %s (%s) loaded: %d cuts, %.1f MB of weights, in %.1f s",
+            "%s: model %s (%s) loaded: %d cuts, %.1f MB of weights, on %s, in %.1f s",
             self.deployment,
             model.partition.model,
             model.digest[:12],
             model.num_cuts,
             model.weight_bytes / 1e6,
+            ", ".join(warm.providers.got),
             time.monotonic() - started,
         )
 

@@ -29,6 +29,8 @@ from pydantic import (
     BeforeValidator,
     ConfigDict,
     Field,
+    PlainSerializer,
+    PlainValidator,
     PrivateAttr,
     ValidationError,
     ValidationInfo,
@@ -43,6 +45,13 @@ from common.defaults import (
 )
 from common.errors import UserError
 from common.keys import DEFAULT_FLEET, validate_id
+from common.providers import (
+    CPU_PROVIDER,
+    ProviderFallback,
+    ProviderSpec,
+    check_list,
+    parse_provider,
+)
 from common.wire.codec import DEFAULT_MAX_PAYLOAD_BYTES
 
 DEFAULT_REGISTRY_ENDPOINT = f"tcp/127.0.0.1:{DEFAULT_REGISTRY_PORT}"
@@ -88,6 +97,13 @@ def _check_endpoint(value: str) -> str:
 
 Id = Annotated[str, AfterValidator(_check_id)]
 Endpoint = Annotated[str, AfterValidator(_check_endpoint)]
+# A provider entry (`cuda`, `{tensorrt: {device_id: 0}}`, `CUDAExecutionProvider` ...), parsed
+# into a typed value as the file is read (`common.providers`).
+Provider = Annotated[
+    ProviderSpec,
+    PlainValidator(parse_provider, json_schema_input_type=str | dict[str, Any]),
+    PlainSerializer(lambda spec: spec.to_config()),
+]
 
 
 class _Model(BaseModel):
@@ -313,10 +329,20 @@ class MachineConfig(_Model):
         default=None,
         description="This machine's TLS files (cert and key; ca and mtls default to zenoh.tls).",
     )
-    providers: list[str] = Field(
-        default_factory=lambda: ["CPUExecutionProvider"],
+    providers: list[Provider] = Field(
+        default_factory=lambda: [ProviderSpec(CPU_PROVIDER)],
         min_length=1,
-        description="onnxruntime execution providers, in order of preference.",
+        description="onnxruntime execution providers, in order of preference: cpu, cuda, "
+        "tensorrt or an onnxruntime provider name, each alone or with its options "
+        "({cuda: {device_id: 0}}, {tensorrt: {device_id: 0, engine_cache: DIR, "
+        "timing_cache: DIR}}).",
+    )
+    providers_fallback: ProviderFallback = Field(
+        default=ProviderFallback.REFUSE,
+        strict=False,  # the file's 'allow' is the Enum's value
+        description="'refuse': a session that did not get an accelerator it asked for (CUDA, "
+        "TensorRT ...) stops the daemon at start, naming the missing provider or library; "
+        "'allow': it serves on what it got, with a warning and a flag in its probe reply.",
     )
     threads: int = Field(
         default=0,
@@ -366,6 +392,7 @@ class MachineConfig(_Model):
 
     @model_validator(mode="after")
     def _role_fields(self) -> MachineConfig:
+        check_list(self.providers)
         foreign = (_ROBOT_ONLY if self.role == "cloud" else _CLOUD_ONLY) & self.model_fields_set
         if foreign:
             other = "robot" if self.role == "cloud" else "cloud"
@@ -734,6 +761,7 @@ class FleetConfig(_Model):
             if tls is not None:
                 tls.ca, tls.cert, tls.key = resolve(tls.ca), resolve(tls.cert), resolve(tls.key)
         for machine in self.machines.values():
+            machine.providers = [p.with_paths(resolve) for p in machine.providers]
             if machine.source.startswith("video:"):
                 machine.source = f"video:{resolve(machine.source[len('video:') :])}"
 

@@ -50,6 +50,10 @@ _ORT_LOG_ERROR = 3
 # Where a model built from bytes finds its external weights (onnxruntime session config key).
 _EXTERNAL_FOLDER_KEY = "session.model_external_initializers_file_folder_path"
 
+ProviderArg = str | tuple[str, dict[str, str]]
+"""A provider as ``onnxruntime.InferenceSession(providers=...)`` takes it (name, or name and
+options; `common.providers.ort_providers`)."""
+
 BATCH_DIM = "batch"
 """The name given to axis 0 of a batched suffix's inputs and outputs."""
 BATCH_CHECK_ITEMS = 2
@@ -160,7 +164,7 @@ class SplitModel:
     def __init__(
         self,
         partition: Partition,
-        providers: Sequence[str] = ("CPUExecutionProvider",),
+        providers: Sequence[ProviderArg] = ("CPUExecutionProvider",),
         threads: int | None = None,
         *,
         optimization: Optimization = "extended",
@@ -371,6 +375,22 @@ class SplitModel:
             self._suffix_session(k), self._stack(items), f"batched suffix of cut {k}", run_options
         )
         return self._split(outputs, rows, len(items))
+
+    def suffix_providers(self, k: int) -> list[str]:
+        """The providers cut ``k``'s suffix session really got (``get_providers()``; onnxruntime
+        falls back to the CPU without raising, `common.providers.check_session`)."""
+        return list(self._suffix_session(k).get_providers())
+
+    def session_providers(self) -> dict[str, list[str]]:
+        """Every session built so far -> the providers it got, named as in errors."""
+        with self._lock:
+            named: list[tuple[str, ort.InferenceSession]] = []
+            if self._full is not None:
+                named.append(("the full model", self._full))
+            named += [(f"prefix of cut {k}", s) for k, s in sorted(self._prefix.items())]
+            named += [(f"suffix of cut {k}", s) for k, s in sorted(self._suffix.items())]
+            named += [(f"segment {a}-{b}", s) for (a, b), s in sorted(self._segment.items())]
+        return {what: list(session.get_providers()) for what, session in named}
 
     @staticmethod
     def _stack(items: Sequence[Mapping[str, np.ndarray]]) -> dict[str, np.ndarray]:

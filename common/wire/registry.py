@@ -222,7 +222,10 @@ class ProbeReply(Message):
     """A deployment's profile: identity, protocol, what it serves, its state per robot, its load
     (requests queued or running) against its capacity (workers + queue slots), and the echo.
     `epochs` is the epoch it holds per robot, `served` the frames it computed per robot,
-    `refused` the requests it refused since it started, by reason (`cloudd.refusals`)."""
+    `refused` the requests it refused since it started, by reason (`cloudd.refusals`).
+    `providers` are the onnxruntime providers its suffix sessions run on; `providers_fallback`
+    is set when they did not get an accelerator the machine asked for and it serves anyway
+    (`providers_fallback: allow`)."""
 
     TYPE: ClassVar[str] = "probe_reply"
     deployment: str
@@ -239,6 +242,8 @@ class ProbeReply(Message):
     epochs: dict[str, int] = field(default_factory=dict)
     served: dict[str, int] = field(default_factory=dict)
     refused: dict[str, int] = field(default_factory=dict)
+    providers: tuple[str, ...] = ()
+    providers_fallback: bool = False
 
     def __post_init__(self) -> None:
         self._check_ids("deployment", "service")
