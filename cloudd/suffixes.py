@@ -47,13 +47,18 @@ class WarmSuffixes:
 
 def open_split_model(cfg: FleetConfig, machine: MachineConfig) -> SplitModel:
     """The fleet's model split at its cuts (from the partition cache; split on first use), with
-    the machine's providers and threads; sessions are built later (`warm_suffixes`)."""
+    the machine's providers and threads, and `gpu_serving`'s IO binding and buckets; sessions
+    are built later (`warm_suffixes`)."""
     prepare(machine.providers)
+    gpu = machine.gpu_serving_on
+    batching = machine.batching
     return SplitModel(
         fleet_partition(cfg),
         providers=ort_providers(machine.providers),
         threads=machine.threads or None,
         lazy=True,
+        io_binding=gpu,
+        buckets=batching.bucket_sizes if gpu and batching.enabled else None,
     )
 
 
@@ -70,6 +75,7 @@ def warm_suffixes(
     cut_specs = [model.cut_tensor_specs(k) for k in range(model.num_cuts)]
     unbatched: dict[int, str] = {}
     check: ProviderCheck | None = None
+    warm_sizes = machine.batching.bucket_sizes if machine.gpu_serving_on else ()
     for k, specs in enumerate(cut_specs):
         if stop.is_set():
             return None
@@ -80,6 +86,8 @@ def warm_suffixes(
         zeros = {s.name: np.zeros(s.shape, dtype=s.dtype) for s in specs}
         try:
             model.run_suffix(k, zeros)
+            if warm_sizes and model.batched(k):
+                model.warm_batches(k, warm_sizes)
         except Exception as exc:
             raise UserError(
                 f"{model_name}: cannot run the suffix of cut {k} with providers "
@@ -105,6 +113,12 @@ def warm_suffixes(
             ) from None
     if machine.batching.enabled:
         _log_batching(deployment, machine, model.num_cuts, unbatched)
+    if machine.gpu_serving_on:
+        log.info(
+            "%s: gpu serving: IO binding; batched runs padded to %s and warmed at each",
+            deployment,
+            ", ".join(map(str, warm_sizes)) if machine.batching.enabled else "-",
+        )
     assert check is not None  # a split has at least one cut
     return WarmSuffixes(cut_specs, check)
 

@@ -67,6 +67,16 @@ MAX_REQUEST_BYTES_LIMIT = 16 * 1024 * 1024
 LatencyStat = Literal["median", "mean", "p95", "max", "stddev"]
 LATENCY_STATS: tuple[str, ...] = typing.get_args(LatencyStat)
 Role = Literal["cloud", "robot"]
+
+
+def _yaml_toggle(value: Any) -> Any:
+    # YAML 1.1 reads a bare on/off as true/false: take them as the words that were written.
+    if isinstance(value, bool):
+        return "on" if value else "off"
+    return value
+
+
+Toggle = Annotated[Literal["auto", "on", "off"], BeforeValidator(_yaml_toggle)]
 InitialState = Literal["robot", "service", "standby"]
 
 # Zenoh endpoints: <protocol>/<address>[?metadata][#config]; IP protocols need host:port.
@@ -259,11 +269,39 @@ class BatchingConfig(_Model):
         "others (1.5x the mean, lately) at the lowest CPU priority (Linux SCHED_IDLE), so "
         "lighter robots' runs take the CPUs first; the heavy robot still gets every idle CPU.",
     )
+    buckets: list[Annotated[int, Field(ge=1, le=MAX_BATCH_SIZE)]] | None = Field(
+        default=None,
+        min_length=1,
+        description="With gpu_serving: the batch sizes a run is padded up to (the results of "
+        "the padding are dropped), so a suffix only ever sees these shapes; the largest must "
+        "be at least the largest preferred size. Null: 1, 2, 4, ... up to the largest "
+        "preferred size, and the preferred sizes.",
+    )
 
     @model_validator(mode="after")
     def _sorted_sizes(self) -> BatchingConfig:
         self.preferred_batch_sizes = sorted(set(self.preferred_batch_sizes))
+        if self.buckets is not None:
+            self.buckets = sorted(set(self.buckets))
+            if self.buckets[-1] < self.preferred_batch_sizes[-1]:
+                raise ValueError(
+                    f"buckets: the largest bucket ({self.buckets[-1]}) is below the largest "
+                    f"preferred batch size ({self.preferred_batch_sizes[-1]})"
+                )
         return self
+
+    @property
+    def bucket_sizes(self) -> tuple[int, ...]:
+        """The sizes a batched run is padded up to (`buckets`, or its default), up to the
+        first one that holds the largest batch."""
+        if self.buckets is not None:
+            sizes = set(self.buckets)
+        else:
+            sizes = {2**i for i in range(self.max_batch.bit_length()) if 2**i <= self.max_batch}
+            sizes |= set(self.preferred_batch_sizes)
+        ordered = sorted(sizes | {1})
+        top = next(b for b in ordered if b >= self.max_batch)
+        return tuple(b for b in ordered if b <= top)
 
     @property
     def max_batch(self) -> int:
@@ -303,7 +341,7 @@ class CloudLimitsConfig(_Model):
 
 
 # Fields that only mean something for one role: setting them on the other is an error.
-_CLOUD_ONLY = frozenset({"workers", "queue", "fault", "batching", "limits"})
+_CLOUD_ONLY = frozenset({"workers", "queue", "fault", "batching", "limits", "gpu_serving"})
 _ROBOT_ONLY = frozenset({"source", "fps", "uplink_mbit", "max_in_flight"})
 _SOURCE = re.compile(r"^(synthetic(:.*)?|photo([:,].*)?|video:.+|camera:\d+|stereo:.+)$")
 
@@ -343,6 +381,12 @@ class MachineConfig(_Model):
         description="'refuse': a session that did not get an accelerator it asked for (CUDA, "
         "TensorRT ...) stops the daemon at start, naming the missing provider or library; "
         "'allow': it serves on what it got, with a warning and a flag in its probe reply.",
+    )
+    gpu_serving: Toggle = Field(
+        default="auto",
+        description="Cloud: IO binding of the suffix sessions' inputs and outputs, every "
+        "batch size the batcher can form warmed up at start, and batched runs padded to "
+        "batching.buckets; 'auto': on when the first provider is cuda or tensorrt.",
     )
     threads: int = Field(
         default=0,
@@ -389,6 +433,13 @@ class MachineConfig(_Model):
         description="Robot: offloaded frames in flight at once (pipelining); 1: each frame's "
         "result is awaited before the next frame starts.",
     )
+
+    @property
+    def gpu_serving_on(self) -> bool:
+        """`gpu_serving`, resolved: 'auto' is on when the first provider runs on a GPU."""
+        if self.gpu_serving == "auto":
+            return self.providers[0].gpu
+        return self.gpu_serving == "on"
 
     @model_validator(mode="after")
     def _role_fields(self) -> MachineConfig:

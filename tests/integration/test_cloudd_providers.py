@@ -2,7 +2,8 @@
 where CUDAExecutionProvider does not exist): asking for CUDA stops `elasticfog cloud` at start
 with one line naming the missing provider, never serving from the CPU unnoticed; with
 `providers_fallback: allow` it serves on the CPU and its probe reply says so; the robot daemon
-checks its sessions the same way."""
+checks its sessions the same way. With `gpu_serving: on` and batching, every bucket is warmed at
+start and results are the model's."""
 
 from __future__ import annotations
 
@@ -112,6 +113,33 @@ def test_a_cpu_deployment_reports_its_providers_without_a_fallback(
     reply = probe(connect(open_peer, daemon, wait_for_token), daemon)
     assert reply.providers == ("CPUExecutionProvider",)
     assert reply.providers_fallback is False
+
+
+def test_gpu_serving_warms_every_bucket_and_serves_the_models_results(
+    start_cloud,  # noqa: F811
+    open_peer,
+    wait_for_token,
+    reference: SplitModel,  # noqa: F811
+) -> None:
+    daemon = start_cloud(
+        gpu_serving="on",
+        batching={"enabled": True, "preferred_batch_sizes": [4], "buckets": [2, 4]},
+    )
+    model = daemon.model
+    assert model.io_binding and model.buckets == (1, 2, 4)
+    batched = [k for k in range(model.num_cuts) if model.batched(k)]
+    assert batched, "the tiny model takes a batch at some cut"
+    assert model.warmed == {k: (1, 2, 4) for k in batched}
+    session = connect(open_peer, daemon, wait_for_token)
+    serve(session, daemon, reference)
+    feeds = sample_feeds(reference.input_specs(), seed=9)
+    full = reference.run_full(feeds)
+    for cut in range(reference.num_cuts):
+        request = infer_request(reference, cut, frame=200 + cut, feeds=feeds)
+        answer = ask_one(session, svc_key(daemon), request.to_wire())
+        assert isinstance(answer, InferReply), answer
+        for name, value in full.items():
+            np.testing.assert_allclose(answer.outputs[name], value, atol=RESULT_ATOL)
 
 
 def test_the_robot_refuses_a_cuda_fallback_too_unless_allowed(tiny_path: Path) -> None:  # noqa: F811

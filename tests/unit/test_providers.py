@@ -6,11 +6,13 @@ onnxruntime of this host (a CPU build: CUDAExecutionProvider is not in it)."""
 from __future__ import annotations
 
 import logging
+from pathlib import Path
 
 import onnxruntime as ort
 import pytest
 from onnx import TensorProto, helper
 
+from common.config import BatchingConfig, load_fleet
 from common.errors import UserError
 from common.providers import (
     CPU_PROVIDER,
@@ -26,6 +28,7 @@ from common.providers import (
     parse_provider,
 )
 
+CASES = Path(__file__).resolve().parents[1] / "config_cases"
 CUDA = "CUDAExecutionProvider"
 TRT = "TensorrtExecutionProvider"
 cpu_only = pytest.mark.skipif(
@@ -157,3 +160,39 @@ def test_refuse_is_one_named_line_and_allow_is_a_warning(
     assert check.fell_back and check.got == (CPU_PROVIDER,)
     assert [r.levelno for r in caplog.records] == [logging.WARNING]
     assert "serving on CPUExecutionProvider (providers_fallback: allow)" in caplog.text
+
+
+def test_the_fleet_file_form_of_a_gpu_deployment() -> None:
+    config = load_fleet(CASES / "valid-gpu-providers.yaml")
+    gpu1, gpu2, edge = (config.machine(m) for m in ("gpu-1", "gpu-2", "edge-1"))
+    assert [p.label for p in gpu1.providers] == ["tensorrt", "cuda", "cpu"]
+    # Cache folders are relative to the fleet file, like every path in it.
+    assert gpu1.providers[0].engine_cache == str(CASES / "trt" / "engines")
+    assert gpu1.providers_fallback is ProviderFallback.REFUSE
+    assert gpu2.providers_fallback is ProviderFallback.ALLOW
+    # gpu_serving 'auto' follows the first provider; YAML's bare `off` is the word 'off'.
+    assert gpu1.gpu_serving_on and edge.gpu_serving_on and not gpu2.gpu_serving_on
+    assert not config.machine("robot-1").gpu_serving_on
+    assert gpu1.batching.bucket_sizes == (1, 4, 8, 16)
+    assert [p.ort_name for p in edge.providers] == [CUDA, CPU_PROVIDER]
+
+
+@pytest.mark.parametrize(
+    ("sizes", "buckets"),
+    [
+        ([8], (1, 2, 4, 8)),
+        ([16], (1, 2, 4, 8, 16)),
+        ([6], (1, 2, 4, 6)),
+        ([3, 12], (1, 2, 3, 4, 8, 12)),
+    ],
+)
+def test_default_buckets_are_powers_of_two_and_the_preferred_sizes(
+    sizes: list[int], buckets: tuple[int, ...]
+) -> None:
+    batching = BatchingConfig(enabled=True, preferred_batch_sizes=sizes)
+    assert batching.bucket_sizes == buckets
+    assert BatchingConfig(enabled=False).bucket_sizes == (1,)
+    # Buckets past the one that holds the largest batch are never formed.
+    assert BatchingConfig(
+        enabled=True, preferred_batch_sizes=[5], buckets=[8, 16, 32]
+    ).bucket_sizes == (1, 8)
