@@ -70,9 +70,9 @@ CPU_PROVIDER = ORT_NAME[ProviderName.CPU]
 GPU_PROVIDERS = frozenset({ORT_NAME[ProviderName.CUDA], ORT_NAME[ProviderName.TENSORRT]})
 """Providers that run on an NVIDIA GPU (IO binding then binds to the `cuda` device)."""
 
-# onnxruntime's own provider names (`onnxruntime.get_all_providers()`, onnxruntime 1.32): a
-# machine's `providers` took these before the short names existed, and still does. A unit test
-# checks that every name onnxruntime knows is here.
+# onnxruntime's own provider names (`onnxruntime.get_all_providers()` of onnxruntime 1.32 and
+# onnxruntime-gpu 1.31): a machine's `providers` took these before the short names existed, and
+# still does. A unit test checks that every name onnxruntime knows is here.
 ORT_PROVIDER_NAMES: tuple[str, ...] = (
     "TensorrtExecutionProvider",
     "CUDAExecutionProvider",
@@ -88,6 +88,7 @@ ORT_PROVIDER_NAMES: tuple[str, ...] = (
     "CoreMLExecutionProvider",
     "ArmNNExecutionProvider",
     "ACLExecutionProvider",
+    "NvTensorRTRTXExecutionProvider",
     "DmlExecutionProvider",
     "RknpuExecutionProvider",
     "WebNNExecutionProvider",
@@ -408,3 +409,15 @@ def enforce(
         log.warning("%s; serving on %s (providers_fallback: allow)", line, ", ".join(check.got))
         return check
     return first or ProviderCheck(tuple(s.ort_name for s in specs), ())
+
+
+def cuda_ready(device_id: int = 0) -> bool:
+    """Whether a CUDA session could get its GPU here: onnxruntime-gpu, its CUDA libraries and
+    a driver that sees GPU `device_id` (what the GPU-only tests ask before they run)."""
+    import onnxruntime as ort
+
+    cuda = ORT_NAME[ProviderName.CUDA]
+    if cuda not in ort.get_available_providers() or not sys.platform.startswith("linux"):
+        return False
+    prepare([ProviderSpec(cuda)])
+    return _library_problem(cuda) is None and _driver_problem(device_id) is None

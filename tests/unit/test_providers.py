@@ -22,10 +22,12 @@ from common.providers import (
     ProviderSpec,
     check_list,
     check_session,
+    cuda_ready,
     enforce,
     missing_reason,
     ort_providers,
     parse_provider,
+    prepare,
 )
 
 CASES = Path(__file__).resolve().parents[1] / "config_cases"
@@ -113,7 +115,8 @@ def _session(providers: list[object]) -> ort.InferenceSession:
         [helper.make_tensor_value_info("x", TensorProto.FLOAT, [1, 2])],
         [helper.make_tensor_value_info("y", TensorProto.FLOAT, [1, 2])],
     )
-    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    # IR 8: what every onnxruntime of the locks reads (a newer onnx writes a newer IR by default).
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)], ir_version=8)
     options = ort.SessionOptions()
     options.log_severity_level = 3  # onnxruntime's own fallback warning is what is tested here
     return ort.InferenceSession(model.SerializeToString(), options, providers=providers)
@@ -196,3 +199,42 @@ def test_default_buckets_are_powers_of_two_and_the_preferred_sizes(
     assert BatchingConfig(
         enabled=True, preferred_batch_sizes=[5], buckets=[8, 16, 32]
     ).bucket_sizes == (1, 8)
+
+
+gpu_only = pytest.mark.skipif(
+    not cuda_ready(), reason="needs onnxruntime-gpu, its CUDA libraries and a GPU"
+)
+gpu_build_without_gpu = pytest.mark.skipif(
+    CUDA not in ort.get_available_providers() or cuda_ready(),
+    reason="needs onnxruntime-gpu on a host where CUDA cannot run",
+)
+
+
+@gpu_build_without_gpu
+@pytest.mark.filterwarnings(ORT_FALLBACK_WARNING)
+def test_a_gpu_build_without_cuda_libraries_or_gpu_names_what_is_missing() -> None:
+    # `pip install elasticfog[gpu]` on a CPU host: CUDAExecutionProvider is in the build, its
+    # library does not load (the loader names the first CUDA library missing) or the driver
+    # sees no GPU; onnxruntime still falls back to the CPU without raising.
+    specs = [parse_provider("cuda"), parse_provider("cpu")]
+    prepare(specs)
+    check = check_session(_session(ort_providers(specs)), specs)
+    assert check.fell_back and check.got == (CPU_PROVIDER,)
+    ((_, reason),) = check.missing
+    assert reason.startswith(f"{CUDA}: ")
+    assert (
+        "libonnxruntime_providers_cuda.so does not load: lib" in reason
+        or "NVIDIA driver" in reason
+        or "GPU(s) visible" in reason
+    ), reason
+
+
+@gpu_only
+def test_on_a_gpu_machine_a_cuda_session_gets_cuda() -> None:
+    # Runs where onnxruntime-gpu is installed (benchmarks/gpu_device_run.sh runs this file);
+    # on a GPU build without a usable GPU it fails with the reason the check names.
+    specs = [parse_provider("cuda"), parse_provider("cpu")]
+    prepare(specs)
+    check = check_session(_session(ort_providers(specs)), specs)
+    assert not check.fell_back, check.message()
+    assert check.got[0] == CUDA

@@ -12,10 +12,13 @@ import pytest
 
 from common.partition import Partition, sample_feeds, split_model
 from common.partition.runtime import SplitModel
+from common.providers import cuda_ready, ort_providers, parse_provider, prepare
 from tests.unit.test_partition import matmul_chain, save
 from tests.unit.test_split_runtime_batch import items_for
 
 BUCKETS = (1, 2, 4, 8)
+GPU_RTOL = 1e-3
+"""A GPU's kernels sum in another order (and may use TF32): close to the CPU's, not equal."""
 
 
 @pytest.fixture
@@ -97,3 +100,20 @@ def test_session_providers_report_what_each_session_got(split: Partition) -> Non
     model.run_suffix(0, model.run_prefix(0, sample_feeds(model.input_specs())))
     assert model.suffix_providers(0) == ["CPUExecutionProvider"]
     assert model.session_providers() == {"suffix of cut 0": ["CPUExecutionProvider"]}
+
+
+@pytest.mark.skipif(not cuda_ready(), reason="needs onnxruntime-gpu, its CUDA libraries and a GPU")
+def test_on_a_gpu_io_binding_and_buckets_give_the_cpus_results(split: Partition) -> None:
+    # Runs where onnxruntime-gpu is installed (benchmarks/gpu_device_run.sh runs this file).
+    specs = [parse_provider("cuda"), parse_provider("cpu")]
+    prepare(specs)
+    cpu = open_model(split)
+    gpu = open_model(split, providers=ort_providers(specs), io_binding=True, buckets=BUCKETS)
+    for k in range(cpu.num_cuts):
+        items = items_for(cpu, k, 3)
+        assert gpu.enable_batching(k) is None
+        assert gpu.suffix_providers(k)[0] == "CUDAExecutionProvider"
+        gpu.warm_batches(k, BUCKETS)
+        for mine, theirs in zip(gpu.run_suffix_batch(k, items), items, strict=True):
+            want = cpu.run_suffix(k, theirs)["y"]
+            np.testing.assert_allclose(mine["y"], want, rtol=GPU_RTOL, atol=GPU_RTOL)
