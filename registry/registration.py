@@ -185,12 +185,20 @@ class Registrar:
             self._table[deployment] = Registration(RegistrationState.ACCEPTED)
             self._seen.add(deployment)
         log.info(
-            "deployment %s registered (service %s, model %s, capacity %d)",
+            "deployment %s registered (service %s, model %s, capacity %d, on %s)",
             deployment,
             reply.service,
             reply.model_digest[:12],
             reply.capacity,
+            ", ".join(reply.providers) or "unknown providers",
         )
+        if reply.providers_fallback:
+            # Accepted all the same: its machine allows it (`providers_fallback: allow`).
+            log.warning(
+                "deployment %s serves on %s, without an accelerator its machine asks for",
+                deployment,
+                ", ".join(reply.providers),
+            )
         return True
 
     def refresh(self, deployment: str, reply: msg.ProbeReply) -> bool:

@@ -186,3 +186,20 @@ def test_a_robot_with_a_deployment_gets_its_current_route(rib: Rib) -> None:
     assert reply.route is not None
     assert (reply.route.deployment, reply.route.reason) == ("edge-1", "current")
     assert registrar.reply_to(robot_request("robot-2")).route is None, "never routed"
+
+
+def test_a_deployment_on_fewer_providers_than_asked_is_accepted_with_a_warning(
+    rib: Rib, caplog: pytest.LogCaptureFixture
+) -> None:
+    # Its machine allows it (`providers_fallback: allow`); the registry says so, once.
+    registrar = Registrar("f", rib, SERVICE, DIGEST)
+    registrar.token_came("gpu-1")
+    fell_back = reply("gpu-1", providers=("CPUExecutionProvider",), providers_fallback=True)
+    with caplog.at_level("INFO", logger="registry.registration"):
+        assert registrar.admit("gpu-1", fell_back, "")
+    assert "capacity 4, on CPUExecutionProvider)" in caplog.text
+    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert warnings == [
+        "deployment gpu-1 serves on CPUExecutionProvider, without an accelerator its machine "
+        "asks for"
+    ]
