@@ -556,10 +556,9 @@ def main(argv: list[str] | None = None) -> int:
         except Exception as exc:  # one model failing is a result too; the others still run
             result["models"].append({"model": spec, "error": " ".join(str(exc).split())[:500]})
             log(f"  FAILED: {exc}")
-    text = json.dumps(rounded(result), indent=2)
-    if args.out is not None:
-        args.out.write_text(text + "\n", encoding="utf-8")
-    print(text)
+        if args.out is not None:  # after each model: a run cut short keeps what it measured
+            args.out.write_text(json.dumps(rounded(result), indent=2) + "\n", encoding="utf-8")
+    print(json.dumps(rounded(result), indent=2))
     return 0 if all("error" not in m for m in result["models"]) else 1
 
 
