@@ -204,7 +204,7 @@ def suffix_rows(
                     "io_binding": io_binding,
                     "batch": n,
                     "ms_per_frame_median": 1000 * statistics.median(times[n]),
-                    "ms_per_frame_p95": 1000 * percentile(times[n], 95),
+                    "ms_per_frame_p95": ms(percentile(times[n], 95)),
                     "rounds": rounds,
                     **({"unbatched": reason} if reason is not None else {}),
                 }
@@ -213,8 +213,13 @@ def suffix_rows(
     return rows
 
 
-def percentile(values: list[float], q: float) -> float:
-    return float(np.percentile(np.asarray(values), q)) if values else float("nan")
+def percentile(values: list[float], q: float) -> float | None:
+    """None for no values (a cell where no frame finished in time): JSON has no NaN."""
+    return float(np.percentile(np.asarray(values), q)) if values else None
+
+
+def ms(seconds: float | None) -> float | None:
+    return None if seconds is None else 1000 * seconds
 
 
 # -- serving -------------------------------------------------------------------------------------
@@ -315,8 +320,8 @@ def serve(
     return {
         "frames": len(lat),
         "fps": len(lat) / duration_s,
-        "p50_ms": 1000 * percentile(lat, 50),
-        "p95_ms": 1000 * percentile(lat, 95),
+        "p50_ms": ms(percentile(lat, 50)),
+        "p95_ms": ms(percentile(lat, 95)),
         "mean_batch": statistics.fmean(cell.batches) if cell.batches else 0.0,
         "largest_batch": max(cell.batches, default=0),
         "busy": cell.busy,
@@ -467,7 +472,11 @@ def summary(suffix: list[dict[str, Any]], serving: list[dict[str, Any]]) -> dict
                 "fps_gain": best["fps"] / base["fps"] if base["fps"] else None,
                 "p95_ms_batch1": base["p95_ms"],
                 "p95_ms_batcher": best["p95_ms"],
-                "p95_no_worse": best["p95_ms"] <= base["p95_ms"],
+                "p95_no_worse": (
+                    None
+                    if best["p95_ms"] is None or base["p95_ms"] is None
+                    else best["p95_ms"] <= base["p95_ms"]
+                ),
             }
         )
     return out
@@ -557,8 +566,10 @@ def main(argv: list[str] | None = None) -> int:
             result["models"].append({"model": spec, "error": " ".join(str(exc).split())[:500]})
             log(f"  FAILED: {exc}")
         if args.out is not None:  # after each model: a run cut short keeps what it measured
-            args.out.write_text(json.dumps(rounded(result), indent=2) + "\n", encoding="utf-8")
-    print(json.dumps(rounded(result), indent=2))
+            args.out.write_text(
+                json.dumps(rounded(result), indent=2, allow_nan=False) + "\n", encoding="utf-8"
+            )
+    print(json.dumps(rounded(result), indent=2, allow_nan=False))
     return 0 if all("error" not in m for m in result["models"]) else 1
 
 
