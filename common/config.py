@@ -68,6 +68,8 @@ LatencyStat = Literal["median", "mean", "p95", "max", "stddev"]
 LATENCY_STATS: tuple[str, ...] = typing.get_args(LatencyStat)
 Role = Literal["cloud", "robot"]
 
+InitialState = Literal["robot", "service", "standby"]
+
 
 def _yaml_toggle(value: Any) -> Any:
     # YAML 1.1 reads a bare on/off as true/false: take them as the words that were written.
@@ -77,7 +79,6 @@ def _yaml_toggle(value: Any) -> Any:
 
 
 Toggle = Annotated[Literal["auto", "on", "off"], BeforeValidator(_yaml_toggle)]
-InitialState = Literal["robot", "service", "standby"]
 
 # Zenoh endpoints: <protocol>/<address>[?metadata][#config]; IP protocols need host:port.
 _IP_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
