@@ -234,7 +234,8 @@ class RobotDaemon(Daemon):
     # -- lifecycle -------------------------------------------------------------------------
     def startup(self) -> None:
         cfg = self.config
-        self.model = self.hold(open_split_model(cfg, self.machine), "model sessions")
+        model = open_split_model(cfg, self.machine, who=self.robot)
+        self.model = self.hold(model, "model sessions")
         self._robot_model = robot_model = RobotModel(self.model, cfg.model)
         warm_up(self.model, robot_model.sample_feeds)
         self._local = local = LocalRunner(f"local-run-{self.robot}")
