@@ -26,8 +26,28 @@ FORBIDDEN_ID_CHARS = "/*$#?"
 # The read-only views of the routing information base, each a queryable of the registry.
 RIB_VIEWS = ("deployments", "robots", "routes", "events", "profiles")
 
+
+class Role(str, enum.Enum):
+    """The roles of a fleet's members: the chunk after `alive/` of their liveliness tokens, a
+    machine's `role` in the fleet file (cloud, robot) and a `RegisterRequest`'s (cloud, robot).
+    The one spelling of them; a member formats as its value (`f"alive/{role}"`), as a
+    `StrEnum`'s would (which Python 3.10 lacks)."""
+
+    REGISTRY = "registry"
+    CLOUD = "cloud"
+    ROBOT = "robot"
+
+    def __str__(self) -> str:
+        return self.value
+
+    def __format__(self, spec: str) -> str:
+        return format(self.value, spec)
+
+
 # Liveliness roles: the chunk after `alive/`.
-ROLES = ("registry", "cloud", "robot")
+ROLES = tuple(role.value for role in Role)
+# The roles a machine of the fleet file has, and a daemon registers with (the registry is not one).
+MACHINE_ROLES = (Role.CLOUD, Role.ROBOT)
 
 _BAD_ID = re.compile(r"[/*$#?\s\x00-\x1f\x7f]")
 
@@ -212,11 +232,6 @@ def dep_probe_all(fleet: str) -> str:
     return _join(prefix(fleet), "dep", "*", "probe")
 
 
-def dep_ctl_all(fleet: str) -> str:
-    """`ef/<fleet>/dep/*/ctl`: every deployment's control key (only the registry queries them)."""
-    return _join(prefix(fleet), "dep", "*", "ctl")
-
-
 # -- tele: what robots publish ---------------------------------------------------------------------
 def tele(fleet: str, robot: str) -> str:
     """`ef/<fleet>/tele/<robot>`: one telemetry record per frame."""
@@ -249,6 +264,27 @@ def route_all(fleet: str) -> str:
     return _join(prefix(fleet), "route", "*")
 
 
+# -- out/in: results to applications, frames from them ---------------------------------------------
+def results_out(fleet: str, robot: str) -> str:
+    """`ef/<fleet>/out/<robot>`: each applied frame's result, published by the robot."""
+    return _join(prefix(fleet), "out", validate_id(robot, "robot id"))
+
+
+def results_out_all(fleet: str) -> str:
+    """`ef/<fleet>/out/*`: the results of every robot."""
+    return _join(prefix(fleet), "out", "*")
+
+
+def frames_in(fleet: str, robot: str) -> str:
+    """`ef/<fleet>/in/<robot>`: frames an application sends the robot (its `zenoh` source)."""
+    return _join(prefix(fleet), "in", validate_id(robot, "robot id"))
+
+
+def frames_in_all(fleet: str) -> str:
+    """`ef/<fleet>/in/*`: the frames sent to every robot."""
+    return _join(prefix(fleet), "in", "*")
+
+
 # -- parsing ---------------------------------------------------------------------------------------
 class KeyKind(str, enum.Enum):
     """What a concrete key is, as returned by parse_key."""
@@ -265,6 +301,8 @@ class KeyKind(str, enum.Enum):
     TELE = "tele"
     TELE_PROBE = "tele_probe"
     ROUTE = "route"
+    RESULTS_OUT = "results_out"
+    FRAMES_IN = "frames_in"
 
 
 @dataclass(frozen=True)
@@ -321,4 +359,8 @@ def parse_key(key: str) -> KeyParts | None:
             return KeyParts(fleet, KeyKind.TELE_PROBE, id=robot)
         case "route", [robot]:
             return KeyParts(fleet, KeyKind.ROUTE, id=robot)
+        case "out", [robot]:
+            return KeyParts(fleet, KeyKind.RESULTS_OUT, id=robot)
+        case "in", [robot]:
+            return KeyParts(fleet, KeyKind.FRAMES_IN, id=robot)
     return None

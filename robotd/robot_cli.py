@@ -18,16 +18,20 @@ from pathlib import Path
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 
 from common.errors import UserError
 from common.logs import DEFAULT_LOG_LEVEL, LOG_LEVEL_ENV, LOG_LEVEL_HELP, logging_to_stderr
 
 
 def register(app: typer.Typer) -> None:
-    """Add `robot` to the root app."""
+    """Add `robot` (and `results`, which follows a robot's results) to the root app."""
+    from robotd import results_cli
+
     app.command("robot", help="Run a robot: split each frame between the robot and the cloud.")(
         robot_command
     )
+    results_cli.register(app)
 
 
 def robot_command(
@@ -37,14 +41,20 @@ def robot_command(
         None,
         "--source",
         help="synthetic[:key=F,every=N], photo[:NAME][,motion=M] (real photographs through a "
-        "moving camera), video:PATH, camera:N, or a stereo pair for a two-image model: "
-        "stereo:world, stereo:motorcycle, stereo:LEFT,RIGHT; default: the machine's.",
+        "moving camera), video:PATH[,loop=false], bag:PATH[:TOPIC] (a rosbag2 recording), "
+        "camera:N, a stereo pair for a two-image model: stereo:world, stereo:motorcycle, "
+        "stereo:LEFT,RIGHT, zenoh (frames an application publishes on ef/<fleet>/in/<robot>) "
+        "or a ROS 2 image topic ros2:TOPIC[,type=image|compressed][,domain=ID]; default: the "
+        "machine's.",
     ),
     frames: int | None = typer.Option(
         None, "--frames", help="Stop after this many frames (default: run until Ctrl-C)."
     ),
     fps: float | None = typer.Option(
-        None, "--fps", help="Frames per second; default: the machine's (none: as fast as done)."
+        None,
+        "--fps",
+        help="Frames per second; default: a video's or a bag's own pace, else the machine's "
+        "(none: as fast as done).",
     ),
     policy: str | None = typer.Option(
         None,
@@ -80,6 +90,22 @@ def robot_command(
         metavar="N",
         help="Offloaded frames in flight at once (pipelining); default: the machine's (1).",
     ),
+    results_ros2: str | None = typer.Option(
+        None,
+        "--results-ros2",
+        metavar="PREFIX",
+        help="Publish each frame's outputs on ROS 2 topics PREFIX/<output> (Float32MultiArray; "
+        "H×W outputs also as a 32FC1 Image on PREFIX/<output>/image); default: the machine's "
+        "results.ros2.",
+    ),
+    record: Path | None = typer.Option(
+        None,
+        "--record",
+        metavar="OUT.mcap",
+        help="Record each applied frame's input (CompressedImage) and outputs (Float32MultiArray, "
+        "32FC1 Image) to this MCAP file (any other name: a rosbag2 folder), for ros2 bag play, "
+        "Foxglove and MCAP readers.",
+    ),
     seed: int = typer.Option(0, "--seed", help="Seed of the synthetic and photo frame sources."),
     json_out: bool = typer.Option(False, "--json", help="Print the summary as JSON on stdout."),
     log_level: str = typer.Option(
@@ -90,12 +116,20 @@ def robot_command(
     # Heavy imports (pydantic, zenoh, onnxruntime, cv2) where the command runs: `elasticfog --help`
     # must stay fast.
     from common.config import load_fleet
-    from robotd.daemon import RobotDaemon, RobotOptions
-    from robotd.emulation import check_slowdown, load_phases
+    from robotd.policies import check_policy
+    from robotd.source_names import parse_source
 
     try:
         with logging_to_stderr(log_level):
+            # The names first, then the fleet file, before the daemon's imports (zenoh,
+            # onnxruntime): a typo fails in well under two seconds.
+            parsed_source = None if source is None else parse_source(source)
+            if policy is not None:
+                check_policy(policy, real_time=True)
             cfg = load_fleet(config)
+            from robotd.daemon import RobotDaemon, RobotOptions
+            from robotd.emulation import check_slowdown, load_phases
+
             check_slowdown(robot_slowdown)
             loaded = (
                 ()
@@ -103,7 +137,7 @@ def robot_command(
                 else tuple(load_phases(phases, uplink_mbit=uplink_mbit, slowdown=robot_slowdown))
             )
             options = RobotOptions(
-                source=source,
+                source=parsed_source,
                 frames=frames,
                 fps=fps,
                 policy=policy,
@@ -113,11 +147,17 @@ def robot_command(
                 robot_slowdown=robot_slowdown,
                 phases=loaded,
                 max_in_flight=max_in_flight,
+                results_ros2=results_ros2,
+                record=record,
             )
             daemon = RobotDaemon(cfg, robot_id, options)
             code = daemon.run()
     except UserError as exc:
-        Console(stderr=True).print(f"[red]error:[/red] {exc}", highlight=False, soft_wrap=True)
+        # The message as written: a spec like `bag:run:front` holds what Rich would take for an
+        # emoji code (`:run:`) or markup (`[...]`).
+        Console(stderr=True).print(
+            f"[red]error:[/red] {escape(str(exc))}", highlight=False, soft_wrap=True, emoji=False
+        )
         raise typer.Exit(exc.exit_code) from None
     if json_out:
         typer.echo(json.dumps(daemon.summary.to_json()))

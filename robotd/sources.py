@@ -15,15 +15,26 @@ A source yields uint8 BGR frames (H×W×3, OpenCV's layout) one at a time, or st
   JPEG size, varies like a camera's; with NAME the camera stays on that photograph. `motion`
   picks which movements are made (default `mixed`: all three) and `speed=F` scales their pace
   (default 1; 0 is a still camera). The same seed gives the same frames.
-- `video:PATH`: a video file read with OpenCV, looped at its end (a file stands in for a camera,
-  so `--frames N` is honoured whatever the file's length).
+- `video:PATH[,loop=false]`: a video file read with OpenCV, played at the file's own frame rate
+  (its timeline, `next_offset_s`, unless `--fps` is given) and looped at its end (a file stands
+  in for a camera, so `--frames N` is honoured whatever the file's length); with `loop=false` the
+  run ends at the end of the file.
+- `bag:PATH[:TOPIC]`: a rosbag2 recording's image topic, at its recorded rate
+  (`robotd.bag_source`).
 - `camera:N`: the camera with index N through OpenCV.
+- `zenoh`: frames an application publishes on `ef/<fleet>/in/<robot>` (`robotd.zenoh_source`),
+  the newest first (older waiting frames are dropped and counted), fitted to the model's size
+  like the photographs (`fit_frame`).
 - `stereo:...`: a stereo pair a frame (`robotd.stereo_sources`: a rendered world, the Motorcycle
   pair, two image files, a scripted maneuver); its frames are `robotd.stereo_frame.StereoFrame`s
   of named views.
 
-A source that cannot be opened is a `UserError` naming it. A source may end (`EndOfStream`) and
-may take each served frame's result (`on_result`, after the daemon's own).
+The specs' grammar is `robotd.source_names` (parsed once into a typed value); `robotd.source_open`
+opens a parsed spec. A source that cannot be opened is a `SourceError` (a `UserError`) naming it.
+A source may end (`EndOfStream`) and may take each served frame's result (`on_result`, after the
+daemon's own). A source fed over Zenoh (`zenoh`, `ros2:`: `SourceSpec.needs_session`) is opened
+with the daemon's session (`SourceSession`), once that is open; opened without one it is a
+`SourceError`.
 `common.image_input.InputAdapter` turns a frame into the model's input; the photographs
 themselves are `common.photos`.
 """
@@ -32,21 +43,23 @@ from __future__ import annotations
 
 import abc
 import contextlib
-import enum
 import math
+import threading
+from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 
-from common.errors import UserError
-from common.image_input import ImageInputs
 from common.photos import PHOTOS, photo_bgr
-from robotd.source_names import CAMERA_PREFIX, PHOTO, STEREO_PREFIX, SYNTHETIC, VIDEO_PREFIX
+from robotd.source_names import PHOTO, SYNTHETIC, CameraMotion, SourceError, motion_names
 from robotd.stereo_frame import CameraFrame
 
 if TYPE_CHECKING:
+    import zenoh
+
+    from common.config import FleetConfig
     from robotd.frame import FrameResult
 
 DEFAULT_KEY_FRACTION = 0.25
@@ -76,15 +89,29 @@ PHOTO_SHAKE_ROT_PERIOD_FRAMES = 7.1
 PHOTO_PERIOD_JITTER = 0.2
 MAX_PHOTO_SPEED = 20.0
 MAX_SOURCE_SIDE_PX = 8192
-
-
-class SourceError(UserError):
-    """A frame source that cannot be opened or read."""
+# `fit_frame` shrinks with area interpolation from this ratio on, linearly below it.
+AREA_SHRINK = 2.0
+# A video container claiming more frames per second than this has no real frame rate (some give
+# their clock's tick rate, e.g. 90000).
+MAX_VIDEO_FPS = 1000.0
 
 
 class EndOfStream(Exception):
     """Raised by `read()` of a source that has no more frames: the robot's frame loop ends as
     it does after `--frames` (frames in flight finish, the daemon stops cleanly)."""
+
+
+@dataclass(frozen=True)
+class SourceSession:
+    """What a source fed over Zenoh needs from the robot daemon: its open session (whose
+    lifetime covers the source's: the source is released first), the fleet's config and the
+    robot's id (the keys it listens on are the robot's)."""
+
+    session: zenoh.Session
+    config: FleetConfig
+    robot: str
+    # The daemon's stop flag: a source waiting for frames ends (EndOfStream) once it is set.
+    stop: threading.Event | None = None
 
 
 class FrameSource(abc.ABC):
@@ -98,10 +125,31 @@ class FrameSource(abc.ABC):
     """The capture stamp (ns since the epoch) of the frame `read()` returned last, where the
     source knows it (a camera message's header, a bag record); None: the robot stamps the frame
     with its own clock when it reads it."""
+    dropped_stale: int = 0
+    """Frames the source dropped, unread, because a newer one arrived first (a source fed by
+    others at their own rate, e.g. `zenoh`: the robot works on the newest frame); counted in
+    each frame's telemetry and the run summary."""
 
     @abc.abstractmethod
     def read(self) -> CameraFrame:
         """The next frame; SourceError when none can be read."""
+
+    def wait_ready(self, timeout_s: float) -> bool:
+        """Whether `read()` has a frame without waiting, after waiting up to `timeout_s` for
+        one (a source fed by others at their pace); True for sources that make their frames."""
+        return True
+
+    def next_offset_s(self) -> float | None:
+        """Seconds from the source's first frame to the one `read()` returns next, on the
+        source's own timeline (a video's frame times, a bag's record times), or None: the source
+        has no timeline (or no next frame) and the robot paces it at the configured fps. The
+        robot plays a source with a timeline at that pace unless `--fps` is given."""
+        return None
+
+    def rejected_frames(self) -> dict[str, int]:
+        """Frames received but not decodable, by error code (a source fed by others, a
+        recording's damaged records)."""
+        return {}
 
     def on_result(self, result: FrameResult) -> None:  # noqa: B027 - most sources ignore it
         """Frame `result.frame` (the n-th frame read, from 0) was served and applied: a source
@@ -172,15 +220,6 @@ class SyntheticSource(FrameSource):
         )
         grey = np.clip(level + noise, 0, 255).astype(np.uint8)
         return np.repeat(grey, 3, axis=2)
-
-
-class CameraMotion(str, enum.Enum):
-    """Which movements the virtual camera of the `photo` source makes."""
-
-    PAN = "pan"
-    ZOOM = "zoom"
-    SHAKE = "shake"
-    MIXED = "mixed"
 
 
 class PhotoSource(FrameSource):
@@ -361,6 +400,25 @@ class CameraPath:
         )
 
 
+def fit_frame(image: np.ndarray, height: int, width: int) -> np.ndarray:
+    """`image` at `height`×`width` as the photo source frames a photograph: the largest centred
+    rectangle of the frame's aspect is kept (nothing is stretched), then scaled with area
+    interpolation when it shrinks by `AREA_SHRINK` or more (what anti-aliasing needs), linear
+    otherwise (as the photo source's warp: a JPEG decoded at a reduced DCT scale is within 2x
+    of the model's size, and area interpolation at a ratio such as 240 -> 224 costs ten times
+    a linear one). An image of that size is returned as it is."""
+    h, w = image.shape[:2]
+    if (h, w) == (height, width):
+        return image
+    rect_h, rect_w = fit_rect(h, w, height, width)
+    crop_h, crop_w = max(1, round(rect_h)), max(1, round(rect_w))
+    top, left = (h - crop_h) // 2, (w - crop_w) // 2
+    view = image[top : top + crop_h, left : left + crop_w]
+    shrink = min(crop_h / height, crop_w / width)
+    interpolation = cv2.INTER_AREA if shrink >= AREA_SHRINK else cv2.INTER_LINEAR
+    return cv2.resize(view, (width, height), interpolation=interpolation)
+
+
 def fit_rect(photo_h: int, photo_w: int, height: int, width: int) -> tuple[float, float]:
     """(h, w) of the largest rectangle of the frame's aspect that fits in the photograph."""
     aspect = width / height
@@ -369,17 +427,13 @@ def fit_rect(photo_h: int, photo_w: int, height: int, width: int) -> tuple[float
     return photo_w / aspect, float(photo_w)
 
 
-def motion_names() -> str:
-    return ", ".join(m.value for m in CameraMotion)
-
-
 class VideoSource(FrameSource):
-    """A video file through OpenCV, looped at its end."""
+    """A video file through OpenCV at the file's frame rate, looped at its end unless `loop` is
+    False (then the end of the file is the end of the stream)."""
 
     def __init__(self, path: str | Path, *, loop: bool = True) -> None:
         self.path = Path(path)
         self.loop = loop
-        self.description = f"video {self.path}"
         if not self.path.is_file():
             raise SourceError(f"video file not found: {self.path}")
         self._cap = cv2.VideoCapture(str(self.path))
@@ -392,6 +446,18 @@ class VideoSource(FrameSource):
             raise SourceError(f"video file {self.path} has no readable frame")
         self._pending: np.ndarray | None = first
         self.frames_read = 0
+        self._ended = False
+        rate = float(self._cap.get(cv2.CAP_PROP_FPS))
+        # Containers without a rate give 0 (or a clock's tick rate): such a file has no timeline.
+        self.file_fps = rate if 0 < rate <= MAX_VIDEO_FPS else None
+        shown = f"{self.file_fps:g} fps" if self.file_fps else "no frame rate"
+        self.description = f"video {self.path} ({shown}{', looped' if loop else ''})"
+
+    def next_offset_s(self) -> float | None:
+        if self.file_fps is None or self._ended:
+            return None
+        # Continues across loops: the file stands for a camera that keeps its pace.
+        return self.frames_read / self.file_fps
 
     def read(self) -> np.ndarray:
         if self._pending is not None:
@@ -401,6 +467,9 @@ class VideoSource(FrameSource):
             if (not ok or frame is None) and self.loop:
                 self._cap.set(cv2.CAP_PROP_POS_FRAMES, 0)
                 ok, frame = self._cap.read()
+            if (not ok or frame is None) and not self.loop:
+                self._ended = True
+                raise EndOfStream(f"video file {self.path}: end of the file")
             if not ok or frame is None:
                 raise SourceError(f"video file {self.path}: no more frames")
         self.frames_read += 1
@@ -431,105 +500,6 @@ class CameraSource(FrameSource):
 
     def close(self) -> None:
         self._cap.release()
-
-
-def parse_synthetic_options(spec: str) -> dict[str, Any]:
-    """The options of `synthetic:key=F,every=N` as keyword arguments of SyntheticSource."""
-    _, _, text = spec.partition(":")
-    options: dict[str, Any] = {}
-    if not text.strip():
-        return options
-    for item in text.split(","):
-        name, sep, value = (part.strip() for part in item.partition("="))
-        if not sep or not value:
-            raise SourceError(f"source {spec!r}: expected name=value options, got {item!r}")
-        try:
-            if name == "key":
-                options["key_fraction"] = float(value)
-            elif name == "every":
-                options["key_every"] = int(value)
-            else:
-                raise SourceError(f"source {spec!r}: unknown option {name!r}; known: key, every")
-        except ValueError:
-            raise SourceError(f"source {spec!r}: {name}={value!r} is not a number") from None
-    return options
-
-
-def parse_photo_options(spec: str) -> dict[str, Any]:
-    """The options of `photo[:NAME][,motion=M][,speed=F]` as keyword arguments of PhotoSource."""
-    text = spec.strip()[len(PHOTO) :]
-    options: dict[str, Any] = {}
-    if text[:1] in (":", ","):
-        text = text[1:]
-    if not text.strip():
-        return options
-    for position, item in enumerate(text.split(",")):
-        name, sep, value = (part.strip() for part in item.partition("="))
-        if not sep and position == 0 and name:
-            if name not in PHOTOS:
-                raise SourceError(
-                    f"source {spec!r}: unknown photo {name!r}; known: {', '.join(PHOTOS)}"
-                )
-            options["name"] = name
-            continue
-        if not sep or not value:
-            raise SourceError(f"source {spec!r}: expected name=value options, got {item!r}")
-        if name == "motion":
-            if value not in {m.value for m in CameraMotion}:
-                raise SourceError(
-                    f"source {spec!r}: motion={value!r} is not one of {motion_names()}"
-                )
-            options["motion"] = CameraMotion(value)
-        elif name == "speed":
-            try:
-                options["speed"] = float(value)
-            except ValueError:
-                raise SourceError(f"source {spec!r}: speed={value!r} is not a number") from None
-        else:
-            raise SourceError(f"source {spec!r}: unknown option {name!r}; known: motion, speed")
-    return options
-
-
-def open_source(spec: str, *, height: int, width: int, seed: int = 0) -> FrameSource:
-    """Open the source named by `spec` (synthetic[:OPTIONS], photo[:NAME][,OPTIONS], video:PATH,
-    camera:N or stereo:...); synthetic, photo and stereo frames are made `height`×`width` (the
-    model's input size)."""
-    spec = spec.strip()
-    if spec.startswith(STEREO_PREFIX):
-        # Imported here: it needs nav's world and renderer, which mono sources do not.
-        from robotd.stereo_sources import open_stereo_source
-
-        return open_stereo_source(spec, height=height, width=width, seed=seed)
-    if spec == SYNTHETIC or spec.startswith(SYNTHETIC + ":"):
-        return SyntheticSource(height, width, seed=seed, **parse_synthetic_options(spec))
-    if spec == PHOTO or spec.startswith((PHOTO + ":", PHOTO + ",")):
-        return PhotoSource(height, width, seed=seed, **parse_photo_options(spec))
-    if spec.startswith(VIDEO_PREFIX) and spec[len(VIDEO_PREFIX) :].strip():
-        return VideoSource(Path(spec[len(VIDEO_PREFIX) :].strip()).expanduser())
-    if spec.startswith(CAMERA_PREFIX):
-        text = spec[len(CAMERA_PREFIX) :].strip()
-        if not text.isdigit():
-            raise SourceError(f"source {spec!r}: camera needs an index, e.g. camera:0")
-        return CameraSource(int(text))
-    raise SourceError(
-        f"unknown frame source {spec!r}; expected synthetic[:key=F,every=N], "
-        "photo[:NAME][,motion=pan|zoom|shake|mixed][,speed=F], video:PATH, camera:INDEX, "
-        "stereo:world[,speed=F], stereo:motorcycle[,OPTIONS], stereo:LEFT,RIGHT[,OPTIONS] or "
-        "stereo:maneuver:N[:OPTIONS]"
-    )
-
-
-def open_source_for(spec: str, inputs: ImageInputs, *, seed: int = 0) -> FrameSource:
-    """`open_source` at the size of the model's image inputs; a one-line UserError (and the
-    source closed) when its frames do not feed them: a mono source on a model with several
-    image inputs, a stereo source on a one-input model, views not named like the inputs."""
-    source = open_source(spec, height=inputs.height, width=inputs.width, seed=seed)
-    try:
-        inputs.check_views(source.views, spec.strip())
-    except UserError:
-        source.close()
-        raise
-    return source
 
 
 def _as_bgr(frame: np.ndarray) -> np.ndarray:

@@ -31,6 +31,7 @@ from common.config import FleetConfig, TlsConfig, load_fleet
 from common.init_cli import write_fleet
 from common.session import open_session, zenoh_config
 from common.tls_preflight import probe_endpoint
+from deploy.readiness import wait_until
 from tests.integration.conftest import WAIT_TIMEOUT_S, find_free_port
 
 QUERY_TIMEOUT_S = 1.0
@@ -67,12 +68,7 @@ def _answer(calls: list[str], name: str) -> Callable[[zenoh.Query], None]:
 
 def _wait(predicate: Callable[[], Any], what: str, timeout_s: float = WAIT_TIMEOUT_S) -> Any:
     """Poll `predicate` (each call is itself bounded: a query with a timeout) until it holds."""
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        value = predicate()
-        if value:
-            return value
-    pytest.fail(f"timed out after {timeout_s:g} s waiting for {what}")
+    return wait_until(predicate, timeout_s=timeout_s, what=what)
 
 
 def _ok_replies(session: zenoh.Session, key: str, **kwargs: Any) -> list[bytes]:
@@ -244,6 +240,32 @@ def test_the_cli_certificate_reads_views_not_ctl(tls: TlsFleet) -> None:
         assert _ok_replies(cli, keys.dep_probe(tls.fleet, "edge-1")) == []
         assert _ok_replies(cli, keys.svc_infer(tls.fleet, tls.cfg.service, "robot-1")) == []
     assert tls.ctl_calls == []
+
+
+def test_the_cli_follows_a_robots_results_and_another_robot_cannot_forge_them(
+    tls: TlsFleet,
+) -> None:
+    """`elasticfog results` (the CLI's certificate) receives robot-1's results on out/robot-1;
+    robot-2 may not publish there."""
+    got: list[bytes] = []
+    own = threading.Event()
+
+    def on_sample(sample: zenoh.Sample) -> None:
+        got.append(sample.payload.to_bytes())
+        if got[-1] == b"robot-1's":
+            own.set()
+
+    with open_session(tls.cfg, identity="cli", mode="client", listen=[]) as cli:
+        cli.declare_subscriber(keys.results_out(tls.fleet, "robot-1"), on_sample)
+        _barrier_token(tls, tls.router)
+
+        def publish() -> bool:
+            tls.robot2.put(keys.results_out(tls.fleet, "robot-1"), b"forged")
+            tls.robot1.put(keys.results_out(tls.fleet, "robot-1"), b"robot-1's")
+            return own.wait(0.5)
+
+        _wait(publish, "robot-1's result at the CLI")
+    assert b"forged" not in got
 
 
 # -- who cannot connect at all ---------------------------------------------------------------------
