@@ -43,6 +43,7 @@ from typing import Any, cast
 
 from common import keys
 from common.config import FleetConfig, fleet_from_dict
+from common.keys import Role
 from common.membership import MemberChange
 from common.wire.registry import (
     CAP_CTL,
@@ -67,7 +68,7 @@ from registry.daemon import (
 )
 from registry.measurements import Measurements
 from registry.prober import Probed
-from registry.registration import Registrar, Role, fleet_model_digest
+from registry.registration import Registrar, fleet_model_digest
 from registry.rib import Rib
 from registry.scheduler import Scheduler
 from registry.switch import Switcher

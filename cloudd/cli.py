@@ -77,9 +77,10 @@ def cloud(
         with logging_to_stderr(log_level):
             from cloudd.daemon import CloudDaemon
             from common.config import load_fleet
+            from common.keys import Role
 
             cfg = load_fleet(config)
-            machine = cfg.machine(deployment_id, role="cloud")
+            machine = cfg.machine(deployment_id, role=Role.CLOUD)
             fault = fault_from_flags(
                 machine.fault.delay_ms,
                 machine.fault.drop,

@@ -79,6 +79,7 @@ from cloudd.workers import BatchWorkers
 from common import keys
 from common.config import FleetConfig, MachineConfig
 from common.daemon import Daemon
+from common.keys import Role
 from common.membership import MembershipView
 from common.partition import TensorSpec
 from common.partition.runtime import SplitModel
@@ -131,7 +132,7 @@ class CloudDaemon(Daemon):
         super().__init__()
         self.cfg = cfg
         self.deployment = deployment
-        self.machine: MachineConfig = cfg.machine(deployment, role="cloud")
+        self.machine: MachineConfig = cfg.machine(deployment, role=Role.CLOUD)
         self.name = f"cloud {deployment}"
         if fault is None:
             fault = FaultSpec(**self.machine.fault.model_dump())

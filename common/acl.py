@@ -36,6 +36,7 @@ from typing import TYPE_CHECKING, Any
 
 from common import keys
 from common.config import CLI_IDENTITY
+from common.keys import Role
 
 if TYPE_CHECKING:
     from common.config import FleetConfig
@@ -127,7 +128,7 @@ def grants(cfg: FleetConfig) -> dict[str, list[Grant]]:
     """What each subject (certificate common name) may send, in file order."""
     out: dict[str, list[Grant]] = {cfg.registry.id: registry_grants(cfg)}
     for machine_id, machine in cfg.machines.items():
-        if machine.role == "cloud":
+        if machine.role is Role.CLOUD:
             out[machine_id] = cloud_grants(cfg, machine_id)
         else:
             out[machine_id] = robot_grants(cfg, machine_id)

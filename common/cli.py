@@ -8,7 +8,7 @@ exits the process; a `UserError` anywhere becomes one line on stderr and exit co
 from __future__ import annotations
 
 import sys
-from importlib.metadata import entry_points
+from importlib.metadata import PackageNotFoundError, entry_points, version
 
 import typer
 from rich.console import Console
@@ -19,7 +19,8 @@ ENTRY_POINT_GROUP = "elasticfog.commands"
 # typer coerces a parameter's value through a pydantic TypeAdapter unless it is already a bool.
 # The root's `--help` flag is unset (None) whenever a subcommand runs, so `elasticfog routes --help`
 # would import pydantic (~0.1 s) just for it; False from the default map is a bool, taken as is.
-ROOT_DEFAULTS = {"help": False}
+ROOT_DEFAULTS = {"help": False, "version": False}
+PACKAGE = "elasticfog"
 
 app = typer.Typer(
     name="elasticfog",
@@ -29,6 +30,34 @@ app = typer.Typer(
     pretty_exceptions_enable=False,
     context_settings={"default_map": ROOT_DEFAULTS},
 )
+
+
+def package_version() -> str:
+    """The installed package's version (pyproject.toml's, through the package metadata)."""
+    try:
+        return version(PACKAGE)
+    except PackageNotFoundError:  # run from a source tree that was never installed
+        return "unknown (not installed)"
+
+
+def _print_version(value: bool) -> None:
+    if value:
+        typer.echo(f"{PACKAGE} {package_version()}")
+        raise typer.Exit()
+
+
+@app.callback()
+def root(
+    show_version: bool = typer.Option(
+        False,
+        "--version",
+        "-V",
+        callback=_print_version,
+        is_eager=True,
+        help="Print the version and exit.",
+    ),
+) -> None:
+    """Elastic split computing for fog and cloud robotics over Zenoh."""
 
 
 def _register_commands() -> None:

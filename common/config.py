@@ -10,19 +10,18 @@ types are strict (`"10"` is not a number). `load_fleet` turns every problem into
 line naming the file and the field path, e.g.
 `fleet.yaml: latency_bound.stat: Input should be 'median', 'mean', 'p95', 'max' or 'stddev'`.
 Relative paths in the file (model, registry db, TLS files, video sources) are relative to the file.
+Reading the YAML and wording the errors is `common.yaml_files`.
 """
 
 from __future__ import annotations
 
-import difflib
+import enum
 import math
 import re
-import types
 import typing
 from pathlib import Path
-from typing import Annotated, Any, Literal, Union
+from typing import Annotated, Any, Literal
 
-import yaml
 from pydantic import (
     AfterValidator,
     BaseModel,
@@ -32,6 +31,7 @@ from pydantic import (
     PrivateAttr,
     ValidationError,
     ValidationInfo,
+    field_validator,
     model_validator,
 )
 
@@ -42,14 +42,15 @@ from common.defaults import (
     ZOO_PREFIX,
 )
 from common.errors import UserError
-from common.keys import DEFAULT_FLEET, validate_id
+from common.keys import DEFAULT_FLEET, MACHINE_ROLES, Role, validate_id
 from common.wire.codec import DEFAULT_MAX_PAYLOAD_BYTES
+from common.yaml_files import format_validation_error, read_yaml
+from robotd.source_names import SourceError, parse_source
 
 DEFAULT_REGISTRY_ENDPOINT = f"tcp/127.0.0.1:{DEFAULT_REGISTRY_PORT}"
 DEFAULT_LEASE_MS = 1000
 CLI_IDENTITY = "cli"
 """The views CLI's identity: the common name of its read-only certificate (`elasticfog certs`)."""
-MAX_ERRORS_SHOWN = 5
 MIN_REQUEST_BYTES = 1024
 """Below this a registration or a telemetry record (a few hundred bytes) would not fit."""
 MAX_REQUEST_BYTES_LIMIT = 16 * 1024 * 1024
@@ -57,7 +58,6 @@ MAX_REQUEST_BYTES_LIMIT = 16 * 1024 * 1024
 
 LatencyStat = Literal["median", "mean", "p95", "max", "stddev"]
 LATENCY_STATS: tuple[str, ...] = typing.get_args(LatencyStat)
-Role = Literal["cloud", "robot"]
 InitialState = Literal["robot", "service", "standby"]
 
 # Zenoh endpoints: <protocol>/<address>[?metadata][#config]; IP protocols need host:port.
@@ -118,11 +118,19 @@ class CutsConfig(_Model):
     )
 
 
+class DispatchMode(str, enum.Enum):
+    """How the deployments serving one robot share its frames (`dispatch.mode`)."""
+
+    ANYCAST = "anycast"
+    ROUND_ROBIN = "round_robin"
+
+
 class DispatchConfig(_Model):
     """How the deployments serving one robot share its frames."""
 
-    mode: Literal["anycast", "round_robin"] = Field(
-        default="anycast",
+    mode: DispatchMode = Field(
+        default=DispatchMode.ANYCAST,
+        strict=False,  # the YAML's string becomes the member
         description="anycast: one deployment serves each robot; round_robin: a pool of "
         "deployments serves it together, each frame computed by exactly one member, in turn "
         "(the robot needs max_in_flight > 1 for the members to overlap).",
@@ -142,13 +150,13 @@ class DispatchConfig(_Model):
 
     @model_validator(mode="after")
     def _pool_needs_round_robin(self) -> DispatchConfig:
-        if self.pool_size is not None and self.mode != "round_robin":
-            raise ValueError(f"pool_size: only for mode round_robin (mode is {self.mode})")
+        if self.pool_size is not None and self.mode is not DispatchMode.ROUND_ROBIN:
+            raise ValueError(f"pool_size: only for mode round_robin (mode is {self.mode.value})")
         return self
 
     def pool_limit(self) -> int:
         """How many deployments may serve one robot (1 in anycast; 0: no limit)."""
-        if self.mode == "anycast":
+        if self.mode is DispatchMode.ANYCAST:
             return 1
         return self.pool_size or 0
 
@@ -289,13 +297,20 @@ class CloudLimitsConfig(_Model):
 # Fields that only mean something for one role: setting them on the other is an error.
 _CLOUD_ONLY = frozenset({"workers", "queue", "fault", "batching", "limits"})
 _ROBOT_ONLY = frozenset({"source", "fps", "uplink_mbit", "max_in_flight"})
-_SOURCE = re.compile(r"^(synthetic(:.*)?|photo([:,].*)?|video:.+|camera:\d+|stereo:.+)$")
 
 
 class MachineConfig(_Model):
     """One machine of the fleet: a cloud deployment or a robot, with its overrides."""
 
     role: Role = Field(description="'cloud' (serves suffixes) or 'robot' (runs the frame loop).")
+
+    @field_validator("role", mode="before")
+    @classmethod
+    def _machine_role(cls, value: Any) -> Any:
+        if value not in MACHINE_ROLES:
+            raise ValueError(f"{value!r} is not a machine role; expected cloud or robot")
+        return Role(value)  # the model is strict: the YAML's string becomes the member here
+
     listen: list[Endpoint] = Field(
         default_factory=list,
         description="Zenoh endpoints this machine listens on; peers reach it there directly, so "
@@ -343,8 +358,9 @@ class MachineConfig(_Model):
     source: str = Field(
         default="synthetic",
         description=(
-            "Robot: frame source: synthetic[:OPTIONS], photo[:NAME], video:PATH, camera:INDEX "
-            "or stereo:world|motorcycle|LEFT,RIGHT[,OPTIONS]."
+            "Robot: frame source, a spec of robotd.source_names: synthetic[:OPTIONS], "
+            "photo[:NAME], video:PATH, camera:INDEX or stereo:world|motorcycle|LEFT,RIGHT"
+            "[,OPTIONS]."
         ),
     )
     fps: float | None = Field(
@@ -366,17 +382,15 @@ class MachineConfig(_Model):
 
     @model_validator(mode="after")
     def _role_fields(self) -> MachineConfig:
-        foreign = (_ROBOT_ONLY if self.role == "cloud" else _CLOUD_ONLY) & self.model_fields_set
+        foreign = (_ROBOT_ONLY if self.role is Role.CLOUD else _CLOUD_ONLY) & self.model_fields_set
         if foreign:
-            other = "robot" if self.role == "cloud" else "cloud"
-            raise ValueError(
-                f"{', '.join(sorted(foreign))}: only for {other} machines (role is {self.role!r})"
-            )
-        if not _SOURCE.match(self.source):
-            raise ValueError(
-                f"source: {self.source!r} is not a frame source; expected synthetic, "
-                "photo[:NAME], video:PATH, camera:INDEX or stereo:..."
-            )
+            other = Role.ROBOT if self.role is Role.CLOUD else Role.CLOUD
+            fields = ", ".join(sorted(foreign))
+            raise ValueError(f"{fields}: only for {other} machines (role is {self.role.value!r})")
+        try:
+            parse_source(self.source)
+        except SourceError as exc:
+            raise ValueError(f"source: {exc}") from None
         return self
 
 
@@ -421,11 +435,23 @@ class PolicyConfig(_Model):
     kind: str = Field(
         default="elastic",
         min_length=1,
-        description="Policy name: elastic, robot, cloud, static:<k>, neurosurgeon, ans...",
+        description="Policy name, a row of robotd.policies.POLICIES: elastic, ans, "
+        "neurosurgeon, robot, cloud[:CODEC], static:K[:CODEC], option:N[:CODEC].",
     )
     params: dict[str, Any] = Field(
-        default_factory=dict, description="Policy parameters, checked by the policy itself."
+        default_factory=dict, description="Policy parameters, checked by the policy's model."
     )
+
+    @model_validator(mode="after")
+    def _known_policy(self) -> PolicyConfig:
+        # Imported here: the policies (numpy) are not needed to read the rest of the file.
+        from robotd.policies import check_policy
+
+        try:
+            check_policy(self.kind, self.params, real_time=True)
+        except UserError as exc:
+            raise ValueError(str(exc)) from None
+        return self
 
 
 class ObjectiveConfig(_Model):
@@ -692,11 +718,11 @@ class FleetConfig(_Model):
                 raise ValueError(
                     f"initial_policy: unknown machine {machine_id!r}; known machines: {known}"
                 )
-            if machine.role == "robot" and entry != "robot":
+            if machine.role is Role.ROBOT and entry != "robot":
                 raise ValueError(
                     f"initial_policy.{machine_id}: a robot's state is 'robot', not {entry!r}"
                 )
-            if machine.role == "cloud" and entry == "robot":
+            if machine.role is Role.CLOUD and entry == "robot":
                 raise ValueError(
                     f"initial_policy.{machine_id}: a cloud is 'service' or 'standby', not 'robot'"
                 )
@@ -734,8 +760,7 @@ class FleetConfig(_Model):
             if tls is not None:
                 tls.ca, tls.cert, tls.key = resolve(tls.ca), resolve(tls.cert), resolve(tls.key)
         for machine in self.machines.values():
-            if machine.source.startswith("video:"):
-                machine.source = f"video:{resolve(machine.source[len('video:') :])}"
+            machine.source = str(parse_source(machine.source).resolved(lambda p: str(resolve(p))))
 
     # -- helpers -----------------------------------------------------------------------------------
     @property
@@ -746,12 +771,12 @@ class FleetConfig(_Model):
     @property
     def robot_ids(self) -> list[str]:
         """Robot machine ids, in file order."""
-        return [i for i, m in self.machines.items() if m.role == "robot"]
+        return [i for i, m in self.machines.items() if m.role is Role.ROBOT]
 
     @property
     def cloud_ids(self) -> list[str]:
         """Cloud machine (deployment) ids, in file order."""
-        return [i for i, m in self.machines.items() if m.role == "cloud"]
+        return [i for i, m in self.machines.items() if m.role is Role.CLOUD]
 
     def short_of_in_flight(self, in_flight: int) -> dict[str, int]:
         """The deployments that admit fewer of one robot's requests at once than a robot with
@@ -859,68 +884,10 @@ def _base_dir(info: ValidationInfo) -> Path:
     return Path(base) if base is not None else Path.cwd()
 
 
-# -- loading ---------------------------------------------------------------------------------------
-YAML_ESCAPES: tuple[type[Exception], ...] = (
-    ValueError,
-    LookupError,
-    AttributeError,
-    TypeError,
-    RecursionError,
-)
-"""What PyYAML's safe loading raises on bad text besides YAMLError (found by
-tests/unit/test_fuzz_config.py): ValueError for a 13th month or a 5000-digit integer, KeyError for
-`!!bool maybe`, AttributeError for `!!timestamp x`, RecursionError for thousands of nested
-brackets. Every YAML loader catches these too, so bad text is a UserError, not a traceback."""
-
-
-def yaml_escape_problem(exc: Exception) -> str:
-    """One of YAML_ESCAPES as one line."""
-    if isinstance(exc, RecursionError):
-        return "nested too deeply"
-    text = " ".join(str(exc).split())
-    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
-
-
-class _StrictLoader(yaml.SafeLoader):
-    """SafeLoader that refuses duplicate keys (PyYAML keeps the last one silently)."""
-
-
-def _no_duplicates(loader: _StrictLoader, node: yaml.MappingNode, deep: bool = False) -> Any:
-    seen: set[Any] = set()
-    for key_node, _ in node.value:
-        key = loader.construct_object(key_node, deep=deep)
-        try:
-            duplicate = key in seen
-        except TypeError:  # a list or map as a key: construct_mapping below names the problem
-            continue
-        if duplicate:
-            mark = key_node.start_mark
-            raise yaml.constructor.ConstructorError(None, None, f"duplicate key {key!r}", mark)
-        seen.add(key)
-    return loader.construct_mapping(node, deep=deep)
-
-
-_StrictLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _no_duplicates)
-
-
 def load_fleet(path: str | Path) -> FleetConfig:
     """Read and check a fleet.yaml; UserError (one line, file and field) on any problem."""
     path = Path(path)
-    name = str(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise UserError(f"{name}: no such file (create one with `elasticfog init DIR`)") from None
-    except IsADirectoryError:
-        raise UserError(f"{name}: is a directory, expected a fleet.yaml file") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise UserError(f"{name}: cannot read: {exc}") from None
-    try:
-        data = yaml.load(text, Loader=_StrictLoader)  # a SafeLoader subclass
-    except yaml.YAMLError as exc:
-        raise UserError(f"{name}: invalid YAML: {_yaml_problem(exc)}") from None
-    except YAML_ESCAPES as exc:
-        raise UserError(f"{name}: invalid YAML: {yaml_escape_problem(exc)}") from None
+    data = read_yaml(path, missing="no such file (create one with `elasticfog init DIR`)")
     return fleet_from_dict(data, source=path)
 
 
@@ -936,90 +903,6 @@ def fleet_from_dict(data: Any, *, source: str | Path | None = None) -> FleetConf
     try:
         config = FleetConfig.model_validate(data, context={"base_dir": base})
     except ValidationError as exc:
-        raise UserError(f"{name}: {format_validation_error(exc)}") from None
+        raise UserError(f"{name}: {format_validation_error(exc, FleetConfig)}") from None
     config._source = Path(source) if source is not None else None
     return config
-
-
-def _yaml_problem(exc: yaml.YAMLError) -> str:
-    mark = getattr(exc, "problem_mark", None)
-    problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
-    where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
-    return f"{where}{problem}"
-
-
-def format_validation_error(exc: ValidationError) -> str:
-    """Pydantic errors as one line: `field.path: problem; other.path: problem`."""
-    parts = []
-    errors = exc.errors(include_url=False)
-    for error in errors[:MAX_ERRORS_SHOWN]:
-        loc = tuple(error["loc"])
-        message = str(error["msg"]).removeprefix("Value error, ").removeprefix("Assertion failed, ")
-        if error["type"] == "extra_forbidden":
-            message = _unknown_key_message(loc)
-        elif error["type"] == "missing":
-            message = "required key is missing"
-        path = _format_loc(loc)
-        parts.append(f"{path}: {message}" if path else message)
-    if len(errors) > MAX_ERRORS_SHOWN:
-        parts.append(f"and {len(errors) - MAX_ERRORS_SHOWN} more")
-    return "; ".join(parts)
-
-
-def _format_loc(loc: tuple[Any, ...]) -> str:
-    out = ""
-    for part in loc:
-        if isinstance(part, int):
-            out += f"[{part}]"
-        elif part == "[key]":
-            out += " (key)"
-        else:
-            # A key with a newline or a control character is quoted: the error stays one line.
-            text = str(part) if str(part).isprintable() else repr(part)
-            out += f".{text}" if out else text
-    return out
-
-
-def _unknown_key_message(loc: tuple[Any, ...]) -> str:
-    known = _known_keys(loc[:-1])
-    if not known:
-        return "unknown key"
-    close = difflib.get_close_matches(str(loc[-1]), known, n=1, cutoff=0.6)
-    if close:
-        return f"unknown key; did you mean {close[0]!r}?"
-    return f"unknown key; known keys here: {', '.join(known)}"
-
-
-def _known_keys(loc: tuple[Any, ...]) -> list[str]:
-    """Field names of the model found at `loc` (walking FleetConfig's annotations)."""
-    current: Any = FleetConfig
-    index = 0
-    while index <= len(loc):
-        current = _unwrap(current)
-        if isinstance(current, type) and issubclass(current, BaseModel):
-            if index == len(loc):
-                return list(current.model_fields)
-            field = current.model_fields.get(loc[index]) if isinstance(loc[index], str) else None
-            if field is None:
-                return []
-            current, index = field.annotation, index + 1
-        elif typing.get_origin(current) in (dict, list) and index < len(loc):
-            current, index = typing.get_args(current)[-1], index + 1
-        else:
-            return []
-    return []
-
-
-def _unwrap(annotation: Any) -> Any:
-    """X | None -> X; Annotated[X, ...] -> X."""
-    while True:
-        origin = typing.get_origin(annotation)
-        if origin is Annotated:
-            annotation = typing.get_args(annotation)[0]
-        elif origin in (Union, types.UnionType):
-            members = [a for a in typing.get_args(annotation) if a is not type(None)]
-            if len(members) != 1:
-                return annotation
-            annotation = members[0]
-        else:
-            return annotation

@@ -26,8 +26,28 @@ FORBIDDEN_ID_CHARS = "/*$#?"
 # The read-only views of the routing information base, each a queryable of the registry.
 RIB_VIEWS = ("deployments", "robots", "routes", "events", "profiles")
 
+
+class Role(str, enum.Enum):
+    """The roles of a fleet's members: the chunk after `alive/` of their liveliness tokens, a
+    machine's `role` in the fleet file (cloud, robot) and a `RegisterRequest`'s (cloud, robot).
+    The one spelling of them; a member formats as its value (`f"alive/{role}"`), as a
+    `StrEnum`'s would (which Python 3.10 lacks)."""
+
+    REGISTRY = "registry"
+    CLOUD = "cloud"
+    ROBOT = "robot"
+
+    def __str__(self) -> str:
+        return self.value
+
+    def __format__(self, spec: str) -> str:
+        return format(self.value, spec)
+
+
 # Liveliness roles: the chunk after `alive/`.
-ROLES = ("registry", "cloud", "robot")
+ROLES = tuple(role.value for role in Role)
+# The roles a machine of the fleet file has, and a daemon registers with (the registry is not one).
+MACHINE_ROLES = (Role.CLOUD, Role.ROBOT)
 
 _BAD_ID = re.compile(r"[/*$#?\s\x00-\x1f\x7f]")
 

@@ -43,9 +43,9 @@ SEED_TIMEOUT_S = 1.0
 
 # The subscription of a view that follows one role only (no key is formatted here).
 _ROLE_KEYS: dict[str, Callable[[str], str]] = {
-    "registry": keys.alive_registries,
-    "cloud": keys.alive_clouds,
-    "robot": keys.alive_robots,
+    keys.Role.REGISTRY: keys.alive_registries,
+    keys.Role.CLOUD: keys.alive_clouds,
+    keys.Role.ROBOT: keys.alive_robots,
 }
 
 Members = Mapping[str, frozenset[str]]

@@ -315,7 +315,8 @@ def _parse_fidelity(text: str | None) -> Any:
     from pydantic import ValidationError
 
     from common.codec_profile import fidelity_of
-    from common.config import FidelityConfig, format_validation_error
+    from common.config import FidelityConfig
+    from common.yaml_files import format_validation_error
 
     values: dict[str, Any] = {}
     for item in (text or "").split(","):
@@ -332,7 +333,7 @@ def _parse_fidelity(text: str | None) -> Any:
     try:
         return fidelity_of(FidelityConfig.model_validate(values))
     except ValidationError as exc:
-        raise UserError(f"--fidelity: {format_validation_error(exc)}") from None
+        raise UserError(f"--fidelity: {format_validation_error(exc, FidelityConfig)}") from None
 
 
 def _measure_codecs(

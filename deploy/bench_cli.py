@@ -165,11 +165,11 @@ def _guard(fn: Callable[[], Any]) -> Any:
 
 
 def _policies(text: str) -> list[str]:
-    """`--policies`, checked against the known policies (oracle is simulator-only)."""
+    """`--policies`, checked against the policies the robot runs."""
     from deploy.experiments.options import parse_names
     from robotd.policies import policy_names
 
-    known = [n for n in policy_names() if n != "oracle"]
+    known = list(policy_names(real_time=True))
     return _guard(lambda: parse_names(text, "--policies", known))
 
 

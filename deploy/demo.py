@@ -146,12 +146,12 @@ class DemoOptions:
 
 def _check_policy(spec: str) -> None:
     """Refuse an unknown policy before starting anything (the robot would, seconds later)."""
-    from robotd.policies import REAL_TIME_POLICIES, fixed_action
+    from robotd.policies import check_policy
 
-    name = spec.strip().lower()
-    if name in REAL_TIME_POLICIES or fixed_action(name) is not None:
-        return
-    raise UserError(f"--policy {spec}: expected one of {', '.join(REAL_TIME_POLICIES)}")
+    try:
+        check_policy(spec, real_time=True)
+    except UserError as exc:
+        raise UserError(f"--policy {spec}: {exc}") from None
 
 
 @dataclass

@@ -68,6 +68,7 @@ from common import keys
 from common.config import FleetConfig
 from common.daemon import Daemon
 from common.file_safety import check_private_file
+from common.keys import Role
 from common.membership import MemberChange, MembershipView
 from common.session import open_session
 from common.wire import registry as msg
@@ -79,7 +80,7 @@ from registry.prober import Probed, Prober
 from registry.profile_saver import PacedSaver
 from registry.publications import PublicationReader
 from registry.refusals import Refusals
-from registry.registration import Registrar, RegistrationState, Role, fleet_model_digest
+from registry.registration import Registrar, RegistrationState, fleet_model_digest
 from registry.replies import answer, answer_error, error_payload
 from registry.requests import (
     QueuedRequest,

@@ -24,7 +24,7 @@ from collections import Counter
 from collections.abc import Callable, Iterable, Sequence
 from typing import TYPE_CHECKING
 
-from common.config import FleetConfig
+from common.config import DispatchMode, FleetConfig
 from registry.rib import DeploymentRow, Rib, RouteRow
 
 if TYPE_CHECKING:  # the switch protocol uses the planner; the keeper drives the switch
@@ -38,7 +38,7 @@ POOL_RETRY_S = 2.0
 
 def pool_planner(cfg: FleetConfig, rib: Rib) -> PoolPlanner | None:
     """The fleet's planner: None in an anycast fleet."""
-    if cfg.dispatch.mode != "round_robin":
+    if cfg.dispatch.mode is not DispatchMode.ROUND_ROBIN:
         return None
     return PoolPlanner(rib, cfg.service, cfg.dispatch.pool_limit())
 

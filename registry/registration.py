@@ -28,6 +28,7 @@ import zenoh
 from common import keys
 from common.config import FleetConfig
 from common.defaults import DEFAULT_MAX_REQUEST_BYTES
+from common.keys import Role
 from common.models import file_digest
 from common.wire import registry as msg
 from registry.replies import answer, decode_query
@@ -40,15 +41,6 @@ log = logging.getLogger(__name__)
 CURRENT_ROUTE_REASON = "current"
 # The scheduler's reasons, the only ones a reply repeats from the RIB's route events.
 ROUTE_REASONS = frozenset(r.value for r in Reason)
-
-
-class Role(str, Enum):
-    """The roles of a fleet's members, as their liveliness tokens name them (`alive/<role>/<id>`)
-    and as a `RegisterRequest` does (cloud, robot)."""
-
-    REGISTRY = "registry"
-    CLOUD = "cloud"
-    ROBOT = "robot"
 
 
 class RegistrationState(str, Enum):
@@ -284,7 +276,7 @@ class Registrar:
         if reply.deployment != deployment:
             return f"cloud {deployment!r} answers its probe as {reply.deployment!r}"
         request = msg.RegisterRequest(
-            role="cloud",
+            role=Role.CLOUD,
             id=deployment,
             protocol_version=reply.protocol_version,
             capabilities=reply.capabilities,

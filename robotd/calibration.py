@@ -29,7 +29,8 @@ from common.models import cache_dir, read_cached_json, write_cached_json
 from common.partition.runtime import SplitModel
 from robotd.policies import RAW_CODEC, fixed_action
 from robotd.policies.nav_options import nav_option
-from robotd.sources import open_source_for
+from robotd.source_names import CameraSpec, SourceSpec, parse_source
+from robotd.source_open import open_source_for
 from robotd.stereo_frame import StereoFrame
 
 log = logging.getLogger(__name__)
@@ -54,12 +55,13 @@ def required_codecs(
 
 
 def calibration_frames(
-    source: str, inputs: ImageInputs, count: int, seed: int
+    source: str | SourceSpec, inputs: ImageInputs, count: int, seed: int
 ) -> list[dict[str, np.ndarray]]:
     """`count` model feeds from a fresh instance of `source` (every CALIBRATION_STRIDE-th
     frame, except for a camera, whose frames are taken as they come); a stereo source's views
     feed the model's inputs of their names."""
-    stride = 1 if source.startswith("camera:") else CALIBRATION_STRIDE
+    source = parse_source(source)
+    stride = 1 if isinstance(source, CameraSpec) else CALIBRATION_STRIDE
     frames = []
     with open_source_for(source, inputs, seed=seed) as src:
         for i in range(count * stride):

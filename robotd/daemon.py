@@ -65,6 +65,7 @@ from common import keys
 from common.config import FleetConfig
 from common.daemon import Daemon
 from common.errors import UserError
+from common.keys import Role
 from common.membership import MemberChange, MembershipView
 from common.partition.runtime import SplitModel
 from common.session import open_session
@@ -92,6 +93,7 @@ from robotd.request_sender import RequestSender
 from robotd.robot_model import RobotModel, open_split_model
 from robotd.robot_profile import build_policy, robot_profile, warm_up
 from robotd.service_match import ServiceMatch
+from robotd.source_names import SourceSpec, parse_source
 from robotd.sources import EndOfStream, FrameSource
 from robotd.stereo_frame import CameraFrame, first_view
 from robotd.telemetry import SERVED_BY_CLOUD, RemoteTimes, RunSummary, TelemetryFile
@@ -115,7 +117,7 @@ Offload = tuple[Frame, int, dict[str, np.ndarray]]
 class RobotOptions:
     """Run options of the robot daemon; None takes the machine's value from fleet.yaml."""
 
-    source: str | None = None
+    source: str | SourceSpec | None = None
     frames: int | None = None
     fps: float | None = None
     policy: str | None = None
@@ -169,13 +171,13 @@ class RobotDaemon(Daemon):
     ) -> None:
         super().__init__()
         self.config = config
-        self.machine = config.machine(robot_id, role="robot")
+        self.machine = config.machine(robot_id, role=Role.ROBOT)
         self.robot = robot_id
         self.options = options or RobotOptions()
         self.options.check()
         self.fleet = config.fleet
         self.deadline_s = config.deadline_s
-        self.source_spec = self.options.source or self.machine.source
+        self.source_spec = parse_source(self.options.source or self.machine.source)
         self.fps = self.options.fps if self.options.fps is not None else self.machine.fps
         uplink = self.options.uplink_mbit
         self.uplink_mbit = uplink if uplink is not None else self.machine.uplink_mbit

@@ -43,8 +43,8 @@ from typing import TYPE_CHECKING, Any, TypeVar
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from common.config import YAML_ESCAPES, yaml_escape_problem
 from common.errors import UserError
+from common.yaml_files import YAML_ESCAPES, yaml_escape_problem
 from robotd.pacing import BITS_PER_BYTE, BITS_PER_MBIT, TokenBucket
 from robotd.policies.base import one_line_validation_error
 

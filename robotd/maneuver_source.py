@@ -45,13 +45,12 @@ from nav.render import StereoRenderer
 from nav.shared_control import DEFAULT_DEADLINE_S
 from nav.stereo_graph import Stage
 from robotd.frame import FrameResult
-from robotd.sources import EndOfStream, FrameSource, SourceError
+from robotd.source_names import SourceError, StereoManeuverSpec
+from robotd.sources import EndOfStream, FrameSource
 from robotd.stereo_frame import LEFT_VIEW, RIGHT_VIEW, STEREO_VIEWS, StereoFrame
 
 log = logging.getLogger(__name__)
 
-MANEUVER_FORM = "stereo:maneuver:N[:lap=L][:assist=on|off][:t_dead=S][:out=PATH]"
-MANEUVER_OPTIONS = ("lap", "assist", "out", "t_dead")
 DCOLL_OUTPUT = Stage.DCOLL.value
 """zoo:stereo's output; its bins are the pipeline's defaults (`nav.curvature.CurvatureBins`)."""
 
@@ -161,48 +160,16 @@ class StereoManeuverSource(FrameSource):
 
 
 def open_maneuver_source(
-    spec: str, rest: str, *, height: int, width: int, seed: int = 0
+    spec: StereoManeuverSpec, *, height: int, width: int, seed: int = 0
 ) -> StereoManeuverSource:
-    """The source of `spec` (`stereo:maneuver:...`); `rest` is what follows `maneuver`."""
-    items = rest.split(":")
-    if items[0] != "" or len(items) < 2 or not items[1].strip().isdigit():
-        raise SourceError(f"source {spec!r}: expected {MANEUVER_FORM}")
-    options: dict[str, str] = {}
-    for item in items[2:]:
-        name, sep, value = (part.strip() for part in item.partition("="))
-        if not sep or not value:
-            raise SourceError(f"source {spec!r}: expected name=value options, got {item!r}")
-        if name not in MANEUVER_OPTIONS:
-            known = ", ".join(MANEUVER_OPTIONS)
-            raise SourceError(f"source {spec!r}: unknown option {name!r}; known: {known}")
-        options[name] = value
-    lap_text = options.get("lap", "0")
-    if not lap_text.isdigit():
-        raise SourceError(f"source {spec!r}: lap={lap_text!r} is not a lap number (0, 1, ...)")
-    assist = options.get("assist", "on")
-    if assist not in ("on", "off"):
-        raise SourceError(f"source {spec!r}: assist={assist!r}; expected on or off")
-    out = options.get("out")
+    """The source of a parsed `stereo:maneuver:...` spec."""
     return StereoManeuverSource(
         height,
         width,
-        maneuver=int(items[1]),
-        lap=int(lap_text),
-        assist=assist == "on",
-        out=None if out is None else Path(out).expanduser(),
+        maneuver=spec.maneuver,
+        lap=spec.lap,
+        assist=spec.assist,
+        out=spec.out,
         seed=seed,
-        deadline_s=_t_dead(spec, options.get("t_dead")),
+        deadline_s=DEFAULT_DEADLINE_S if spec.t_dead_s is None else spec.t_dead_s,
     )
-
-
-def _t_dead(spec: str, text: str | None) -> float:
-    """`t_dead=S`: a positive, finite number of seconds; absent: the assistant's default."""
-    if text is None:
-        return DEFAULT_DEADLINE_S
-    try:
-        value = float(text)
-    except ValueError:
-        value = math.nan
-    if not (math.isfinite(value) and value > 0):
-        raise SourceError(f"source {spec!r}: t_dead={text!r} is not a positive number of seconds")
-    return value

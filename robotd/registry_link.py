@@ -36,6 +36,7 @@ import zenoh
 
 from common import keys
 from common.config import FleetConfig
+from common.keys import Role
 from common.throttled_log import ThrottledLog
 from common.wire import WireError, decode
 from common.wire.registry import (
@@ -295,7 +296,7 @@ class RegistryLink:
         """Register on `reg/register` and take the route from the reply (waits at most
         `REGISTER_TIMEOUT_S`)."""
         request = RegisterRequest(
-            role="robot",
+            role=Role.ROBOT,
             id=self.robot,
             protocol_version=PROTOCOL_VERSION,
             capabilities=ROBOT_CAPABILITIES,

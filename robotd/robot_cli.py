@@ -90,12 +90,20 @@ def robot_command(
     # Heavy imports (pydantic, zenoh, onnxruntime, cv2) where the command runs: `elasticfog --help`
     # must stay fast.
     from common.config import load_fleet
-    from robotd.daemon import RobotDaemon, RobotOptions
-    from robotd.emulation import check_slowdown, load_phases
+    from robotd.policies import check_policy
+    from robotd.source_names import parse_source
 
     try:
         with logging_to_stderr(log_level):
+            # The names first, then the fleet file, before the daemon's imports (zenoh,
+            # onnxruntime): a typo fails in well under two seconds.
+            parsed_source = None if source is None else parse_source(source)
+            if policy is not None:
+                check_policy(policy, real_time=True)
             cfg = load_fleet(config)
+            from robotd.daemon import RobotDaemon, RobotOptions
+            from robotd.emulation import check_slowdown, load_phases
+
             check_slowdown(robot_slowdown)
             loaded = (
                 ()
@@ -103,7 +111,7 @@ def robot_command(
                 else tuple(load_phases(phases, uplink_mbit=uplink_mbit, slowdown=robot_slowdown))
             )
             options = RobotOptions(
-                source=source,
+                source=parsed_source,
                 frames=frames,
                 fps=fps,
                 policy=policy,

@@ -27,7 +27,9 @@ from common.wire.telemetry import FallbackReason
 from robotd.offload import CallResult
 from robotd.policies import Decision
 from robotd.robot_profile import measured_profile
-from robotd.sources import FrameSource, open_source_for
+from robotd.source_names import SourceSpec
+from robotd.source_open import open_source_for
+from robotd.sources import FrameSource
 from robotd.stereo_frame import CameraFrame, StereoFrame
 
 
@@ -51,7 +53,13 @@ class RobotModel:
         self._position = {cut.index: k for k, cut in enumerate(model.partition.cuts)}
 
     def profile(
-        self, config: FleetConfig, *, source_spec: str, seed: int, threads: int, policy_spec: str
+        self,
+        config: FleetConfig,
+        *,
+        source_spec: str | SourceSpec,
+        seed: int,
+        threads: int,
+        policy_spec: str,
     ) -> dict[str, Any]:
         """This robot's profile, measured here (`robotd.robot_profile.measured_profile`)."""
         return measured_profile(
@@ -65,7 +73,7 @@ class RobotModel:
             policy_spec=policy_spec,
         )
 
-    def open_source(self, spec: str, *, seed: int) -> FrameSource:
+    def open_source(self, spec: str | SourceSpec, *, seed: int) -> FrameSource:
         """The frame source `spec` at the model's input size; a one-line UserError when its
         views do not match the model's image inputs."""
         return open_source_for(spec, self.inputs, seed=seed)

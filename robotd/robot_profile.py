@@ -24,6 +24,7 @@ from common.profiler import median_ms
 from robotd.calibration import calibration_frames, codec_table, required_codecs
 from robotd.policies import Objective, Policy, make_policy
 from robotd.policies.nav_options import NAMED_CUTS_KEY, SEGMENTS_KEY
+from robotd.source_names import SourceSpec
 
 # Whole-model runs timed at startup for the robot-side profile (after the profiler's warm-up).
 PROFILE_RUNS = 3
@@ -84,7 +85,7 @@ def measured_profile(
     *,
     config: FleetConfig,
     inputs: ImageInputs,
-    source_spec: str,
+    source_spec: str | SourceSpec,
     seed: int,
     threads: int,
     policy_spec: str,
@@ -98,7 +99,7 @@ def measured_profile(
         fidelity_of(fidelity),
         required_codecs(policy_spec, lowest, fleet_params(policy_spec, config)),
         {
-            "source": source_spec,
+            "source": str(source_spec),
             "frames": fidelity.calibration_frames,
             "seed": seed,
             "threads": threads,

@@ -1,11 +1,31 @@
-"""The names in a `--source` spec (synthetic, photo, video:PATH, camera:N, stereo:...) and the
-default one.
+"""The grammar of a frame source spec (`--source`, a machine's `source:`), parsed once into a typed
+value, and the default source.
 
-They live apart from robotd.sources (cv2, numpy, the partitioner) so that an option's default can
-name a source without importing them: `elasticfog --help` must stay fast.
+A spec is `KIND`, `KIND:ARGS` or `KIND,ARGS`; `parse_source` reads the kind and hands the rest to
+that kind's parser in `KINDS`, which returns a frozen `SourceSpec` (a subclass per kind, its
+options typed and checked) or raises a `SourceError` naming the spec and what is wrong. An unknown
+kind is an error listing the known kinds and their forms. The config (when the fleet file loads)
+and the robot (`--source`) both go through `parse_source`; `robotd.source_open.open_source` opens
+the parsed value.
+
+To add a kind: a `SourceSpec` subclass with its typed fields, a parser `(spec, args) -> that
+subclass`, one `SourceKind` entry in `KINDS` (its name, its form for the error, its parser), and
+the opener's case in `robotd.source_open`. A kind whose spec holds file paths overrides
+`SourceSpec.resolved` so that the fleet file's relative paths are relative to the file.
+
+This module imports neither cv2 nor numpy (only a `photo:NAME` spec imports `common.photos` to
+check the name), so that an option's default can name a source and `elasticfog --help` stays fast.
 """
 
 from __future__ import annotations
+
+import enum
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+from common.errors import UserError
 
 SYNTHETIC = "synthetic"
 PHOTO = "photo"
@@ -20,3 +40,310 @@ STEREO_WORLD = "world"
 STEREO_MOTORCYCLE = "motorcycle"
 # `stereo:maneuver:N`: maneuver N of the navigation circuit, driven live (`robotd.maneuver_source`).
 STEREO_MANEUVER = "maneuver"
+MANEUVER_FORM = "stereo:maneuver:N[:lap=L][:assist=on|off][:t_dead=S][:out=PATH]"
+MANEUVER_OPTIONS = ("lap", "assist", "out", "t_dead")
+
+
+class SourceError(UserError):
+    """A frame source that cannot be parsed, opened or read."""
+
+
+class CameraMotion(str, enum.Enum):
+    """Which movements the virtual camera of the `photo` source (and a moving stereo pair)
+    makes."""
+
+    PAN = "pan"
+    ZOOM = "zoom"
+    SHAKE = "shake"
+    MIXED = "mixed"
+
+
+def motion_names() -> str:
+    return ", ".join(m.value for m in CameraMotion)
+
+
+# -- the typed values ----------------------------------------------------------------------------
+@dataclass(frozen=True)
+class SourceSpec:
+    """A parsed source spec; `text` is the spec as written (what logs and caches name)."""
+
+    text: str
+
+    def resolved(self, resolve: Callable[[str], str]) -> SourceSpec:
+        """This spec with its file paths passed through `resolve` (the fleet file makes them
+        relative to itself); kinds without paths return themselves."""
+        return self
+
+    def __str__(self) -> str:
+        return self.text
+
+
+@dataclass(frozen=True)
+class SyntheticSpec(SourceSpec):
+    """`synthetic[:key=F][,every=N]`; None: the source's default."""
+
+    key_fraction: float | None = None
+    key_every: int | None = None
+
+
+@dataclass(frozen=True)
+class PhotoSpec(SourceSpec):
+    """`photo[:NAME][,motion=M][,speed=F]`; None: the source's default."""
+
+    name: str | None = None
+    motion: CameraMotion | None = None
+    speed: float | None = None
+
+
+@dataclass(frozen=True)
+class VideoSpec(SourceSpec):
+    """`video:PATH`."""
+
+    path: Path = Path()
+
+    def resolved(self, resolve: Callable[[str], str]) -> VideoSpec:
+        path = resolve(str(self.path))
+        return replace(self, text=f"{VIDEO_PREFIX}{path}", path=Path(path))
+
+
+@dataclass(frozen=True)
+class CameraSpec(SourceSpec):
+    """`camera:N`."""
+
+    index: int = 0
+
+
+@dataclass(frozen=True)
+class StereoWorldSpec(SourceSpec):
+    """`stereo:world[,speed=F]`."""
+
+    speed: float | None = None
+
+
+@dataclass(frozen=True)
+class StereoPairSpec(SourceSpec):
+    """`stereo:motorcycle[,OPTIONS]` (paths None) or `stereo:LEFT,RIGHT[,OPTIONS]`."""
+
+    paths: tuple[Path, Path] | None = None
+    motion: CameraMotion | None = None
+    speed: float | None = None
+
+
+@dataclass(frozen=True)
+class StereoManeuverSpec(SourceSpec):
+    """`stereo:maneuver:N[:lap=L][:assist=on|off][:t_dead=S][:out=PATH]`; t_dead None: the
+    assistant's default."""
+
+    maneuver: int = 0
+    lap: int = 0
+    assist: bool = True
+    out: Path | None = None
+    t_dead_s: float | None = None
+
+
+# -- the kinds -----------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class SourceKind:
+    """One kind of source: its name (the spec's first word), its forms for error messages, and
+    its parser of `(spec, what follows the name and its ':' or ',')`."""
+
+    name: str
+    forms: str
+    parse: Callable[[str, str], SourceSpec]
+    separators: str = ":"
+    """What may follow the name: `:` for most kinds, also `,` for `photo,motion=pan`."""
+
+
+def _items(spec: str, text: str, sep: str = ",") -> list[tuple[str, str]]:
+    """`name=value` items separated by `sep`, each with both parts."""
+    pairs = []
+    for item in text.split(sep):
+        name, eq, value = (part.strip() for part in item.partition("="))
+        if not eq or not value:
+            raise SourceError(f"source {spec!r}: expected name=value options, got {item!r}")
+        pairs.append((name, value))
+    return pairs
+
+
+def _unknown(spec: str, name: str, known: tuple[str, ...]) -> SourceError:
+    return SourceError(f"source {spec!r}: unknown option {name!r}; known: {', '.join(known)}")
+
+
+def _number(spec: str, name: str, value: str, kind: type[float] | type[int] = float) -> float:
+    try:
+        return kind(value)
+    except ValueError:
+        raise SourceError(f"source {spec!r}: {name}={value!r} is not a number") from None
+
+
+def _motion(spec: str, value: str) -> CameraMotion:
+    if value not in {m.value for m in CameraMotion}:
+        raise SourceError(f"source {spec!r}: motion={value!r} is not one of {motion_names()}")
+    return CameraMotion(value)
+
+
+def _motion_speed(
+    spec: str, items: list[tuple[str, str]], known: tuple[str, ...] = ("motion", "speed")
+) -> tuple[CameraMotion | None, float | None]:
+    motion: CameraMotion | None = None
+    speed: float | None = None
+    for name, value in items:
+        if name not in known:
+            raise _unknown(spec, name, known)
+        if name == "motion":
+            motion = _motion(spec, value)
+        else:
+            speed = _number(spec, name, value)
+    return motion, speed
+
+
+def _parse_synthetic(spec: str, args: str) -> SyntheticSpec:
+    key: float | None = None
+    every: int | None = None
+    if args.strip():
+        for name, value in _items(spec, args):
+            if name == "key":
+                key = _number(spec, name, value)
+            elif name == "every":
+                every = int(_number(spec, name, value, int))
+            else:
+                raise _unknown(spec, name, ("key", "every"))
+    return SyntheticSpec(spec, key_fraction=key, key_every=every)
+
+
+def _parse_photo(spec: str, args: str) -> PhotoSpec:
+    name: str | None = None
+    if not args.strip():
+        return PhotoSpec(spec)
+    first, _, rest = args.partition(",")
+    if first.strip() and "=" not in first:
+        # Imported here: it loads cv2, which a spec without a photograph's name does not need.
+        from common.photos import PHOTOS
+
+        name = first.strip()
+        if name not in PHOTOS:
+            raise SourceError(
+                f"source {spec!r}: unknown photo {name!r}; known: {', '.join(PHOTOS)}"
+            )
+        args = rest
+    motion, speed = _motion_speed(spec, _items(spec, args)) if args.strip() else (None, None)
+    return PhotoSpec(spec, name=name, motion=motion, speed=speed)
+
+
+def _parse_video(spec: str, args: str) -> VideoSpec:
+    if not args.strip():
+        raise SourceError(f"source {spec!r}: video needs a file, e.g. video:run.mp4")
+    return VideoSpec(spec, path=Path(args.strip()).expanduser())
+
+
+def _parse_camera(spec: str, args: str) -> CameraSpec:
+    if not args.strip().isdigit():
+        raise SourceError(f"source {spec!r}: camera needs an index, e.g. camera:0")
+    return CameraSpec(spec, index=int(args.strip()))
+
+
+STEREO_FORMS = (
+    "stereo:world[,speed=F], stereo:motorcycle[,motion=M][,speed=F], "
+    f"stereo:LEFT,RIGHT[,motion=M][,speed=F] or {MANEUVER_FORM}"
+)
+
+
+def _parse_stereo(spec: str, args: str) -> SourceSpec:
+    if args.split(":", 1)[0].strip() == STEREO_MANEUVER:
+        return _parse_maneuver(spec, args.strip()[len(STEREO_MANEUVER) :])
+    items = [item.strip() for item in args.split(",")]
+    if not items[0]:
+        raise SourceError(f"source {spec!r}: expected {STEREO_FORMS}")
+    if items[0] == STEREO_WORLD:
+        _, speed = _motion_speed(
+            spec, _items(spec, ",".join(items[1:])) if items[1:] else [], ("speed",)
+        )
+        return StereoWorldSpec(spec, speed=speed)
+    if items[0] == STEREO_MOTORCYCLE:
+        motion, speed = _motion_speed(spec, _items(spec, ",".join(items[1:])) if items[1:] else [])
+        return StereoPairSpec(spec, motion=motion, speed=speed)
+    if len(items) < 2 or not items[1] or "=" in items[1] or "=" in items[0]:
+        raise SourceError(
+            f"source {spec!r}: a pair of files needs two paths, stereo:LEFT,RIGHT; "
+            f"expected {STEREO_FORMS}"
+        )
+    paths = (Path(items[0]).expanduser(), Path(items[1]).expanduser())
+    motion, speed = _motion_speed(spec, _items(spec, ",".join(items[2:])) if items[2:] else [])
+    return StereoPairSpec(spec, paths=paths, motion=motion, speed=speed)
+
+
+def _parse_maneuver(spec: str, rest: str) -> StereoManeuverSpec:
+    """`rest` is what follows `stereo:maneuver`."""
+    items = rest.split(":")
+    if items[0] != "" or len(items) < 2 or not items[1].strip().isdigit():
+        raise SourceError(f"source {spec!r}: expected {MANEUVER_FORM}")
+    options: dict[str, str] = {}
+    for name, value in _items(spec, ":".join(items[2:]), ":") if items[2:] else []:
+        if name not in MANEUVER_OPTIONS:
+            raise _unknown(spec, name, MANEUVER_OPTIONS)
+        options[name] = value
+    lap_text = options.get("lap", "0")
+    if not lap_text.isdigit():
+        raise SourceError(f"source {spec!r}: lap={lap_text!r} is not a lap number (0, 1, ...)")
+    assist = options.get("assist", "on")
+    if assist not in ("on", "off"):
+        raise SourceError(f"source {spec!r}: assist={assist!r}; expected on or off")
+    out = options.get("out")
+    return StereoManeuverSpec(
+        spec,
+        maneuver=int(items[1]),
+        lap=int(lap_text),
+        assist=assist == "on",
+        out=None if out is None else Path(out).expanduser(),
+        t_dead_s=_t_dead(spec, options.get("t_dead")),
+    )
+
+
+def _t_dead(spec: str, text: str | None) -> float | None:
+    """`t_dead=S`: a positive, finite number of seconds; absent: None (the default)."""
+    if text is None:
+        return None
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise SourceError(f"source {spec!r}: t_dead={text!r} is not a positive number of seconds")
+    return value
+
+
+# The kinds, by name. A new kind is one entry here (and its opener in robotd.source_open).
+KINDS: dict[str, SourceKind] = {
+    kind.name: kind
+    for kind in (
+        SourceKind(SYNTHETIC, "synthetic[:key=F,every=N]", _parse_synthetic),
+        SourceKind(
+            PHOTO, "photo[:NAME][,motion=pan|zoom|shake|mixed][,speed=F]", _parse_photo, ":,"
+        ),
+        SourceKind("video", "video:PATH", _parse_video),
+        SourceKind("camera", "camera:INDEX", _parse_camera),
+        SourceKind("stereo", STEREO_FORMS, _parse_stereo),
+    )
+}
+
+
+def source_forms() -> str:
+    """Every kind's forms, for an error or a help text."""
+    forms = [kind.forms for kind in KINDS.values()]
+    return ", ".join(forms[:-1]) + ", " + forms[-1] if len(forms) > 1 else forms[0]
+
+
+def parse_source(spec: str | SourceSpec) -> SourceSpec:
+    """The typed value of `spec`; a SourceError naming the spec, and for an unknown kind the
+    known kinds and their forms."""
+    if isinstance(spec, SourceSpec):
+        return spec
+    text = spec.strip()
+    cut = min((i for i in (text.find(":"), text.find(",")) if i >= 0), default=len(text))
+    kind = KINDS.get(text[:cut])
+    if kind is None or (cut < len(text) and text[cut] not in kind.separators):
+        raise SourceError(
+            f"unknown frame source {text!r}; known kinds: {', '.join(KINDS)}; expected "
+            f"{source_forms()}"
+        )
+    return kind.parse(text, text[cut + 1 :])

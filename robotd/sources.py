@@ -22,8 +22,10 @@ A source yields uint8 BGR frames (H×W×3, OpenCV's layout) one at a time, or st
   pair, two image files, a scripted maneuver); its frames are `robotd.stereo_frame.StereoFrame`s
   of named views.
 
-A source that cannot be opened is a `UserError` naming it. A source may end (`EndOfStream`) and
-may take each served frame's result (`on_result`, after the daemon's own).
+The specs' grammar is `robotd.source_names` (parsed once into a typed value); `robotd.source_open`
+opens a parsed spec. A source that cannot be opened is a `SourceError` (a `UserError`) naming it.
+A source may end (`EndOfStream`) and may take each served frame's result (`on_result`, after the
+daemon's own).
 `common.image_input.InputAdapter` turns a frame into the model's input; the photographs
 themselves are `common.photos`.
 """
@@ -32,18 +34,15 @@ from __future__ import annotations
 
 import abc
 import contextlib
-import enum
 import math
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 
-from common.errors import UserError
-from common.image_input import ImageInputs
 from common.photos import PHOTOS, photo_bgr
-from robotd.source_names import CAMERA_PREFIX, PHOTO, STEREO_PREFIX, SYNTHETIC, VIDEO_PREFIX
+from robotd.source_names import PHOTO, SYNTHETIC, CameraMotion, SourceError, motion_names
 from robotd.stereo_frame import CameraFrame
 
 if TYPE_CHECKING:
@@ -76,10 +75,6 @@ PHOTO_SHAKE_ROT_PERIOD_FRAMES = 7.1
 PHOTO_PERIOD_JITTER = 0.2
 MAX_PHOTO_SPEED = 20.0
 MAX_SOURCE_SIDE_PX = 8192
-
-
-class SourceError(UserError):
-    """A frame source that cannot be opened or read."""
 
 
 class EndOfStream(Exception):
@@ -172,15 +167,6 @@ class SyntheticSource(FrameSource):
         )
         grey = np.clip(level + noise, 0, 255).astype(np.uint8)
         return np.repeat(grey, 3, axis=2)
-
-
-class CameraMotion(str, enum.Enum):
-    """Which movements the virtual camera of the `photo` source makes."""
-
-    PAN = "pan"
-    ZOOM = "zoom"
-    SHAKE = "shake"
-    MIXED = "mixed"
 
 
 class PhotoSource(FrameSource):
@@ -369,10 +355,6 @@ def fit_rect(photo_h: int, photo_w: int, height: int, width: int) -> tuple[float
     return photo_w / aspect, float(photo_w)
 
 
-def motion_names() -> str:
-    return ", ".join(m.value for m in CameraMotion)
-
-
 class VideoSource(FrameSource):
     """A video file through OpenCV, looped at its end."""
 
@@ -431,105 +413,6 @@ class CameraSource(FrameSource):
 
     def close(self) -> None:
         self._cap.release()
-
-
-def parse_synthetic_options(spec: str) -> dict[str, Any]:
-    """The options of `synthetic:key=F,every=N` as keyword arguments of SyntheticSource."""
-    _, _, text = spec.partition(":")
-    options: dict[str, Any] = {}
-    if not text.strip():
-        return options
-    for item in text.split(","):
-        name, sep, value = (part.strip() for part in item.partition("="))
-        if not sep or not value:
-            raise SourceError(f"source {spec!r}: expected name=value options, got {item!r}")
-        try:
-            if name == "key":
-                options["key_fraction"] = float(value)
-            elif name == "every":
-                options["key_every"] = int(value)
-            else:
-                raise SourceError(f"source {spec!r}: unknown option {name!r}; known: key, every")
-        except ValueError:
-            raise SourceError(f"source {spec!r}: {name}={value!r} is not a number") from None
-    return options
-
-
-def parse_photo_options(spec: str) -> dict[str, Any]:
-    """The options of `photo[:NAME][,motion=M][,speed=F]` as keyword arguments of PhotoSource."""
-    text = spec.strip()[len(PHOTO) :]
-    options: dict[str, Any] = {}
-    if text[:1] in (":", ","):
-        text = text[1:]
-    if not text.strip():
-        return options
-    for position, item in enumerate(text.split(",")):
-        name, sep, value = (part.strip() for part in item.partition("="))
-        if not sep and position == 0 and name:
-            if name not in PHOTOS:
-                raise SourceError(
-                    f"source {spec!r}: unknown photo {name!r}; known: {', '.join(PHOTOS)}"
-                )
-            options["name"] = name
-            continue
-        if not sep or not value:
-            raise SourceError(f"source {spec!r}: expected name=value options, got {item!r}")
-        if name == "motion":
-            if value not in {m.value for m in CameraMotion}:
-                raise SourceError(
-                    f"source {spec!r}: motion={value!r} is not one of {motion_names()}"
-                )
-            options["motion"] = CameraMotion(value)
-        elif name == "speed":
-            try:
-                options["speed"] = float(value)
-            except ValueError:
-                raise SourceError(f"source {spec!r}: speed={value!r} is not a number") from None
-        else:
-            raise SourceError(f"source {spec!r}: unknown option {name!r}; known: motion, speed")
-    return options
-
-
-def open_source(spec: str, *, height: int, width: int, seed: int = 0) -> FrameSource:
-    """Open the source named by `spec` (synthetic[:OPTIONS], photo[:NAME][,OPTIONS], video:PATH,
-    camera:N or stereo:...); synthetic, photo and stereo frames are made `height`×`width` (the
-    model's input size)."""
-    spec = spec.strip()
-    if spec.startswith(STEREO_PREFIX):
-        # Imported here: it needs nav's world and renderer, which mono sources do not.
-        from robotd.stereo_sources import open_stereo_source
-
-        return open_stereo_source(spec, height=height, width=width, seed=seed)
-    if spec == SYNTHETIC or spec.startswith(SYNTHETIC + ":"):
-        return SyntheticSource(height, width, seed=seed, **parse_synthetic_options(spec))
-    if spec == PHOTO or spec.startswith((PHOTO + ":", PHOTO + ",")):
-        return PhotoSource(height, width, seed=seed, **parse_photo_options(spec))
-    if spec.startswith(VIDEO_PREFIX) and spec[len(VIDEO_PREFIX) :].strip():
-        return VideoSource(Path(spec[len(VIDEO_PREFIX) :].strip()).expanduser())
-    if spec.startswith(CAMERA_PREFIX):
-        text = spec[len(CAMERA_PREFIX) :].strip()
-        if not text.isdigit():
-            raise SourceError(f"source {spec!r}: camera needs an index, e.g. camera:0")
-        return CameraSource(int(text))
-    raise SourceError(
-        f"unknown frame source {spec!r}; expected synthetic[:key=F,every=N], "
-        "photo[:NAME][,motion=pan|zoom|shake|mixed][,speed=F], video:PATH, camera:INDEX, "
-        "stereo:world[,speed=F], stereo:motorcycle[,OPTIONS], stereo:LEFT,RIGHT[,OPTIONS] or "
-        "stereo:maneuver:N[:OPTIONS]"
-    )
-
-
-def open_source_for(spec: str, inputs: ImageInputs, *, seed: int = 0) -> FrameSource:
-    """`open_source` at the size of the model's image inputs; a one-line UserError (and the
-    source closed) when its frames do not feed them: a mono source on a model with several
-    image inputs, a stereo source on a one-input model, views not named like the inputs."""
-    source = open_source(spec, height=inputs.height, width=inputs.width, seed=seed)
-    try:
-        inputs.check_views(source.views, spec.strip())
-    except UserError:
-        source.close()
-        raise
-    return source
 
 
 def _as_bgr(frame: np.ndarray) -> np.ndarray:

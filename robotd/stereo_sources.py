@@ -22,7 +22,8 @@ the wall clock when the pair was taken.
 A pair is repeated: without `motion` or `speed` each frame is the whole pair resized to the
 frame size; with them both views move through the `photo` source's virtual camera
 (`robotd.sources.CameraPath`: pan, zoom, shake), the same warp for both, so the pair stays
-rectified. A source that cannot be opened is a `SourceError` naming it.
+rectified. The specs are parsed by `robotd.source_names`; a source that cannot be opened is a
+`SourceError` naming it.
 """
 
 from __future__ import annotations
@@ -38,18 +39,16 @@ import numpy as np
 from nav.camera import CameraModel
 from nav.render import Pose, StereoRenderer
 from nav.world import World
-from robotd.maneuver_source import MANEUVER_FORM, open_maneuver_source
-from robotd.source_names import STEREO_MANEUVER, STEREO_MOTORCYCLE, STEREO_PREFIX, STEREO_WORLD
-from robotd.sources import (
-    MAX_PHOTO_SPEED,
+from robotd.maneuver_source import open_maneuver_source
+from robotd.source_names import (
+    STEREO_MOTORCYCLE,
     CameraMotion,
-    CameraPath,
-    FrameSource,
     SourceError,
-    fit_photo,
-    motion_names,
-    warp_view,
+    StereoManeuverSpec,
+    StereoPairSpec,
+    StereoWorldSpec,
 )
+from robotd.sources import MAX_PHOTO_SPEED, CameraPath, FrameSource, fit_photo, warp_view
 from robotd.stereo_frame import LEFT_VIEW, RIGHT_VIEW, STEREO_VIEWS, StereoFrame
 
 # The world's room (walls at ±ROOM_HALF_M) and its boxes, centred BOX_OFFSET_M from the room's
@@ -65,10 +64,6 @@ SWAYS_PER_LAP = 3
 WORLD_FRAME_PERIOD_S = 0.1
 DEFAULT_WORLD_SPEED_MPS = 0.3
 MAX_WORLD_SPEED_MPS = 2.0
-STEREO_FORMS = (
-    "stereo:world[,speed=F], stereo:motorcycle[,motion=M][,speed=F], "
-    f"stereo:LEFT,RIGHT[,motion=M][,speed=F] or {MANEUVER_FORM}"
-)
 
 
 def loop_world(seed: int = 0) -> World:
@@ -188,68 +183,42 @@ class StereoPairSource(FrameSource):
         return StereoFrame({LEFT_VIEW: left, RIGHT_VIEW: right}, stamp)
 
 
-def open_stereo_source(spec: str, *, height: int, width: int, seed: int = 0) -> FrameSource:
-    """The stereo source named by `spec` (`stereo:...`, see the module docstring)."""
-    text = spec.strip()[len(STEREO_PREFIX) :]
-    if text.split(":", 1)[0].strip() == STEREO_MANEUVER:
-        rest = text.strip()[len(STEREO_MANEUVER) :]
-        return open_maneuver_source(spec, rest, height=height, width=width, seed=seed)
-    items = [item.strip() for item in text.split(",")]
-    if not items[0]:
-        raise SourceError(f"source {spec!r}: expected {STEREO_FORMS}")
-    if items[0] == STEREO_WORLD:
-        options = _options(spec, items[1:], known=("speed",))
-        return StereoWorldSource(height, width, seed=seed, **options)
-    if items[0] == STEREO_MOTORCYCLE:
+def open_stereo_source(
+    spec: StereoWorldSpec | StereoPairSpec | StereoManeuverSpec,
+    *,
+    height: int,
+    width: int,
+    seed: int = 0,
+) -> FrameSource:
+    """The stereo source of a parsed `stereo:...` spec (see the module docstring)."""
+    if isinstance(spec, StereoManeuverSpec):
+        return open_maneuver_source(spec, height=height, width=width, seed=seed)
+    if isinstance(spec, StereoWorldSpec):
+        return StereoWorldSource(height, width, seed=seed, **_given(speed=spec.speed))
+    options = _given(motion=spec.motion, speed=spec.speed)
+    if spec.paths is None:
         # Imported here: scikit-image is slow to import and only this pair needs it.
         from nav.stereo_eval import stereo_motorcycle
 
         left_rgb, right_rgb, _ = stereo_motorcycle()
         left, right = (cv2.cvtColor(v, cv2.COLOR_RGB2BGR) for v in (left_rgb, right_rgb))
-        options = _options(spec, items[1:], known=("motion", "speed"))
         return StereoPairSource(
             left, right, height, width, name=STEREO_MOTORCYCLE, seed=seed, **options
         )
-    if len(items) < 2 or not items[1] or "=" in items[1] or "=" in items[0]:
-        raise SourceError(
-            f"source {spec!r}: a pair of files needs two paths, stereo:LEFT,RIGHT; "
-            f"expected {STEREO_FORMS}"
-        )
-    paths = [Path(p).expanduser() for p in items[:2]]
-    left, right = (_read_image(spec, p) for p in paths)
+    paths = spec.paths
+    left, right = (_read_image(spec.text, p) for p in paths)
     if left.shape != right.shape:
         raise SourceError(
-            f"source {spec!r}: {paths[0]} is {_size(left)} and {paths[1]} is {_size(right)}; "
+            f"source {spec.text!r}: {paths[0]} is {_size(left)} and {paths[1]} is {_size(right)}; "
             "the views of a pair must be one size"
         )
-    options = _options(spec, items[2:], known=("motion", "speed"))
     name = f"{paths[0].name} + {paths[1].name}"
     return StereoPairSource(left, right, height, width, name=name, seed=seed, **options)
 
 
-def _options(spec: str, items: list[str], known: tuple[str, ...]) -> dict[str, Any]:
-    """`name=value` items of a stereo spec as keyword arguments (motion, speed)."""
-    options: dict[str, Any] = {}
-    for item in items:
-        name, sep, value = (part.strip() for part in item.partition("="))
-        if not sep or not value:
-            raise SourceError(f"source {spec!r}: expected name=value options, got {item!r}")
-        if name not in known:
-            raise SourceError(
-                f"source {spec!r}: unknown option {name!r}; known: {', '.join(known)}"
-            )
-        if name == "motion":
-            if value not in {m.value for m in CameraMotion}:
-                raise SourceError(
-                    f"source {spec!r}: motion={value!r} is not one of {motion_names()}"
-                )
-            options["motion"] = CameraMotion(value)
-        else:
-            try:
-                options["speed"] = float(value)
-            except ValueError:
-                raise SourceError(f"source {spec!r}: speed={value!r} is not a number") from None
-    return options
+def _given(**options: Any) -> dict[str, Any]:
+    """The options a spec set (None: the source's own default)."""
+    return {name: value for name, value in options.items() if value is not None}
 
 
 def _read_image(spec: str, path: Path) -> np.ndarray:

@@ -26,8 +26,8 @@ import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from common.config import YAML_ESCAPES, yaml_escape_problem
 from common.errors import UserError
+from common.yaml_files import YAML_ESCAPES, yaml_escape_problem
 from robotd.policies.base import CutTable, one_line_validation_error
 
 # Unknown keys are errors; so are .inf and .nan, which YAML reads as floats and which every bound

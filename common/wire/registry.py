@@ -23,9 +23,9 @@ from __future__ import annotations
 
 import enum
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, Literal
+from typing import Any, ClassVar
 
-from common.keys import InvalidIdError, validate_id
+from common.keys import MACHINE_ROLES, InvalidIdError, Role, validate_id
 from common.wire.codec import Message, Struct, register
 from common.wire.telemetry import FallbackReason, fallback_reason
 
@@ -36,7 +36,6 @@ PROTOCOL_VERSION = 1
 # Probe echo sizes above this are refused (the probe is a measurement, not a transfer).
 MAX_ECHO_BYTES = 16 * 1024 * 1024
 
-Role = Literal["cloud", "robot"]
 
 # The `RouteChange.reason` of a robot left without a route because every deployment of its
 # service is full (admission control): the robot computes locally until the registry places it.
@@ -51,9 +50,9 @@ CAP_LOCAL_FALLBACK = "local_fallback"  # a robot that finishes frames itself
 CAP_TELEMETRY = "telemetry"  # a robot that publishes per-frame telemetry
 CAP_PROBE_REPORTS = "probe_reports"  # a robot that probes standbys and publishes reports
 
-REQUIRED_CAPABILITIES: dict[str, frozenset[str]] = {
-    "cloud": frozenset({CAP_INFER, CAP_PROBE, CAP_CTL}),
-    "robot": frozenset({CAP_LOCAL_FALLBACK}),
+REQUIRED_CAPABILITIES: dict[Role, frozenset[str]] = {
+    Role.CLOUD: frozenset({CAP_INFER, CAP_PROBE, CAP_CTL}),
+    Role.ROBOT: frozenset({CAP_LOCAL_FALLBACK}),
 }
 
 
@@ -127,6 +126,9 @@ class RegisterRequest(Message):
 
     def __post_init__(self) -> None:
         self._check_ids("id", "service")
+        if self.role not in MACHINE_ROLES:
+            raise self._invalid("role", f"expected cloud or robot, got {self.role!r}")
+        object.__setattr__(self, "role", Role(self.role))  # "cloud" given by hand: the member
 
 
 @register

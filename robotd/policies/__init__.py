@@ -5,6 +5,11 @@
     ... run decision.action (a cut index or "P") with decision.codec, hedged if decision.hedge ...
     policy.observe(decision, Outcome(prefix_s=..., cloud_s=..., bytes_up=..., latency_s=...))
 
+Every policy is one row of `POLICIES` (its name, the forms of its spec, its parameter model, how
+it is built, whether the real-time robot can run it): `policy_kind` finds a spec's row, and
+`check_policy` validates a spec and its params before any model loads (the fleet file and the
+`--policy` options call it). To add a policy: one `PolicyKind` row.
+
 `profile` is the partitioner's profile dict (`{full_ms, cuts: [{index, bytes, prefix_ms,
 suffix_ms, codecs?: [{name, bytes, encode_ms, decode_ms}]}, ...]}`: each (cut, codec) is an
 action); `params` and `objective` are plain dicts from the config file, validated here.
@@ -12,7 +17,7 @@ action); `params` and `objective` are plain dicts from the config file, validate
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -32,7 +37,13 @@ from robotd.policies.base import (
 )
 from robotd.policies.baselines import FixedPolicy, NeurosurgeonPolicy, OraclePolicy
 from robotd.policies.elastic import ElasticPolicy, elastic_params_for_ans
-from robotd.policies.nav_options import OptionParams, nav_option, option_policy, parse_option_spec
+from robotd.policies.nav_options import (
+    OPTION_PREFIX,
+    STATIC_KIND,
+    OptionParams,
+    option_policy,
+    parse_option_spec,
+)
 from robotd.policies.objective import Objective, PowerModel
 from robotd.policies.params import (
     AnsParams,
@@ -45,6 +56,7 @@ from robotd.policies.params import (
 )
 
 __all__ = [
+    "POLICIES",
     "PURE_ROBOT",
     "RAW_CODEC",
     "Action",
@@ -54,38 +66,18 @@ __all__ = [
     "Objective",
     "Outcome",
     "Policy",
+    "PolicyKind",
     "PowerModel",
     "action_label",
+    "check_policy",
     "fixed_action",
     "make_policy",
     "params_model",
     "parse_assignments",
+    "policy_kind",
     "policy_names",
     "split_overrides",
 ]
-
-# Policies the real-time robot daemon can run; `oracle` needs the simulator's ground truth.
-REAL_TIME_POLICIES = (
-    "elastic",
-    "ans",
-    "neurosurgeon",
-    "robot",
-    "cloud",
-    "cloud:CODEC",
-    "static:K",
-    "static:K:CODEC",
-)
-# Not in REAL_TIME_POLICIES: it builds only on a model that names its `points` cut (zoo:stereo).
-NAV_POLICIES = ("option:N", "option:N:CODEC")
-SIM_ONLY_POLICIES = ("oracle",)
-
-
-def policy_names() -> tuple[str, ...]:
-    """Every accepted policy spec (`static:K` stands for any cut index K, `CODEC` for any codec
-    name the profile offers at that cut, e.g. `cloud:jpeg80`). The navigation options
-    (`NAV_POLICIES`: `option:N[:CODEC]`, or `static` with `params: {option: N, codec: C}`) are
-    accepted too, on a model that names its `points` cut."""
-    return REAL_TIME_POLICIES + SIM_ONLY_POLICIES
 
 
 @dataclass(frozen=True)
@@ -106,7 +98,7 @@ def fixed_action(spec: str) -> FixedAction | None:
         if sep and not rest:
             raise UserError(f"policy {spec!r}: cloud: needs a codec, e.g. cloud:jpeg80")
         return FixedAction(None, rest or RAW_CODEC)
-    if kind == "static":
+    if kind == STATIC_KIND:
         if not sep:
             return None  # `static` with `params: {option: N}`: a navigation option
         cut, _, codec = rest.partition(":")
@@ -118,23 +110,154 @@ def fixed_action(spec: str) -> FixedAction | None:
     return None
 
 
+# How a policy is built: (its spec, lowercased; the profile; its validated params; the objective).
+Build = Callable[[str, Mapping[str, Any] | CutTable, Any, Objective], Policy]
+
+
+@dataclass(frozen=True)
+class PolicyKind:
+    """One policy: `name` is the spec's first word (before any ':'), `forms` the specs it takes
+    (listed in errors and help), `params` its parameter model for a spec, `check` what parses the
+    rest of the spec (None: the bare name only), `build` the policy. `real_time`: the robot
+    daemon can run it (`oracle` needs the simulator's ground truth)."""
+
+    name: str
+    forms: tuple[str, ...]
+    build: Build
+    params: Callable[[str], type[BaseModel]] = lambda _spec: NoParams
+    check: Callable[[str], object] | None = None
+    real_time: bool = True
+
+
+def _fixed(
+    spec: str, profile: Mapping[str, Any] | CutTable, _params: Any, _goal: Objective
+) -> Policy:
+    cuts = CutTable.from_profile(profile)
+    fixed = fixed_action(spec)
+    assert fixed is not None  # checked by the row's `check`
+    cut = min(cuts.indices) if fixed.cut is None else fixed.cut
+    return FixedPolicy(cuts, cut, spec, fixed.codec)
+
+
+def _static(
+    spec: str, profile: Mapping[str, Any] | CutTable, params: Any, goal: Objective
+) -> Policy:
+    """`static:K[:CODEC]` (a cut), or `static` with `params: {option: N}` (a navigation option)."""
+    if spec == STATIC_KIND:
+        return option_policy(params, profile, spec)
+    return _fixed(spec, profile, params, goal)
+
+
+def _option(
+    spec: str, profile: Mapping[str, Any] | CutTable, _params: Any, _goal: Objective
+) -> Policy:
+    option = parse_option_spec(spec)
+    assert option is not None  # checked by the row's `check`
+    return option_policy(option, profile, spec)
+
+
+def _check_static(spec: str) -> object:
+    return spec == STATIC_KIND or fixed_action(spec)
+
+
+# The policies, by name. A new policy is one row here.
+POLICIES: dict[str, PolicyKind] = {
+    kind.name: kind
+    for kind in (
+        PolicyKind(
+            "elastic",
+            ("elastic",),
+            lambda spec, profile, params, goal: ElasticPolicy(
+                CutTable.from_profile(profile), params, goal, spec
+            ),
+            params=lambda _spec: ElasticParams,
+        ),
+        PolicyKind(
+            "ans",
+            ("ans",),
+            lambda spec, profile, params, goal: ElasticPolicy(
+                CutTable.from_profile(profile), elastic_params_for_ans(params), goal, spec
+            ),
+            params=lambda _spec: AnsParams,
+        ),
+        PolicyKind(
+            "neurosurgeon",
+            ("neurosurgeon",),
+            lambda spec, profile, params, goal: NeurosurgeonPolicy(
+                CutTable.from_profile(profile), params, goal
+            ),
+            params=lambda _spec: NeurosurgeonParams,
+        ),
+        PolicyKind(
+            "robot",
+            ("robot",),
+            lambda spec, profile, _params, _goal: FixedPolicy(
+                CutTable.from_profile(profile), PURE_ROBOT, spec
+            ),
+        ),
+        PolicyKind("cloud", ("cloud", "cloud:CODEC"), _fixed, check=fixed_action),
+        PolicyKind(
+            STATIC_KIND,
+            ("static:K", "static:K:CODEC"),
+            _static,
+            # Bare `static` is a navigation option named by its params.
+            params=lambda spec: OptionParams if spec == STATIC_KIND else NoParams,
+            check=_check_static,
+        ),
+        # Builds only on a model that names its `points` cut (zoo:stereo).
+        PolicyKind(
+            OPTION_PREFIX.rstrip(":"),
+            ("option:N", "option:N:CODEC"),
+            _option,
+            check=parse_option_spec,
+        ),
+        PolicyKind(
+            "oracle",
+            ("oracle",),
+            lambda _spec, profile, _params, _goal: OraclePolicy(CutTable.from_profile(profile)),
+            real_time=False,
+        ),
+    )
+}
+
+
+def policy_names(*, real_time: bool = False) -> tuple[str, ...]:
+    """Every accepted policy spec (`static:K` stands for any cut index K, `CODEC` for any codec
+    name the profile offers at that cut, e.g. `cloud:jpeg80`); `real_time`: those the robot
+    daemon runs. The navigation options (`option:N[:CODEC]`, or `static` with
+    `params: {option: N, codec: C}`) build on a model that names its `points` cut."""
+    return tuple(
+        form for kind in POLICIES.values() if kind.real_time or not real_time for form in kind.forms
+    )
+
+
+def policy_kind(spec: str, *, real_time: bool = False) -> PolicyKind:
+    """The row of policy `spec`, its arguments checked; UserError, one line naming the known
+    policies, for an unknown one (or, with `real_time`, one the robot cannot run)."""
+    name = spec.strip().lower() if isinstance(spec, str) else ""
+    word, sep, _ = name.partition(":")
+    kind = POLICIES.get(word)
+    if kind is None or (sep and kind.check is None) or (real_time and not kind.real_time):
+        known = ", ".join(policy_names(real_time=real_time))
+        raise UserError(f"unknown policy {spec!r}; expected one of {known}")
+    if kind.check is not None:
+        kind.check(name)
+    return kind
+
+
 def params_model(spec: str) -> type[BaseModel]:
     """The pydantic model that validates the params of policy `spec`; UserError if unknown."""
-    name = spec.strip().lower() if isinstance(spec, str) else ""
-    models: dict[str, type[BaseModel]] = {
-        "elastic": ElasticParams,
-        "ans": AnsParams,
-        "neurosurgeon": NeurosurgeonParams,
-    }
-    if name in models:
-        return models[name]
-    if name == "static":
-        return OptionParams
-    if parse_option_spec(name) is not None:
-        return NoParams
-    if name in ("robot", "oracle") or fixed_action(name) is not None:
-        return NoParams
-    raise UserError(f"unknown policy {spec!r}; expected one of {', '.join(policy_names())}")
+    return policy_kind(spec).params(spec.strip().lower())
+
+
+def check_policy(
+    spec: str, params: Mapping[str, Any] | BaseModel | None = None, *, real_time: bool = False
+) -> BaseModel:
+    """Validate policy `spec` and its `params` without a model (the fleet file and the
+    `--policy` options, before anything loads); the validated params. UserError, one line."""
+    kind = policy_kind(spec, real_time=real_time)
+    name = spec.strip().lower()
+    return parse_params(kind.params(name), params, name)
 
 
 def split_overrides(
@@ -178,26 +301,6 @@ def make_policy(
     if not isinstance(spec, str) or not spec.strip():
         raise UserError(f"policy must be one of {', '.join(policy_names())}")
     name = spec.strip().lower()
-    cuts = CutTable.from_profile(profile)
-    goal = Objective.parse(objective)
-    if name == "elastic":
-        return ElasticPolicy(cuts, parse_params(ElasticParams, params, name), goal, name)
-    if name == "ans":
-        ans = parse_params(AnsParams, params, name)
-        return ElasticPolicy(cuts, elastic_params_for_ans(ans), goal, name)
-    if name == "neurosurgeon":
-        return NeurosurgeonPolicy(cuts, parse_params(NeurosurgeonParams, params, name), goal)
-    option = nav_option(name, params)
-    if option is not None:
-        return option_policy(option, profile, name)
-    fixed = fixed_action(name)
-    if name in ("robot", "oracle") or fixed is not None:
-        parse_params(NoParams, params, name)
-    if name == "robot":
-        return FixedPolicy(cuts, PURE_ROBOT, name)
-    if name == "oracle":
-        return OraclePolicy(cuts)
-    if fixed is not None:
-        cut = min(cuts.indices) if fixed.cut is None else fixed.cut
-        return FixedPolicy(cuts, cut, name, fixed.codec)
-    raise UserError(f"unknown policy {spec!r}; expected one of {', '.join(policy_names())}")
+    kind = policy_kind(name)
+    valid = parse_params(kind.params(name), params, name)
+    return kind.build(name, profile, valid, Objective.parse(objective))

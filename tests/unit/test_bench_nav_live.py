@@ -14,7 +14,8 @@ from deploy.experiments.nav_live import figures, maneuver_spec
 from deploy.experiments.nav_rows import TABLE5_LIVE, TABLE5_SIM, parse_table5
 from nav.shared_control import DEFAULT_DEADLINE_S
 from robotd.maneuver_source import StereoManeuverSource
-from robotd.sources import SourceError, open_source
+from robotd.source_names import SourceError
+from robotd.source_open import open_source
 
 
 def outcome(collided: bool, clearance: float, distance: float) -> dict[str, Any]:

@@ -78,3 +78,15 @@ def test_help_exits_zero_and_lists_every_command() -> None:
     words = set(done.stdout.replace("│", " ").split())
     missing = [name for name in COMMANDS if name not in words]
     assert not missing, f"not in `elasticfog --help`: {missing}\n{done.stdout}"
+
+
+@pytest.mark.parametrize("flag", ["--version", "-V"])
+def test_version_prints_the_package_version_and_imports_nothing_heavy(flag: str) -> None:
+    from importlib.metadata import version
+
+    done = _run([*_elasticfog(), flag])
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == f"elasticfog {version('elasticfog')}"
+    code = BUILD + RUN + REPORT
+    imported = json.loads(_run([sys.executable, "-c", code, flag]).stdout.strip().splitlines()[-1])
+    assert imported == []

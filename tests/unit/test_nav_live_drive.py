@@ -33,7 +33,9 @@ from nav.shared_control import AssistantParams, Command
 from nav.world import corridor_with_wall
 from robotd.frame import FrameResult
 from robotd.maneuver_source import DCOLL_OUTPUT, StereoManeuverSource
-from robotd.sources import EndOfStream, SourceError, open_source
+from robotd.source_names import SourceError
+from robotd.source_open import open_source
+from robotd.sources import EndOfStream
 from robotd.stereo_frame import STEREO_VIEWS, StereoFrame
 
 NORTH = math.pi / 2

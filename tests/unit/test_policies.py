@@ -452,6 +452,8 @@ def test_neurosurgeon_predicts_from_profile_and_measured_transfers() -> None:
 def test_every_named_policy_builds_on_a_real_profile() -> None:
     profile = vgg_profile()
     for name in policy_names():
+        if name.startswith("option:"):
+            continue  # builds on a model naming its points cut: test_nav_options
         placeholders = {"static:K": "static:3", "static:K:CODEC": "static:3:raw"}
         spec = placeholders.get(name, name.replace("CODEC", "raw"))
         policy = make_policy(spec, profile)

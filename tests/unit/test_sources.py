@@ -18,18 +18,23 @@ from common.image_input import InputAdapter
 from common.partition import TensorSpec
 from common.photos import PHOTOS
 from robotd.entropy import frame_entropy
-from robotd.source_names import DEFAULT_CAMERA_SOURCE
+from robotd.source_names import (
+    DEFAULT_CAMERA_SOURCE,
+    KINDS,
+    CameraMotion,
+    PhotoSpec,
+    SourceError,
+    SyntheticSpec,
+    VideoSpec,
+    parse_source,
+)
+from robotd.source_open import open_source
 from robotd.sources import (
     PHOTO_SCENE_FRAMES,
-    CameraMotion,
     CameraSource,
     PhotoSource,
-    SourceError,
     SyntheticSource,
     VideoSource,
-    open_source,
-    parse_photo_options,
-    parse_synthetic_options,
 )
 
 H, W = 48, 64
@@ -71,11 +76,10 @@ def test_synthetic_key_fraction_is_honoured_and_repeats_with_the_seed() -> None:
 
 
 def test_synthetic_options_are_parsed_and_bad_ones_named() -> None:
-    assert parse_synthetic_options("synthetic") == {}
-    assert parse_synthetic_options("synthetic:key=0.5,every=3") == {
-        "key_fraction": 0.5,
-        "key_every": 3,
-    }
+    assert parse_source("synthetic") == SyntheticSpec("synthetic")
+    assert parse_source("synthetic:key=0.5,every=3") == SyntheticSpec(
+        "synthetic:key=0.5,every=3", key_fraction=0.5, key_every=3
+    )
     with pytest.raises(UserError, match="unknown option 'colour'; known: key, every"):
         open_source("synthetic:colour=red", height=H, width=W)
     with pytest.raises(UserError, match=r"key must be in \[0, 1\]"):
@@ -174,15 +178,13 @@ def test_photo_frames_have_natural_image_statistics() -> None:
 
 
 def test_photo_options_are_parsed_and_bad_ones_named() -> None:
-    assert parse_photo_options("photo") == {}
-    assert parse_photo_options("photo:rocket") == {"name": "rocket"}
-    assert parse_photo_options("photo:coffee,motion=pan,speed=2") == {
-        "name": "coffee",
-        "motion": CameraMotion.PAN,
-        "speed": 2.0,
-    }
-    assert parse_photo_options("photo,motion=shake") == {"motion": CameraMotion.SHAKE}
-    assert parse_photo_options("photo:speed=0.5") == {"speed": 0.5}
+    assert parse_source("photo") == PhotoSpec("photo")
+    assert parse_source("photo:rocket") == PhotoSpec("photo:rocket", name="rocket")
+    assert parse_source("photo:coffee,motion=pan,speed=2") == PhotoSpec(
+        "photo:coffee,motion=pan,speed=2", name="coffee", motion=CameraMotion.PAN, speed=2.0
+    )
+    assert parse_source("photo,motion=shake").motion == CameraMotion.SHAKE  # type: ignore[attr-defined]
+    assert parse_source("photo:speed=0.5") == PhotoSpec("photo:speed=0.5", speed=0.5)
     assert open_source("photo,motion=zoom", height=H, width=W).description.startswith("photo")
     errors = {
         "photo:kitten": r"unknown photo 'kitten'; known: astronaut, coffee",
@@ -261,6 +263,21 @@ def test_unknown_source_names_the_accepted_forms() -> None:
         open_source("rtsp://robot/stream", height=H, width=W)
     with pytest.raises(UserError, match="unknown frame source 'photos'"):
         open_source("photos", height=H, width=W)
+    with pytest.raises(SourceError, match=f"known kinds: {', '.join(KINDS)}"):
+        parse_source("webcam")
+
+
+def test_a_spec_is_parsed_once_into_a_typed_value_and_paths_resolve_against_a_base() -> None:
+    spec = parse_source("video:clips/run.mp4")
+    assert spec == VideoSpec("video:clips/run.mp4", path=Path("clips/run.mp4"))
+    assert parse_source(spec) is spec
+    moved = spec.resolved(lambda p: f"/fleet/{p}")
+    assert moved == VideoSpec("video:/fleet/clips/run.mp4", path=Path("/fleet/clips/run.mp4"))
+    assert str(moved) == "video:/fleet/clips/run.mp4"
+    # A kind takes only its own separator: `video,x` and `synthetic,key=1` are not sources.
+    for text in ("video,x", "synthetic,key=1", "video:", "camera:"):
+        with pytest.raises(SourceError):
+            parse_source(text)
 
 
 def test_input_adapter_resizes_and_scales_to_the_model_input() -> None:

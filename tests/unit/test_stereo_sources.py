@@ -23,7 +23,8 @@ from common.wire.tensor_codecs import encode_tensor_as
 from nav.stereo_graph import LEFT_INPUT, RIGHT_INPUT
 from robotd.entropy import frame_entropy
 from robotd.robot_model import RobotModel
-from robotd.sources import SourceError, open_source
+from robotd.source_names import SourceError
+from robotd.source_open import open_source
 from robotd.stereo_frame import STEREO_VIEWS, StereoFrame, first_view
 from robotd.stereo_sources import LOOP_RADIUS_M, StereoPairSource, StereoWorldSource
 

@@ -1,0 +1,79 @@
+"""Opening a frame source: a spec (`robotd.source_names`, parsed once) to the `FrameSource` that
+yields its frames, at the model's input size.
+
+One function per step: `open_source` opens a parsed spec (one case per kind: a new kind of
+`robotd.source_names.KINDS` gets its case here), `open_source_for` opens it at the size of a
+model's image inputs and checks that its views feed them. It lives apart from `robotd.sources`
+(the mono sources) so that the stereo and maneuver sources, which build on those, are imported
+by the opener only, not by the sources they build on.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from common.errors import UserError
+from common.image_input import ImageInputs
+from robotd.source_names import (
+    CameraSpec,
+    PhotoSpec,
+    SourceError,
+    SourceSpec,
+    StereoManeuverSpec,
+    StereoPairSpec,
+    StereoWorldSpec,
+    SyntheticSpec,
+    VideoSpec,
+    parse_source,
+)
+from robotd.sources import CameraSource, FrameSource, PhotoSource, SyntheticSource, VideoSource
+
+
+def open_source(spec: str | SourceSpec, *, height: int, width: int, seed: int = 0) -> FrameSource:
+    """Open the source of `spec`; synthetic, photo and stereo frames are made `height`×`width`
+    (the model's input size). A SourceError names a spec that does not parse or a source that
+    cannot be opened."""
+    parsed = parse_source(spec)
+    match parsed:
+        case SyntheticSpec():
+            return SyntheticSource(
+                height,
+                width,
+                seed=seed,
+                **_given(key_fraction=parsed.key_fraction, key_every=parsed.key_every),
+            )
+        case PhotoSpec():
+            return PhotoSource(
+                height,
+                width,
+                seed=seed,
+                **_given(name=parsed.name, motion=parsed.motion, speed=parsed.speed),
+            )
+        case VideoSpec():
+            return VideoSource(parsed.path)
+        case CameraSpec():
+            return CameraSource(parsed.index)
+        case StereoWorldSpec() | StereoPairSpec() | StereoManeuverSpec():
+            # Imported here: they need nav's world and renderer, which mono sources do not.
+            from robotd.stereo_sources import open_stereo_source
+
+            return open_stereo_source(parsed, height=height, width=width, seed=seed)
+    raise SourceError(f"source {parsed.text!r}: no opener for {type(parsed).__name__}")
+
+
+def open_source_for(spec: str | SourceSpec, inputs: ImageInputs, *, seed: int = 0) -> FrameSource:
+    """`open_source` at the size of the model's image inputs; a one-line UserError (and the
+    source closed) when its frames do not feed them: a mono source on a model with several
+    image inputs, a stereo source on a one-input model, views not named like the inputs."""
+    source = open_source(spec, height=inputs.height, width=inputs.width, seed=seed)
+    try:
+        inputs.check_views(source.views, str(spec).strip())
+    except UserError:
+        source.close()
+        raise
+    return source
+
+
+def _given(**options: Any) -> dict[str, Any]:
+    """The options a spec set (None: the source's own default)."""
+    return {name: value for name, value in options.items() if value is not None}
