@@ -42,6 +42,14 @@ update the regression.
 - confirmation: after a single miss the next frame is a forced frame (so it samples the cloud,
   hedged if the policy would not otherwise offload), and a change is confirmed within
   `change_frames` frames rather than `change_frames` forced intervals.
+- take-up: an offloading action whose observation (its robot part as estimated plus the cloud
+  part observed) costs less than (1 − `takeover_margin`) of the current choice's estimate is
+  sampled again on the next frame (hedged), and `takeover_samples` such observations in a row
+  start an update period on its evidence (the "faster" direction). Change detection only counts
+  misses on actions the model knows; an action that rests on a few samples, e.g. the cloud after
+  a bad phase while the robot served every frame, would otherwise be learned one forced sample
+  at a time, its old samples outweighing the new ones for hundreds of frames. The rule needs no
+  count of samples: it only compares what the action just cost with what is being served.
 
 A frame the cloud did not answer teaches y = the time the robot waited (its deadline): a dead or
 congested route then looks expensive instead of unknown, and the miss feeds change detection.
@@ -160,6 +168,11 @@ class ElasticPolicy(Policy):
         self._streak_sign = 0
         self._confirm = False
         self.update_periods = 0
+        # Take-up: per column, the cloud-side observations in a row that beat the current
+        # choice by the margin; the column to sample on the next frame to confirm them.
+        self._beating: dict[int, list[float]] = {}
+        self._challenger: int | None = None
+        self.takeovers = 0
         # Robot probes: frames since the robot was last timed or a probe was tried, the current
         # interval (grows while unhedged probes find the estimate right), and whether a probe
         # was already tried for the measurement that is awaiting confirmation.
@@ -193,6 +206,12 @@ class ElasticPolicy(Policy):
         regular_p = self._p_allowed and p_cost <= best
         forced = self._confirm or self._schedule.is_forced(n)
         self._confirm = False
+        challenger = self._challenger
+        if challenger is not None:
+            # Confirm a take-up candidate on this frame (it is allowed: a restriction starts
+            # only with an update period, which clears the candidate).
+            self._challenger = None
+            j, forced = challenger, True
         if regular_p and not forced:
             return Decision(PURE_ROBOT, updating=self._updating, predicted_cost=p_cost)
         probe = self._needs_probe(j)
@@ -286,7 +305,9 @@ class ElasticPolicy(Policy):
             target = cloud_cost(self._wait_rate, self._radio_rate, outcome.waited_s, None)
         else:
             target = UNKNOWN_WAIT_FACTOR * max(self._pred[j], MIN_PREDICTION)
-        if self.params.change_detection:
+        if self._take_up(j, target):
+            pass  # the observation started an update period on this action's evidence
+        elif self.params.change_detection:
             self._track(j, target)
         else:
             self._ridge.update(j, target)
@@ -334,9 +355,18 @@ class ElasticPolicy(Policy):
         scale = max(abs(pred), MIN_PREDICTION)
         tolerance = params.change_tolerance * scale
         sign = 1 if residual > 0 else -1
+        # While the robot serves every frame, the cloud is seen only on explored frames: an
+        # explored action answering faster than predicted is the sign that offloading got
+        # cheaper, however few samples it has (its old ones may be from a bad phase).
+        cloud_cheaper = sign < 0 and self._cloud_cheaper()
         if self._updating:
             missed = abs(residual) > tolerance
-            if self._reversed(j, sign, missed, target):
+            if self._direction == 0 and cloud_cheaper and missed:
+                # An unrestricted period (the run's first) learns from everything; without
+                # this it would average the new answers with the old ones for hundreds of frames.
+                if self._missed(j, sign, target, cloud_cheaper):
+                    return
+            elif self._reversed(j, sign, missed, target):
                 return
             if not missed:
                 self._fitted.add(j)
@@ -358,20 +388,68 @@ class ElasticPolicy(Policy):
             return
         # Only an action the model knows well can reveal a change; a surprise on an action still
         # being explored is ordinary learning.
-        known = self._width[j] <= self._known_width
+        known = self._width[j] <= self._known_width or cloud_cheaper
         if known and abs(residual) > tolerance:
-            if sign != self._streak_sign:
-                self._streak.clear()
-                self._streak_sign = sign
-            self._streak.append((j, target))
-            if len(self._streak) >= params.change_frames:
-                self._enter_update(j, sign)
+            if self._missed(j, sign, target, cloud_cheaper):
                 return
-            self._confirm = params.confirm_misses
         else:
             self._streak.clear()
             self._streak_sign = 0
         self._ridge.update(j, target)
+
+    def _missed(self, j: int, sign: int, target: float, cloud_cheaper: bool) -> bool:
+        """One miss of column j: True when it completed `change_frames` in a row of one sign
+        and started an update period (the observation then went into it); else the next frame
+        is forced to confirm it (`confirm_misses`)."""
+        if sign != self._streak_sign:
+            self._streak.clear()
+            self._streak_sign = sign
+        self._streak.append((j, target))
+        if len(self._streak) >= self.params.change_frames:
+            # Misses of explored actions while P served (`cloud_cheaper`) say that offloading
+            # got cheaper, not which action: the period leaves every cut allowed.
+            self._enter_update(j, sign, self._streak, every_cut=cloud_cheaper)
+            return True
+        self._confirm = self.params.confirm_misses
+        return False
+
+    def _cloud_cheaper(self) -> bool:
+        """P is the current choice (and the take-up rules are on, `takeover_margin` > 0)."""
+        return self.params.takeover_margin > 0.0 and self._current()[1] < 0
+
+    def _current(self) -> tuple[float, int]:
+        """(estimated cost, column) of what the estimates alone choose now; column -1: P."""
+        current, greedy = self._cheapest
+        p_cost = self._robot.full_cost
+        if self._p_allowed and p_cost <= current:
+            return p_cost, -1
+        return current, greedy
+
+    def _take_up(self, j: int, target: float) -> bool:
+        """Take-up rule: True when this observation of column j, with the ones before it in a
+        row, beat the current choice by `takeover_margin` and started an update period on j's
+        evidence; a first beating observation asks for j on the next frame."""
+        params = self.params
+        margin = params.takeover_margin
+        if margin <= 0.0 or not params.change_detection:
+            return False
+        current, greedy = self._current()
+        beating = self._beating.setdefault(j, [])
+        # The robot part and the bytes as estimated (base − prediction), the cloud part seen.
+        observed = self._base[j] - self._pred[j] + target
+        if greedy == j or observed >= (1.0 - margin) * current:
+            beating.clear()
+            return False
+        beating.append(target)
+        if len(beating) < params.takeover_samples:
+            self._challenger = j
+            return False
+        misses = [(j, y) for y in beating]
+        self._beating.clear()
+        self._challenger = None
+        self._enter_update(j, -1, misses, every_cut=greedy < 0)
+        self.takeovers += 1
+        return True
 
     def _reversed(self, j: int, sign: int, missed: bool, target: float) -> bool:
         """Inside a restricted update period: `change_frames` misses in a row against its
@@ -393,12 +471,16 @@ class ElasticPolicy(Policy):
         self._streak.append((j, target))
         if len(self._streak) < self.params.change_frames:
             return False
-        self._enter_update(j, sign)
+        self._enter_update(j, sign, self._streak)
         return True
 
-    def _enter_update(self, j: int, sign: int) -> None:
-        """Start a parameter-update period after the action in column j missed repeatedly."""
-        misses = list(self._streak)
+    def _enter_update(
+        self, j: int, sign: int, evidence: list[tuple[int, float]], every_cut: bool = False
+    ) -> None:
+        """Start a parameter-update period after the action in column j missed repeatedly
+        (`evidence`: the (column, observation) pairs that revealed it; `every_cut`: a faster
+        period that only leaves P out, for evidence that offloading as a whole got cheaper)."""
+        misses = list(evidence)
         self._streak.clear()
         self._streak_sign = 0
         # Old evidence describes the old conditions; the misses are the first of the new ones.
@@ -408,7 +490,10 @@ class ElasticPolicy(Policy):
         if self.params.direction_restriction:
             sizes = np.array(self._bytes)
             anchor = sizes[j]
-            if sign > 0:
+            if every_cut:
+                self._mask = [True] * self._k
+                self._p_allowed = False
+            elif sign > 0:
                 self._mask = (sizes <= anchor).tolist()
                 self._p_allowed = True
             else:
@@ -420,6 +505,8 @@ class ElasticPolicy(Policy):
         self._period_frames = 0
         self._fits = 0
         self._recent.clear()
+        self._beating.clear()
+        self._challenger = None
         self.update_periods += 1
 
     def _leave_update(self) -> None:
@@ -512,6 +599,7 @@ class ElasticPolicy(Policy):
             "samples": self._ridge.samples,
             "updating": self._updating,
             "update_periods": self.update_periods,
+            "takeovers": self.takeovers,
             "direction": self._direction,
             "robot_speed_ratio": self._robot.ratio,
             "robot_probes": self.robot_probes,
@@ -526,5 +614,6 @@ def elastic_params_for_ans(params: AnsParams) -> ElasticParams:
         direction_restriction=False,
         hedge=False,
         confirm_misses=False,
+        takeover_margin=0.0,
         robot_probe_frames=0,
     )
