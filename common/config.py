@@ -240,9 +240,11 @@ class BatchingConfig(_Model):
         description="Batch sizes run without waiting; the largest is the biggest batch.",
     )
     max_in_flight_per_robot: int = Field(
-        default=2,
+        default=8,
         ge=1,
-        description="Requests of one robot admitted at once (queued or running); one robot "
+        description="Cap on the requests of one robot admitted at once (queued or running): a "
+        "robot is admitted as many as the frames it keeps in flight (announced at registration, "
+        "max_in_flight) plus one, at most this; one that announced nothing gets this. One robot "
         "sending as fast as it can then cannot take every worker or queue slot.",
     )
     heavy_robots_low_priority: bool = Field(
