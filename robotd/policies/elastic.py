@@ -50,6 +50,9 @@ update the regression.
   a bad phase while the robot served every frame, would otherwise be learned one forced sample
   at a time, its old samples outweighing the new ones for hundreds of frames. The rule needs no
   count of samples: it only compares what the action just cost with what is being served.
+- hint: while P serves, an unknown explored action answering faster than predicted makes the next
+  frame sample the action that was cheapest at its best (`_hint_cheaper`), so take-up can judge
+  the action worth taking rather than whichever had the largest confidence bonus.
 
 A frame the cloud did not answer teaches y = the time the robot waited (its deadline): a dead or
 congested route then looks expensive instead of unknown, and the miss feeds change detection.
@@ -173,6 +176,8 @@ class ElasticPolicy(Policy):
         self._beating: dict[int, list[float]] = {}
         self._challenger: int | None = None
         self.takeovers = 0
+        # Per column, the least cloud-side cost it was ever seen to take (`_hint_cheaper`).
+        self._best_seen: dict[int, float] = {}
         # Robot probes: frames since the robot was last timed or a probe was tried, the current
         # interval (grows while unhedged probes find the estimate right), and whether a probe
         # was already tried for the measurement that is awaiting confirmation.
@@ -305,6 +310,8 @@ class ElasticPolicy(Policy):
             target = cloud_cost(self._wait_rate, self._radio_rate, outcome.waited_s, None)
         else:
             target = UNKNOWN_WAIT_FACTOR * max(self._pred[j], MIN_PREDICTION)
+        if target < self._best_seen.get(j, math.inf):
+            self._best_seen[j] = target
         if self._take_up(j, target):
             pass  # the observation started an update period on this action's evidence
         elif self.params.change_detection:
@@ -355,18 +362,13 @@ class ElasticPolicy(Policy):
         scale = max(abs(pred), MIN_PREDICTION)
         tolerance = params.change_tolerance * scale
         sign = 1 if residual > 0 else -1
-        # While the robot serves every frame, the cloud is seen only on explored frames: an
-        # explored action answering faster than predicted is the sign that offloading got
-        # cheaper, however few samples it has (its old ones may be from a bad phase).
-        cloud_cheaper = sign < 0 and self._cloud_cheaper()
+        if sign < 0 and abs(residual) > tolerance and self._width[j] > self._known_width:
+            # A surprise on an action the model does not know: change detection ignores it
+            # (below), the hint does not (a known action's misses are confirmed there).
+            self._hint_cheaper(j, target)
         if self._updating:
             missed = abs(residual) > tolerance
-            if self._direction == 0 and cloud_cheaper and missed:
-                # An unrestricted period (the run's first) learns from everything; without
-                # this it would average the new answers with the old ones for hundreds of frames.
-                if self._missed(j, sign, target, cloud_cheaper):
-                    return
-            elif self._reversed(j, sign, missed, target):
+            if self._reversed(j, sign, missed, target):
                 return
             if not missed:
                 self._fitted.add(j)
@@ -388,34 +390,48 @@ class ElasticPolicy(Policy):
             return
         # Only an action the model knows well can reveal a change; a surprise on an action still
         # being explored is ordinary learning.
-        known = self._width[j] <= self._known_width or cloud_cheaper
+        known = self._width[j] <= self._known_width
         if known and abs(residual) > tolerance:
-            if self._missed(j, sign, target, cloud_cheaper):
+            if sign != self._streak_sign:
+                self._streak.clear()
+                self._streak_sign = sign
+            self._streak.append((j, target))
+            if len(self._streak) >= params.change_frames:
+                self._enter_update(j, sign, self._streak)
                 return
+            self._confirm = params.confirm_misses
         else:
             self._streak.clear()
             self._streak_sign = 0
         self._ridge.update(j, target)
 
-    def _missed(self, j: int, sign: int, target: float, cloud_cheaper: bool) -> bool:
-        """One miss of column j: True when it completed `change_frames` in a row of one sign
-        and started an update period (the observation then went into it); else the next frame
-        is forced to confirm it (`confirm_misses`)."""
-        if sign != self._streak_sign:
-            self._streak.clear()
-            self._streak_sign = sign
-        self._streak.append((j, target))
-        if len(self._streak) >= self.params.change_frames:
-            # Misses of explored actions while P served (`cloud_cheaper`) say that offloading
-            # got cheaper, not which action: the period leaves every cut allowed.
-            self._enter_update(j, sign, self._streak, every_cut=cloud_cheaper)
-            return True
-        self._confirm = self.params.confirm_misses
-        return False
-
-    def _cloud_cheaper(self) -> bool:
-        """P is the current choice (and the take-up rules are on, `takeover_margin` > 0)."""
-        return self.params.takeover_margin > 0.0 and self._current()[1] < 0
+    def _hint_cheaper(self, j: int, target: float) -> None:
+        """Column j answered faster than predicted while P serves every frame: offloading may
+        have got cheaper (a bad phase ended), but j itself need not be the action to take (an
+        explored action far from competitive). Sample on the next frame the action that was
+        cheapest at its best: its robot part plus the least cloud part it was ever seen to
+        take (an action never seen: its prediction shrunk as j's answer shrank), if that beat P
+        by `takeover_margin`. The take-up rule then judges it on its own answers. The sample
+        is hedged; on a link that is still bad it only confirms the estimate."""
+        margin = self.params.takeover_margin
+        if margin <= 0.0 or self._challenger is not None:
+            return
+        p_cost, greedy = self._current()
+        if greedy >= 0:
+            return
+        ratio = max(target, 0.0) / max(self._pred[j], MIN_PREDICTION)
+        seen = self._best_seen
+        best_case = [
+            b - y + (seen[a] if a in seen else y * ratio)
+            for a, (b, y) in enumerate(zip(self._allowed_base, self._pred, strict=False))
+        ]
+        best = min(best_case)
+        candidate = best_case.index(best)
+        # Only an action that at its best beat P by the margin is worth a sample; j itself
+        # is not asked for again (its own answers already teach the regression, and samples
+        # of it in a row would make ordinary misses look like a change).
+        if candidate != j and best < (1.0 - margin) * p_cost:
+            self._challenger = candidate
 
     def _current(self) -> tuple[float, int]:
         """(estimated cost, column) of what the estimates alone choose now; column -1: P."""
@@ -447,7 +463,7 @@ class ElasticPolicy(Policy):
         misses = [(j, y) for y in beating]
         self._beating.clear()
         self._challenger = None
-        self._enter_update(j, -1, misses, every_cut=greedy < 0)
+        self._enter_update(j, -1, misses, only_p_out=greedy < 0)
         self.takeovers += 1
         return True
 
@@ -475,11 +491,11 @@ class ElasticPolicy(Policy):
         return True
 
     def _enter_update(
-        self, j: int, sign: int, evidence: list[tuple[int, float]], every_cut: bool = False
+        self, j: int, sign: int, evidence: list[tuple[int, float]], only_p_out: bool = False
     ) -> None:
         """Start a parameter-update period after the action in column j missed repeatedly
-        (`evidence`: the (column, observation) pairs that revealed it; `every_cut`: a faster
-        period that only leaves P out, for evidence that offloading as a whole got cheaper)."""
+        (`evidence`: the (column, observation) pairs that revealed it; `only_p_out`: a take-up
+        of j over P, whose period leaves P out and every cut in)."""
         misses = list(evidence)
         self._streak.clear()
         self._streak_sign = 0
@@ -490,7 +506,7 @@ class ElasticPolicy(Policy):
         if self.params.direction_restriction:
             sizes = np.array(self._bytes)
             anchor = sizes[j]
-            if every_cut:
+            if only_p_out:
                 self._mask = [True] * self._k
                 self._p_allowed = False
             elif sign > 0:
