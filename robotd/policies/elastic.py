@@ -178,6 +178,7 @@ class ElasticPolicy(Policy):
         self.takeovers = 0
         # Per column, the least cloud-side cost it was ever seen to take (`_hint_cheaper`).
         self._best_seen: dict[int, float] = {}
+        self._next_hint = 0  # no hint before this frame
         # Robot probes: frames since the robot was last timed or a probe was tried, the current
         # interval (grows while unhedged probes find the estimate right), and whether a probe
         # was already tried for the measurement that is awaiting confirmation.
@@ -414,8 +415,10 @@ class ElasticPolicy(Policy):
         by `takeover_margin`. The take-up rule then judges it on its own answers. The sample
         is hedged; on a link that is still bad it only confirms the estimate."""
         margin = self.params.takeover_margin
-        if margin <= 0.0 or self._challenger is not None:
+        if margin <= 0.0 or self._challenger is not None or self._frame < self._next_hint:
             return
+        if self._direction != 0:
+            return  # a restricted period is learning the new conditions afresh: no hints
         p_cost, greedy = self._current()
         if greedy >= 0:
             return
@@ -432,6 +435,9 @@ class ElasticPolicy(Policy):
         # of it in a row would make ordinary misses look like a change).
         if candidate != j and best < (1.0 - margin) * p_cost:
             self._challenger = candidate
+            # At most one hint per forced interval: on a link that is still bad, every hinted
+            # sample costs a hedged frame (and, paced, delays the frames behind it).
+            self._next_hint = self._frame + self._schedule.interval(self._frame)
 
     def _current(self) -> tuple[float, int]:
         """(estimated cost, column) of what the estimates alone choose now; column -1: P."""
