@@ -33,7 +33,7 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from deploy.procs import LocalFleet, write_local_fleet
+from deploy.local_fleet import LocalFleet, write_local_fleet
 
 CLOUDS = ("edge-1", "edge-2")
 FINISH_TIMEOUT_S = 300.0

@@ -25,7 +25,7 @@ from typing import Any
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from deploy.demo import answered_by, read_telemetry, summarize
-from deploy.procs import LocalFleet, write_local_fleet
+from deploy.local_fleet import LocalFleet, write_local_fleet
 
 ROBOT = "robot-1"
 CLOUDS = ("edge-1", "edge-2")

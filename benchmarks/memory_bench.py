@@ -46,7 +46,8 @@ import onnx
 import psutil
 from onnx import TensorProto, helper, numpy_helper
 
-from deploy.procs import LocalFleet, free_tcp_port, write_local_fleet
+from deploy.local_fleet import LocalFleet, write_local_fleet
+from deploy.procs import free_tcp_port
 
 MiB = 1024 * 1024
 TARGET_RATIO = 1.5

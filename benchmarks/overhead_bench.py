@@ -42,7 +42,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.zenoh_vs_tcp import KEY, READY_TIMEOUT_S, free_port
 from deploy.demo import read_telemetry
-from deploy.procs import LocalFleet, write_local_fleet
+from deploy.local_fleet import LocalFleet, write_local_fleet
 
 ROBOT = "robot-1"
 PART_RUNS = 100

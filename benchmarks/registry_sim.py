@@ -3,8 +3,8 @@
 The simulated fleet (`registry_sim_fleet.py` beside this file) drives the registry daemon's own
 control loop, scheduler, switch protocol and sqlite RIB with churn and latency reports at 10 Hz
 per robot. Measured after `--warmup-s` of simulated time, over `--duration-s` (wall clock):
-- one scheduling round (`_schedule_all`: every live robot evaluated, moves carried out): median
-  and p95; decisions per second = robots evaluated per second of round time;
+- one scheduling round (`ControlLoop.schedule_all`: every live robot evaluated, moves carried
+  out): median and p95; decisions per second = robots evaluated per second of round time;
 - moves (route changes published) and RIB write transactions per simulated second (each public
   write method of `Rib` is one transaction); profile windows saved per simulated second;
 - the cost of feeding the measurements (µs per telemetry or probe report, decoding not included),
@@ -275,7 +275,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(format_table(out["baseline"], f"before ({args.baseline_src})"))
         print()
     print(format_table(out["results"], "after" if out["baseline"] else "this revision"))
-    for before, after in zip(out["baseline"], out["results"], strict=True):
+    for before, after in zip(
+        out["baseline"] or [], out["results"] if out["baseline"] else [], strict=True
+    ):
         speedup = before.round_median_ms / after.round_median_ms
         alike = before.route_changes_digest == after.route_changes_digest
         print(

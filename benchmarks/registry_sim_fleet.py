@@ -1,16 +1,15 @@
-"""The simulated fleet of benchmarks/registry_sim.py: one registry daemon, no Zenoh.
+"""The simulated fleet of benchmarks/registry_sim.py: the registry's control loop, no Zenoh.
 
-What runs is the registry's own control loop: a `RegistryDaemon` whose scheduler, switch protocol
-(`Switcher`), sqlite RIB (a real file, WAL), measurements and registrar are the real ones, and
-whose Zenoh parts are replaced: a `SimNetwork` stands in for `ZenohTransport` (deployments answer
-`ctl` with the cloud daemon's epoch rules, route changes reach the robots at once) and a
-`SimProber` for the probe pool. The simulation calls what the daemon's Zenoh callbacks and main
-loop call: membership changes and probe outcomes go through the daemon's event handler, telemetry
-and probe reports into its measurements, and every tick (`SCHEDULER_TICK_S`) one scheduling round
-(`_schedule_all`), with the load refresh at the daemon's interval and the profile save paced
-as the daemon paces it (`registry.profile_saver`). Reaching into the daemon's control loop is
-deliberate: the figures are those of the daemon's own code, not of a copy of its wiring that
-could drift from it.
+What runs is the registry's own control loop (`registry.control_loop.ControlLoop`), whose
+scheduler, switch protocol (`Switcher`), sqlite RIB (a real file, WAL), measurements and
+registrar are the real ones, and whose Zenoh parts are replaced: a `SimNetwork` stands in for
+`ZenohTransport` (deployments answer `ctl` with the cloud daemon's epoch rules, route changes
+reach the robots at once) and a `SimProber` for the probe pool. The simulation calls what the
+daemon's Zenoh callbacks and main loop call: membership changes and probe outcomes go through the
+loop's `handle`, telemetry and probe reports into its measurements, and every tick
+(`SCHEDULER_TICK_S`) one scheduling round (`schedule_all`), with the load refresh at the daemon's
+interval and the profile save paced as the daemon paces it (`registry.profile_saver`): the
+figures are those of the daemon's own code, not of a copy of its wiring that could drift from it.
 
 The fleet. Robots and deployments sit at random points of a unit square; the remote part of a
 frame is a network share growing with distance, plus the deployment's compute time scaled by its
@@ -28,6 +27,7 @@ from __future__ import annotations
 
 import gc
 import hashlib
+import logging
 import math
 import os
 import random
@@ -45,6 +45,7 @@ from common import keys
 from common.config import FleetConfig, fleet_from_dict
 from common.keys import Role
 from common.membership import MemberChange
+from common.throttled_log import ThrottledLog
 from common.wire.registry import (
     CAP_CTL,
     CAP_INFER,
@@ -58,13 +59,12 @@ from common.wire.registry import (
     RouteChange,
 )
 from common.wire.telemetry import ProbeReport, TelemetryRecord
+from registry.control_loop import ControlLoop, Evaluate
 from registry.daemon import (
     LOAD_REFRESH_INTERVAL_S,
     PROFILE_SAVE_INTERVAL_S,
     SCHEDULER_TICK_S,
     RegistryDaemon,
-    _Evaluate,
-    _Started,
 )
 from registry.measurements import Measurements
 from registry.prober import Probed
@@ -432,8 +432,8 @@ class RegistrySim:
         self.clock = SimClock()
         self.network = SimNetwork()
         self.prober = SimProber(network=self.network)
-        self.daemon = self._daemon(workdir / "rib.sqlite")
-        self.rib = self._parts.rib
+        self.loop = self._control_loop(workdir / "rib.sqlite")
+        self.rib = self.loop.rib
         self.writes = RibWrites(self.rib)
         capacity = max(MIN_CAPACITY, math.ceil(CAPACITY_SHARES * cfg.robots / cfg.deployments))
         for j in range(cfg.deployments):
@@ -446,13 +446,13 @@ class RegistrySim:
         self._frames_per_tick = round(cfg.telemetry_hz * SCHEDULER_TICK_S)
         self._probe_ticks = round(cfg.probe_interval_s / SCHEDULER_TICK_S)
 
-    # -- the daemon, without Zenoh --------------------------------------------------------------
-    def _daemon(self, db_path: Path) -> RegistryDaemon:
+    # -- the registry's control loop, without Zenoh --------------------------------------------
+    def _control_loop(self, db_path: Path) -> ControlLoop:
+        """What `RegistryDaemon.startup` makes, with the simulated network in Zenoh's place and
+        the scheduler, the measurements and the RIB on simulated time."""
         fleet_cfg = _fleet_config()
-        daemon = RegistryDaemon(fleet_cfg, db_path=db_path, restore_grace_s=0.0)
-        # The scheduler and the measurements on simulated time (the daemon's own take real time).
-        daemon.scheduler = Scheduler(daemon.bound, daemon.params, clock=self.clock.now)
-        daemon.measurements = Measurements(
+        daemon = RegistryDaemon(fleet_cfg, db_path=db_path)  # its settings; never started
+        measurements = Measurements(
             daemon.bound.window,
             deadline_s=fleet_cfg.deadline_s,
             timeout_count=daemon.params.timeout_count,
@@ -461,28 +461,26 @@ class RegistrySim:
             wall_clock=self.clock.wall,
         )
         rib = Rib(db_path, clock=self.clock.wall)
-        registrar = Registrar(FLEET, rib, SERVICE, fleet_model_digest(fleet_cfg))
         network = cast(Any, self.network)
-        # What `RegistryDaemon.startup` makes, with the simulated network in Zenoh's place.
-        daemon._started = _Started(
-            session=cast(Any, None),
+        # The views are built as the daemon's are: part of what a RIB of this size costs.
+        registrar = Registrar(FLEET, rib, SERVICE, fleet_model_digest(fleet_cfg))
+        self.views = RibViews(
+            FLEET, rib, measurements, registrar, daemon.bound, fleet_cfg.deadline_s
+        )
+        return ControlLoop(
+            fleet_cfg,
             rib=rib,
             transport=network,
             switcher=Switcher(rib, network, sender=daemon.id, clock=self.clock.wall),
             registrar=registrar,
-            views=RibViews(
-                FLEET, rib, daemon.measurements, registrar, daemon.bound, fleet_cfg.deadline_s
-            ),
             prober=cast(Any, self.prober),
             pools=None,  # an anycast fleet
+            scheduler=Scheduler(daemon.bound, daemon.params, clock=self.clock.now),
+            measurements=measurements,
+            throttled=ThrottledLog(logging.getLogger("registry.daemon")),
+            started_at=0.0,
+            restore_grace_s=0.0,
         )
-        return daemon
-
-    @property
-    def _parts(self) -> _Started:
-        started = self.daemon._started
-        assert started is not None
-        return started
 
     def close(self) -> None:
         self.rib.close()
@@ -503,7 +501,7 @@ class RegistrySim:
         change = MemberChange(
             role=role.value, id=member, alive=alive, seed=False, alive_ids=frozenset()
         )
-        self.daemon._handle(change)
+        self.loop.handle(change)
 
     def _start_deployment(self, dep: SimDeployment) -> None:
         dep.start()
@@ -555,7 +553,7 @@ class RegistrySim:
         return net * noise, (net + cloud) * noise
 
     def _telemetry(self, tally: _Tally) -> None:
-        measurements = self.daemon.measurements
+        measurements = self.loop.measurements
         wall = self.clock.wall()
         for robot in self.slots:
             if not robot.alive:
@@ -567,7 +565,7 @@ class RegistrySim:
                 tally.ingest_s += time.perf_counter() - start
                 tally.reports += 1
                 if reroute:
-                    self._handle(_Evaluate(robot.id), tally)
+                    self._handle(Evaluate(robot.id), tally)
 
     def _frame(self, robot: SimRobot, wall: float) -> TelemetryRecord:
         robot.frame += 1
@@ -603,7 +601,7 @@ class RegistrySim:
 
     def _probes(self, tick: int, tally: _Tally) -> None:
         """The robots whose turn it is probe every live deployment."""
-        measurements = self.daemon.measurements
+        measurements = self.loop.measurements
         wall = self.clock.wall()
         live = [d for d in self.network.deployments.values() if d.alive]
         for robot in self.slots:
@@ -630,7 +628,7 @@ class RegistrySim:
     # -- the control loop ----------------------------------------------------------------------
     def _handle(self, event: Any, tally: _Tally) -> None:
         start = time.perf_counter()
-        self.daemon._handle(event)
+        self.loop.handle(event)
         tally.events_s += time.perf_counter() - start
 
     def _probed(self, tally: _Tally) -> None:
@@ -650,7 +648,7 @@ class RegistrySim:
             None
             if not PACED
             else PacedSaver(
-                self.daemon.measurements,
+                self.loop.measurements,
                 self.rib,
                 tick_s=SCHEDULER_TICK_S,
                 interval_s=PROFILE_SAVE_INTERVAL_S,
@@ -676,12 +674,12 @@ class RegistrySim:
             self._telemetry(tally)
             self._probes(tick, tally)
             start = time.perf_counter()
-            self.daemon._schedule_all()
+            self.loop.schedule_all()
             tally.rounds_s.append(time.perf_counter() - start)
             tally.evaluated += sum(1 for r in self.slots if r.alive)
             if tick % refresh_ticks == refresh_ticks - 1:
                 start = time.perf_counter()
-                self.daemon._refresh_deployments()
+                self.loop.refresh_deployments()
                 self._probed(tally)
                 tally.refresh_s.append(time.perf_counter() - start)
             if saver is not None:  # as the daemon's loop: a share after every round
@@ -690,7 +688,7 @@ class RegistrySim:
                 tally.save_s.append(time.perf_counter() - start)
             elif tick % save_ticks == save_ticks - 1:
                 start = time.perf_counter()
-                tally.saved += self.daemon.measurements.save(self.rib)
+                tally.saved += self.loop.measurements.save(self.rib)
                 tally.save_s.append(time.perf_counter() - start)
         pauses.stop()
         span_s = cfg.duration_s

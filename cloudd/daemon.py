@@ -57,6 +57,7 @@ import logging
 import signal
 import threading
 import time
+from dataclasses import dataclass
 
 import zenoh
 
@@ -106,11 +107,22 @@ INFLIGHT_WAIT_S = 0.4
 """How long shutdown lets admitted requests finish before closing the session."""
 
 
+@dataclass(frozen=True)
+class _Started:
+    """What startup made that queries, control and draining use."""
+
+    model: SplitModel
+    session: zenoh.Session
+    queue: FairQueue[Job]
+    admission: Admission
+
+
 class CloudDaemon(Daemon):
     """One deployment of the fleet's service: `CloudDaemon(cfg, "edge-1").run()`.
 
     `fault` overrides the machine's configured fault injection at start; `drop_seed` seeds the
-    drop decisions (tests). `ready` is set once the daemon serves (its token is declared).
+    drop decisions (tests). `ready` (the lifecycle's) is set once startup is done: the daemon
+    serves.
     `limits` are the machine's limits, `refusals` counts what they (and the rest) refused.
 
     The daemon keeps the lifecycle and wires its parts: `RobotBook` (per-robot state, counters,
@@ -137,7 +149,6 @@ class CloudDaemon(Daemon):
         if fault is None:
             fault = FaultSpec(**self.machine.fault.model_dump())
         self.faults = FaultInjector(fault, seed=drop_seed)
-        self.ready = threading.Event()
         self.drained = threading.Event()
         self._registry = RegistryLink(cfg, deployment, stop=self.should_exit)
         self.registry_seen = self._registry.seen
@@ -172,12 +183,12 @@ class CloudDaemon(Daemon):
         self._costs = BatchCosts()
         self.batch_stats = BatchStats()
 
-        # Made in startup (None before), released by the lifecycle.
+        # Made in startup, released by the lifecycle: the model as soon as it is loaded (a probe
+        # never comes before the session, but startup may stop in between), the rest in one
+        # `_Started` once the session and the workers are up.
         self._model: SplitModel | None = None
         self._cut_specs: list[list[TensorSpec]] = []
-        self._queue: FairQueue[Job] | None = None
-        self._admission: Admission | None = None
-        self._session: zenoh.Session | None = None
+        self._started: _Started | None = None
 
     # -- public ----------------------------------------------------------------------------
     @property
@@ -186,6 +197,13 @@ class CloudDaemon(Daemon):
         if self._model is None:
             raise RuntimeError("the model is loaded in startup()")
         return self._model
+
+    @property
+    def _parts(self) -> _Started:
+        """The started parts (RuntimeError before startup has opened the session)."""
+        if self._started is None:
+            raise RuntimeError("the cloud daemon is not started")
+        return self._started
 
     def stop(self, drain: bool = False) -> None:
         """Ask the daemon to stop (thread-safe); with `drain`, as on SIGTERM."""
@@ -206,7 +224,7 @@ class CloudDaemon(Daemon):
         snapshot, served = self._book.snapshot()
         states = {robot: st.state for robot, st in snapshot.items()}
         model = self._model
-        queue = self._queue
+        queue = self._started.queue if self._started is not None else None
         return ProbeReply(
             deployment=self.deployment,
             protocol_version=PROTOCOL_VERSION,
@@ -236,13 +254,16 @@ class CloudDaemon(Daemon):
         session = self._registry.open_session()
         if session is None:
             return  # stopped while waiting for the registry
-        self._session = self.hold(session, "zenoh session")
+        self.hold(session, "zenoh session")
         self._replies.start()
         # Delayed replies go out now; held queries are let go.
         self.on_release(self._replies.stop, what="timer thread")
         policy = BatchPolicy.from_config(self.machine.batching)
-        workers = self._start_workers(policy)
+        workers, admission = self._start_workers(policy)
         queue = workers.queue
+        self._started = _Started(
+            model=self.model, session=session, queue=queue, admission=admission
+        )
         for key, handler, what in [
             (self._probe.key, self._probe.on_query, "probe queryable"),
             (self._controller.key, self._controller.on_query, "ctl queryable"),
@@ -261,7 +282,6 @@ class CloudDaemon(Daemon):
         self.announce(
             session.liveliness().declare_token(keys.alive_cloud(self.cfg.fleet, self.deployment))
         )
-        self.ready.set()
         log.info(
             "%s: ready: service %r, %d cuts warm, %d workers, %d slots, at most %d per robot, "
             "%s, %s, faults: %s",
@@ -288,7 +308,6 @@ class CloudDaemon(Daemon):
     def shutdown(self) -> None:
         """Refuse new work, then release everything startup made: the token first (the registry
         reroutes at once instead of waiting for a timeout), then in reverse order. Safe twice."""
-        self.ready.clear()
         self._book.close()
         super().shutdown()
         self.refusals.log_summary(self.deployment)
@@ -329,15 +348,14 @@ class CloudDaemon(Daemon):
             time.monotonic() - started,
         )
 
-    def _start_workers(self, policy: BatchPolicy) -> BatchWorkers[Job]:
-        """The queue, the service keys' admission and the workers running its batches."""
+    def _start_workers(self, policy: BatchPolicy) -> tuple[BatchWorkers[Job], Admission]:
+        """The queue, the workers running its batches and the service keys' admission."""
         # Each worker may run a whole batch; `queue` slots wait beyond that.
         slots = self.machine.workers * policy.max_batch + self.machine.queue
         queue: FairQueue[Job] = FairQueue(
             policy, slots=slots, costs=self._costs, batchable=self.model.batched
         )
-        self._queue = queue
-        self._admission = Admission(
+        admission = Admission(
             self.deployment,
             digest=self.model.digest,
             cut_specs=self._cut_specs,
@@ -371,22 +389,20 @@ class CloudDaemon(Daemon):
         )
         workers.start()
         self.on_release(self._stop_workers, workers, what="workers")
-        return workers
+        return workers, admission
 
     # -- service keys ----------------------------------------------------------------------
     def _set_in_flight(self, robot: str, announced: int) -> int | None:
         """The Controller passes on the frames in flight a robot announced; the limit now in
         force for it (None before the queue exists)."""
-        queue = self._queue
-        return None if queue is None else queue.set_in_flight(robot, announced)
+        started = self._started
+        return None if started is None else started.queue.set_in_flight(robot, announced)
 
     def _declare_service(self, robot: str) -> None:
         """Declare `robot`'s service key and this deployment's pool member key for it (the
         Controller calls this before acking service). A robot of an anycast fleet queries the
         first; one in a round-robin pool sends each frame to one member's key."""
-        session, admission = self._session, self._admission
-        if session is None or admission is None:
-            raise RuntimeError("no session")
+        session, admission = self._parts.session, self._parts.admission
         fleet, service = self.cfg.fleet, self.cfg.service
         declared: list[zenoh.Queryable[None]] = []
         try:
@@ -433,9 +449,9 @@ class CloudDaemon(Daemon):
 
     def _drain(self) -> None:
         """Mark every robot draining and ask the registry to move them; bounded in time."""
-        session = self._session
-        if session is None:
-            return
+        if self._started is None:
+            return  # stopped before the session was open: nothing to drain
+        session = self._started.session
         serving = self._book.drain_all()
         log.info(
             "%s: draining (serving %s); asking the registry to move them",

@@ -18,9 +18,11 @@ What each host may send (ingress on every other host), with keys from `common.ke
   registry's drain key; follow the fleet's liveliness tokens.
 - robot `<r>`: query its own service key and pool member keys, the registry's register/reroute
   keys and the deployments' probes (`dep/*/probe`, how it measures them); publish its own
-  telemetry and probe reports; subscribe to its own route; its own liveliness token; follow
-  liveliness tokens.
-- cli: query the registry's views (`rib/*`) and nothing else.
+  telemetry, probe reports and results (`out/<r>`); subscribe to its own route and frames
+  (`in/<r>`), and put frames there (an application on the robot's host, with its certificate);
+  its own liveliness token; follow liveliness tokens.
+- cli: query the registry's views (`rib/*`) and follow the robots' results (`out/*`); nothing
+  else.
 
 Egress is open within the fleet's prefix for every known host: what a host can receive follows
 from what it may declare and query, which every other host checks on ingress (a robot that may
@@ -110,10 +112,20 @@ def robot_grants(cfg: FleetConfig, robot: str) -> list[Grant]:
         ),
         Grant(
             (Message.PUT,),
-            (keys.tele(fleet, robot), keys.tele_probe(fleet, robot)),
-            "its own telemetry and probe reports",
+            (
+                keys.tele(fleet, robot),
+                keys.tele_probe(fleet, robot),
+                keys.results_out(fleet, robot),
+                keys.frames_in(fleet, robot),
+            ),
+            "its own telemetry, probe reports and results; frames to itself (an application "
+            "on the robot, with its certificate)",
         ),
-        Grant((Message.DECLARE_SUBSCRIBER,), (keys.route(fleet, robot),), "its own route"),
+        Grant(
+            (Message.DECLARE_SUBSCRIBER,),
+            (keys.route(fleet, robot), keys.frames_in(fleet, robot)),
+            "its own route and frames in",
+        ),
         Grant((Message.LIVELINESS_TOKEN,), (keys.alive_robot(fleet, robot),), "its own token"),
         Grant(FOLLOW_LIVELINESS, (keys.alive_all(fleet),), "follow the fleet's membership"),
     ]
@@ -121,7 +133,14 @@ def robot_grants(cfg: FleetConfig, robot: str) -> list[Grant]:
 
 def cli_grants(cfg: FleetConfig) -> list[Grant]:
     """The read-only CLI certificate: the registry's views."""
-    return [Grant((Message.QUERY,), (keys.rib_all(cfg.fleet),), "read the RIB views")]
+    return [
+        Grant((Message.QUERY,), (keys.rib_all(cfg.fleet),), "read the RIB views"),
+        Grant(
+            (Message.DECLARE_SUBSCRIBER,),
+            (keys.results_out_all(cfg.fleet),),
+            "follow the robots' results (`elasticfog results`)",
+        ),
+    ]
 
 
 def grants(cfg: FleetConfig) -> dict[str, list[Grant]]:

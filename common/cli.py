@@ -7,6 +7,7 @@ exits the process; a `UserError` anywhere becomes one line on stderr and exit co
 
 from __future__ import annotations
 
+import inspect
 import sys
 from importlib.metadata import PackageNotFoundError, entry_points, version
 
@@ -67,7 +68,32 @@ def _register_commands() -> None:
         ep.load()(app)
 
 
+def as_paragraphs(text: str) -> str:
+    """A docstring's help as paragraphs: the line breaks inside a paragraph are the source's
+    wrapping, so they become spaces and the terminal wraps the text at its own width (a
+    command list showed "... through phases of an / emulated robot")."""
+    paragraphs = [" ".join(p.split()) for p in inspect.cleandoc(text).split("\n\n")]
+    return "\n\n".join(p for p in paragraphs if p)
+
+
+def _unwrap_help(group: typer.Typer) -> None:
+    """Every command's and group's help under `group` as paragraphs."""
+    for command in group.registered_commands:
+        text = command.help or (inspect.getdoc(command.callback) if command.callback else None)
+        if text:
+            command.help = as_paragraphs(text)
+    for sub in group.registered_groups:
+        if isinstance(sub.help, str):
+            sub.help = as_paragraphs(sub.help)
+        if sub.typer_instance is not None:
+            info = sub.typer_instance.info
+            if isinstance(info.help, str):
+                info.help = as_paragraphs(info.help)
+            _unwrap_help(sub.typer_instance)
+
+
 _register_commands()
+_unwrap_help(app)
 
 
 def main() -> None:

@@ -298,9 +298,50 @@ class CloudLimitsConfig(_Model):
     )
 
 
+# A ROS 2 topic name (design.ros2.org "Topic and Service name mapping"): tokens of letters,
+# digits and underscores, not starting with a digit, joined by single slashes, optionally
+# absolute (/) or private (~/); no trailing slash, no repeated underscores.
+_ROS_TOPIC = re.compile(r"^(~/|/)?[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*$")
+
+
+def _check_ros_topic(value: str | None) -> str | None:
+    if value is not None and (not _ROS_TOPIC.match(value) or "__" in value):
+        raise ValueError(
+            f"{value!r} is not a ROS 2 topic name: letters, digits and underscores in tokens "
+            "that do not start with a digit, joined by single '/', e.g. /robot1/results"
+        )
+    return value
+
+
+def _check_result_codec(value: str) -> str:
+    from common.wire.errors import WireError
+    from common.wire.robot_to_app import result_codec
+
+    try:
+        return result_codec(value)
+    except WireError as exc:
+        raise ValueError(exc.reason) from None
+
+
+class ResultsConfig(_Model):
+    """Robot: how each applied frame's result is published (`ef/<fleet>/out/<robot>`, and on
+    ROS 2 topics with `ros2`)."""
+
+    codec: Annotated[str, AfterValidator(_check_result_codec)] = Field(
+        default="raw",
+        description="Codec of the outputs on ef/<fleet>/out/<robot>: raw (exact), fp16 "
+        "(relative error <= 2**-11) or zstd (raw+zstd, exact); lossy codecs are refused.",
+    )
+    ros2: Annotated[str | None, AfterValidator(_check_ros_topic)] = Field(
+        default=None,
+        description="ROS 2 topic prefix: each output also published on <prefix>/<output> "
+        "(std_msgs/Float32MultiArray); null: no ROS 2 publication.",
+    )
+
+
 # Fields that only mean something for one role: setting them on the other is an error.
 _CLOUD_ONLY = frozenset({"workers", "queue", "fault", "batching", "limits"})
-_ROBOT_ONLY = frozenset({"source", "fps", "uplink_mbit", "max_in_flight"})
+_ROBOT_ONLY = frozenset({"source", "fps", "uplink_mbit", "max_in_flight", "results"})
 
 
 class MachineConfig(_Model):
@@ -363,8 +404,8 @@ class MachineConfig(_Model):
         default="synthetic",
         description=(
             "Robot: frame source, a spec of robotd.source_names: synthetic[:OPTIONS], "
-            "photo[:NAME], video:PATH, camera:INDEX or stereo:world|motorcycle|LEFT,RIGHT"
-            "[,OPTIONS]."
+            "photo[:NAME], video:PATH, camera:INDEX, stereo:world|motorcycle|LEFT,RIGHT"
+            "[,OPTIONS] or zenoh (frames an application publishes on ef/<fleet>/in/<robot>)."
         ),
     )
     fps: float | None = Field(
@@ -382,6 +423,11 @@ class MachineConfig(_Model):
         ge=1,
         description="Robot: offloaded frames in flight at once (pipelining); 1: each frame's "
         "result is awaited before the next frame starts.",
+    )
+
+    results: ResultsConfig = Field(
+        default_factory=ResultsConfig,
+        description="Robot: how each applied frame's result is published.",
     )
 
     @model_validator(mode="after")

@@ -5,7 +5,9 @@ down and restores the previous handlers. Shutdown runs also when startup failed 
 whatever startup had made by then is released. The first signal asks for a clean stop (sessions
 closed explicitly: a Zenoh session still holding callbacks at interpreter exit hangs the
 process); a second Ctrl-C forces an immediate exit, so a stuck shutdown never traps the user.
-Subclasses keep `__init__` free of I/O and implement `startup` and `main_loop`.
+Subclasses keep `__init__` free of I/O and implement `startup` and `main_loop`. `ready` is set
+between the two (the token is up: the fleet may use the daemon) and cleared when shutdown begins,
+the same in all three daemons.
 
 The lifecycle owns resources. Everything startup makes is handed to the daemon as it is made:
 `hold(cm, what)` enters a context manager (a session, a subscriber, a queryable, a publisher, a
@@ -58,6 +60,9 @@ class Daemon:
 
     def __init__(self) -> None:
         self.should_exit = threading.Event()
+        # Set once startup has finished (the token is up: the fleet may use us), cleared when
+        # shutdown begins; what tests and embedders wait on instead of sleeping.
+        self.ready = threading.Event()
         # Set when shutdown begins: callbacks still in flight can tell an error from a teardown.
         self.closing = threading.Event()
         self.stop_signal: int | None = None
@@ -81,6 +86,7 @@ class Daemon:
     def shutdown(self) -> None:
         """Release the liveliness token, then every other resource in reverse order of
         declaration. A subclass that has more to do does it, then calls this."""
+        self.ready.clear()
         self.closing.set()
         self._tokens.close()
         self._resources.close()
@@ -172,6 +178,7 @@ class Daemon:
         with self._captured_signals():
             try:
                 self.startup()
+                self.ready.set()
                 self.main_loop()
             finally:
                 self.shutdown()

@@ -232,11 +232,6 @@ def dep_probe_all(fleet: str) -> str:
     return _join(prefix(fleet), "dep", "*", "probe")
 
 
-def dep_ctl_all(fleet: str) -> str:
-    """`ef/<fleet>/dep/*/ctl`: every deployment's control key (only the registry queries them)."""
-    return _join(prefix(fleet), "dep", "*", "ctl")
-
-
 # -- tele: what robots publish ---------------------------------------------------------------------
 def tele(fleet: str, robot: str) -> str:
     """`ef/<fleet>/tele/<robot>`: one telemetry record per frame."""
@@ -269,6 +264,27 @@ def route_all(fleet: str) -> str:
     return _join(prefix(fleet), "route", "*")
 
 
+# -- out/in: results to applications, frames from them ---------------------------------------------
+def results_out(fleet: str, robot: str) -> str:
+    """`ef/<fleet>/out/<robot>`: each applied frame's result, published by the robot."""
+    return _join(prefix(fleet), "out", validate_id(robot, "robot id"))
+
+
+def results_out_all(fleet: str) -> str:
+    """`ef/<fleet>/out/*`: the results of every robot."""
+    return _join(prefix(fleet), "out", "*")
+
+
+def frames_in(fleet: str, robot: str) -> str:
+    """`ef/<fleet>/in/<robot>`: frames an application sends the robot (its `zenoh` source)."""
+    return _join(prefix(fleet), "in", validate_id(robot, "robot id"))
+
+
+def frames_in_all(fleet: str) -> str:
+    """`ef/<fleet>/in/*`: the frames sent to every robot."""
+    return _join(prefix(fleet), "in", "*")
+
+
 # -- parsing ---------------------------------------------------------------------------------------
 class KeyKind(str, enum.Enum):
     """What a concrete key is, as returned by parse_key."""
@@ -285,6 +301,8 @@ class KeyKind(str, enum.Enum):
     TELE = "tele"
     TELE_PROBE = "tele_probe"
     ROUTE = "route"
+    RESULTS_OUT = "results_out"
+    FRAMES_IN = "frames_in"
 
 
 @dataclass(frozen=True)
@@ -341,4 +359,8 @@ def parse_key(key: str) -> KeyParts | None:
             return KeyParts(fleet, KeyKind.TELE_PROBE, id=robot)
         case "route", [robot]:
             return KeyParts(fleet, KeyKind.ROUTE, id=robot)
+        case "out", [robot]:
+            return KeyParts(fleet, KeyKind.RESULTS_OUT, id=robot)
+        case "in", [robot]:
+            return KeyParts(fleet, KeyKind.FRAMES_IN, id=robot)
     return None

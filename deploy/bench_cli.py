@@ -14,6 +14,8 @@ subprocesses, emulated robots from a load generator; see docs/scale.md).
 
 from __future__ import annotations
 
+import functools
+import inspect
 import json
 import math
 from collections.abc import Callable
@@ -52,9 +54,11 @@ ROBOT_CPU_OPTION = typer.Option(
 )
 MODEL_OPTION = typer.Option(DEFAULT_MODEL, "--model", help="zoo:NAME or an ONNX file.")
 SHAPE_OPTION = typer.Option(
-    "x".join(map(str, DEFAULT_INPUT_SHAPE)),
+    None,
     "--input-shape",
-    help="Camera image CxHxW (zoo models take it as uint8 1xHxWxC; a file: its dynamic dims).",
+    help=f"Camera image CxHxW. Default: {'x'.join(map(str, DEFAULT_INPUT_SHAPE))} for a zoo model "
+    "(which takes it as uint8 1xHxWxC) and for a file's dynamic dimensions; a file whose "
+    "dimensions are fixed has its own shape.",
 )
 PLOTS_OPTION = typer.Option(DEFAULT_PLOTS_DIR, "--plots-dir", help="Where PNG plots are written.")
 NO_PLOTS_OPTION = typer.Option(False, "--no-plots", help="Write no plots.")
@@ -71,6 +75,22 @@ TLS_OPTION = typer.Option(
 )
 TLS_NOTE = "Every link: mutual TLS with access control (`--tls`)."
 
+# The options every testbed experiment takes (`testbed_command`), in their order in --help:
+# name -> (annotation, typer option). `as_json` is the command's; the others make BenchOptions.
+SHARED_OPTIONS: dict[str, tuple[Any, Any]] = {
+    "quick": (bool, QUICK_OPTION),
+    "frames": (int | None, FRAMES_OPTION),
+    "robot_cpu": (float, ROBOT_CPU_OPTION),
+    "model": (str, MODEL_OPTION),
+    "input_shape": (str | None, SHAPE_OPTION),
+    "plots_dir": (Path, PLOTS_OPTION),
+    "no_plots": (bool, NO_PLOTS_OPTION),
+    "workdir": (Path | None, WORKDIR_OPTION),
+    "name": (str | None, NAME_OPTION),
+    "tls": (bool, TLS_OPTION),
+    "as_json": (bool, JSON_OPTION),
+}
+
 
 def register(app: typer.Typer) -> None:
     """Add the `bench` command group to the root app."""
@@ -83,7 +103,7 @@ def _options(
     frames: int | None,
     robot_cpu: float,
     model: str,
-    input_shape: str,
+    input_shape: str | None,
     plots_dir: Path,
     no_plots: bool,
     workdir: Path | None,
@@ -101,7 +121,7 @@ def _options(
         err = Console(stderr=True)
         options = BenchOptions(
             model=model,
-            input_shape=parse_shape(input_shape),
+            input_shape=() if input_shape is None else parse_shape(input_shape),
             robot_cpu=robot_cpu,
             frames=frames,
             quick=quick,
@@ -115,6 +135,42 @@ def _options(
     except UserError as exc:
         _fail(exc)
     return options
+
+
+def testbed_command(
+    name: str, *, fixed: dict[str, Any] | None = None
+) -> Callable[[Callable[..., None]], Callable[..., None]]:
+    """Register `fn(options, as_json, **its own options)` as `elasticfog bench NAME`, with the
+    shared options (`SHARED_OPTIONS`) after its own: the command declares only what is its own
+    and gets one checked `BenchOptions`. `fixed`: shared options this command does not offer,
+    with the value they take (anycast's robot is not slowed: robot_cpu 1)."""
+    fixed = fixed or {}
+
+    def register(fn: Callable[..., None]) -> Callable[..., None]:
+        own = [
+            p
+            for p in inspect.signature(fn).parameters.values()
+            if p.name not in ("options", "as_json")
+        ]
+        shared = [
+            inspect.Parameter(key, inspect.Parameter.KEYWORD_ONLY, default=option, annotation=tp)
+            for key, (tp, option) in SHARED_OPTIONS.items()
+            if key not in fixed
+        ]
+
+        @functools.wraps(fn)
+        def command(**given: Any) -> None:
+            values = {key: given.pop(key) for key in SHARED_OPTIONS if key in given}
+            as_json = values.pop("as_json")
+            fn(options=_options(**{**values, **fixed}), as_json=as_json, **given)
+
+        command.__signature__ = inspect.Signature(  # type: ignore[attr-defined]
+            [p.replace(kind=inspect.Parameter.KEYWORD_ONLY) for p in own] + shared
+        )
+        bench_app.command(name)(command)
+        return fn
+
+    return register
 
 
 def _run(
@@ -173,8 +229,10 @@ def _policies(text: str) -> list[str]:
     return _guard(lambda: parse_names(text, "--policies", known))
 
 
-@bench_app.command("table1")
+@testbed_command("table1")
 def table1(
+    options: Any,
+    as_json: bool,
     uplinks: str = typer.Option(
         "0.5,1,2,5,20", "--uplinks", help="Robot uplink caps in Mbit/s, comma-separated."
     ),
@@ -183,31 +241,8 @@ def table1(
         "--policies",
         help="Policies, comma-separated (elastic-nohedge: elastic without hedged exploration).",
     ),
-    quick: bool = QUICK_OPTION,
-    frames: int | None = FRAMES_OPTION,
-    robot_cpu: float = ROBOT_CPU_OPTION,
-    model: str = MODEL_OPTION,
-    input_shape: str = SHAPE_OPTION,
-    plots_dir: Path = PLOTS_OPTION,
-    no_plots: bool = NO_PLOTS_OPTION,
-    workdir: Path | None = WORKDIR_OPTION,
-    name: str | None = NAME_OPTION,
-    tls: bool = TLS_OPTION,
-    as_json: bool = JSON_OPTION,
 ) -> None:
     """ElasticROS Table I: latency, robot CPU and energy per frame at each uplink cap."""
-    options = _options(
-        quick=quick,
-        frames=frames,
-        robot_cpu=robot_cpu,
-        model=model,
-        input_shape=input_shape,
-        plots_dir=plots_dir,
-        no_plots=no_plots,
-        workdir=workdir,
-        name=name,
-        tls=tls,
-    )
     from deploy.experiments import table1 as t1
     from deploy.experiments.options import parse_floats
 
@@ -216,40 +251,20 @@ def table1(
     _run(options, lambda: t1.run(options, caps, names), t1.markdown, t1.plot, as_json)
 
 
-@bench_app.command("glitch")
+@testbed_command("glitch")
 def glitch(
+    options: Any,
+    as_json: bool,
     from_mbit: float = typer.Option(..., "--from-mbit", help="Uplink cap before, Mbit/s."),
     to_mbit: float = typer.Option(..., "--to-mbit", help="Uplink cap after, Mbit/s."),
     policies: str = typer.Option(
         "elastic,elastic-nohedge,cloud:jpeg80,cloud,robot", "--policies", help="Comma-separated."
     ),
-    quick: bool = QUICK_OPTION,
-    frames: int | None = FRAMES_OPTION,
-    robot_cpu: float = ROBOT_CPU_OPTION,
-    model: str = MODEL_OPTION,
-    input_shape: str = SHAPE_OPTION,
-    plots_dir: Path = PLOTS_OPTION,
-    no_plots: bool = NO_PLOTS_OPTION,
-    workdir: Path | None = WORKDIR_OPTION,
-    name: str | None = NAME_OPTION,
-    tls: bool = TLS_OPTION,
-    as_json: bool = JSON_OPTION,
 ) -> None:
     """A bandwidth glitch while the robot streams: before / on / after, frames to settle."""
-    options = _options(
-        quick=quick,
-        frames=frames,
-        robot_cpu=robot_cpu,
-        model=model,
-        input_shape=input_shape,
-        plots_dir=plots_dir,
-        no_plots=no_plots,
-        workdir=workdir,
-        name=name,
-        tls=tls,
-    )
     from deploy.experiments import glitch as gl
     from deploy.experiments.options import parse_floats
+    from deploy.experiments.single_edge import public
 
     a, b = _guard(lambda: parse_floats(f"{from_mbit},{to_mbit}", "--from-mbit/--to-mbit"))
     names = _policies(policies)
@@ -259,41 +274,21 @@ def glitch(
         gl.markdown,
         lambda r, d: gl.plot(r, d, "glitch"),
         as_json,
-        gl.public,
+        public,
     )
 
 
-@bench_app.command("table2")
+@testbed_command("table2")
 def table2(
+    options: Any,
+    as_json: bool,
     policies: str = typer.Option(
         "elastic,elastic-nohedge,cloud:jpeg80,cloud,robot", "--policies", help="Comma-separated."
     ),
-    quick: bool = QUICK_OPTION,
-    frames: int | None = FRAMES_OPTION,
-    robot_cpu: float = ROBOT_CPU_OPTION,
-    model: str = MODEL_OPTION,
-    input_shape: str = SHAPE_OPTION,
-    plots_dir: Path = PLOTS_OPTION,
-    no_plots: bool = NO_PLOTS_OPTION,
-    workdir: Path | None = WORKDIR_OPTION,
-    name: str | None = NAME_OPTION,
-    tls: bool = TLS_OPTION,
-    as_json: bool = JSON_OPTION,
 ) -> None:
     """ElasticROS Table II: the glitches 10→3, 5→1 and 10→1 Mbit/s."""
-    options = _options(
-        quick=quick,
-        frames=frames,
-        robot_cpu=robot_cpu,
-        model=model,
-        input_shape=input_shape,
-        plots_dir=plots_dir,
-        no_plots=no_plots,
-        workdir=workdir,
-        name=name,
-        tls=tls,
-    )
     from deploy.experiments import glitch as gl
+    from deploy.experiments.single_edge import public
 
     names = _policies(policies)
     _run(
@@ -302,72 +297,32 @@ def table2(
         gl.markdown,
         lambda r, d: gl.plot(r, d, "table2"),
         as_json,
-        gl.public,
+        public,
     )
 
 
-@bench_app.command("table3")
+@testbed_command("table3")
 def table3(
+    options: Any,
+    as_json: bool,
     policies: str = typer.Option(
         "elastic,elastic-nohedge,robot,cloud:jpeg80,cloud", "--policies", help="Comma-separated."
     ),
-    quick: bool = QUICK_OPTION,
-    frames: int | None = FRAMES_OPTION,
-    robot_cpu: float = ROBOT_CPU_OPTION,
-    model: str = MODEL_OPTION,
-    input_shape: str = SHAPE_OPTION,
-    plots_dir: Path = PLOTS_OPTION,
-    no_plots: bool = NO_PLOTS_OPTION,
-    workdir: Path | None = WORKDIR_OPTION,
-    name: str | None = NAME_OPTION,
-    tls: bool = TLS_OPTION,
-    as_json: bool = JSON_OPTION,
 ) -> None:
     """ElasticROS Table III: the robot's CPU quota drops to --robot-cpu, then recovers."""
-    options = _options(
-        quick=quick,
-        frames=frames,
-        robot_cpu=robot_cpu,
-        model=model,
-        input_shape=input_shape,
-        plots_dir=plots_dir,
-        no_plots=no_plots,
-        workdir=workdir,
-        name=name,
-        tls=tls,
-    )
     from deploy.experiments import table3 as t3
+    from deploy.experiments.single_edge import public
 
     names = _policies(policies)
-    _run(options, lambda: t3.run(options, names), t3.markdown, t3.plot, as_json, t3.public)
+    _run(options, lambda: t3.run(options, names), t3.markdown, t3.plot, as_json, public)
 
 
-@bench_app.command("anycast")
+@testbed_command("anycast", fixed={"robot_cpu": 1.0})
 def anycast(
-    quick: bool = QUICK_OPTION,
-    frames: int | None = FRAMES_OPTION,
-    model: str = MODEL_OPTION,
-    input_shape: str = SHAPE_OPTION,
-    plots_dir: Path = PLOTS_OPTION,
-    no_plots: bool = NO_PLOTS_OPTION,
-    workdir: Path | None = WORKDIR_OPTION,
-    name: str | None = NAME_OPTION,
-    tls: bool = TLS_OPTION,
-    as_json: bool = JSON_OPTION,
+    options: Any,
+    as_json: bool,
 ) -> None:
     """FogROS2-LS Table I: deadline misses with 1-4 deployments when edge-1 is slowed."""
-    options = _options(
-        quick=quick,
-        frames=frames,
-        robot_cpu=1.0,
-        model=model,
-        input_shape=input_shape,
-        plots_dir=plots_dir,
-        no_plots=no_plots,
-        workdir=workdir,
-        name=name,
-        tls=tls,
-    )
     from deploy.experiments import anycast as ac
 
     _run(options, lambda: ac.run(options), ac.markdown, ac.plot, as_json)

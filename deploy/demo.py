@@ -19,7 +19,7 @@ host's wall clock: the kill here, the frame's completion in its telemetry).
 a certificate per host (registry, edge-1, edge-2, robot-1 and the read-only cli) in the temporary
 folder's certs/, every endpoint `tls/127.0.0.1:PORT` (nothing listens in plaintext), mutual TLS
 and the access control on; the summary says so (`"tls": true`). The demo's own session watches
-with the registry's certificate (`deploy.procs.observer_identity`).
+with the registry's certificate (`deploy.local_fleet.observer_identity`).
 
 `--compare` runs the same script again with the `robot` and `cloud:jpeg80` policies (a fresh
 fleet each) and says, per phase, which was fastest and whether the demo's policy chose like it
@@ -45,6 +45,7 @@ import typer
 from rich.console import Console
 
 from common.errors import UserError
+from common.path_options import model_path
 from deploy.demo_summary import (
     Failover,
     answered_by,
@@ -58,7 +59,7 @@ from robotd.source_names import DEFAULT_CAMERA_SOURCE
 
 if TYPE_CHECKING:
     from deploy.demo_script import DemoScript
-    from deploy.procs import LocalFleet
+    from deploy.local_fleet import LocalFleet
 
 # Re-exported: the e2e tests and benchmarks read telemetry through the demo's helpers.
 __all__ = ["DemoOptions", "answered_by", "read_telemetry", "run_compare", "run_demo", "summarize"]
@@ -258,7 +259,8 @@ def _run(
     # `elasticfog --help` must stay fast.
     from common.config import load_fleet
     from deploy.demo_view import LiveView
-    from deploy.procs import DaemonError, LocalFleet, write_local_fleet
+    from deploy.local_fleet import LocalFleet, write_local_fleet
+    from deploy.procs import DaemonError
 
     started = time.monotonic()
     policy = options.policy or DEFAULT_POLICY
@@ -457,6 +459,8 @@ def demo(
         tls=tls,
     )
     try:
+        if options.model is not None:
+            options.model = model_path(options.model)  # the working directory's, not the demo's
         if plot is not None and plot.suffix.lower() != ".png":
             raise UserError(f"--plot {plot}: expected a .png file")
         if plot is not None and not plot.resolve().parent.is_dir():

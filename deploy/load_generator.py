@@ -34,6 +34,7 @@ threads are released on exit).
 
 from __future__ import annotations
 
+import contextlib
 import enum
 import itertools
 import logging
@@ -312,18 +313,23 @@ class LoadGenerator:
         self.local_s = local_s
         self.digest, self.payloads = cut_payloads(cfg, cut, codec)
         self.stopping = threading.Event()
-        self.session: zenoh.Session = open_session(cfg, listen=["tcp/127.0.0.1:0"])
-        self._tokens: list[zenoh.LivelinessToken] = []
-        rng = random.Random(seed)
-        self.robots: list[EmulatedRobot] = []
-        for robot in robots:
-            rate = fps.get(robot) if isinstance(fps, dict) else fps
-            lanes = in_flight.get(robot, 1) if isinstance(in_flight, dict) else in_flight
-            phase = rng.uniform(0.0, 1.0 / rate) if rate else 0.0
-            gaps = random.Random(rng.random()) if arrivals == "poisson" else None
-            self.robots.append(
-                EmulatedRobot(self, robot, rate, in_flight=lanes, phase_s=phase, poisson=gaps)
+        # The session and the robots' tokens, released by `close` in reverse (the session last,
+        # also when an undeclare fails).
+        with contextlib.ExitStack() as owned:
+            self.session: zenoh.Session = owned.enter_context(
+                open_session(cfg, listen=["tcp/127.0.0.1:0"])
             )
+            rng = random.Random(seed)
+            self.robots: list[EmulatedRobot] = []
+            for robot in robots:
+                rate = fps.get(robot) if isinstance(fps, dict) else fps
+                lanes = in_flight.get(robot, 1) if isinstance(in_flight, dict) else in_flight
+                phase = rng.uniform(0.0, 1.0 / rate) if rate else 0.0
+                gaps = random.Random(rng.random()) if arrivals == "poisson" else None
+                self.robots.append(
+                    EmulatedRobot(self, robot, rate, in_flight=lanes, phase_s=phase, poisson=gaps)
+                )
+            self._owned = owned.pop_all()
 
     def __enter__(self) -> LoadGenerator:
         return self.start()
@@ -334,10 +340,11 @@ class LoadGenerator:
     def start(self) -> LoadGenerator:
         """Declare every robot's liveliness token, then start their frame loops."""
         for robot in self.robots:
-            token = self.session.liveliness().declare_token(
-                keys.alive_robot(self.cfg.fleet, robot.robot)
+            self._owned.enter_context(
+                self.session.liveliness().declare_token(
+                    keys.alive_robot(self.cfg.fleet, robot.robot)
+                )
             )
-            self._tokens.append(token)
         for robot in self.robots:
             robot.start()
         return self
@@ -367,10 +374,7 @@ class LoadGenerator:
         stuck = [r.robot for r in self.robots if not r.join(self.deadline_s + JOIN_TIMEOUT_S)]
         if stuck:
             log.warning("load generator: %s did not stop in time", ", ".join(stuck))
-        for token in self._tokens:
-            token.undeclare()
-        self._tokens.clear()
-        self.session.close()
+        self._owned.close()  # the tokens undeclared, then the session closed
 
 
 def summarize(records: Sequence[FrameRecord], seconds: float) -> dict[str, Any]:

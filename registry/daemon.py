@@ -28,14 +28,8 @@ the prober's pool (`registry.prober`), which queues each outcome. The control lo
 thread) is the only one that decides and switches: it handles queued events at once and runs the
 scheduler every `tick_s` (~100 ms).
 
-Decisions. A robot with no live route gets one: its restored route if that deployment is alive
-(re-asserted at the same epoch, so a cloud daemon restarted meanwhile declares the key again),
-else initial_policy's service machine if alive, else the scheduler's choice (what it is asked
-with: `registry.round_inputs`). A deployment whose token disappears, or a robot reporting
-`timeout_count` consecutive timeouts (in telemetry or by a `reg/reroute` request), is handled at
-once; bound violations and improvements wait out the
-scheduler's hysteresis. After a restart, a route whose deployment has not reconnected yet is left
-alone for `restore_grace_s` (peers retry their connection to the router every few seconds).
+Decisions are `registry.control_loop.ControlLoop`'s (what a robot's route becomes, when, and how
+it is carried out); the daemon makes its parts at startup, feeds it and ticks it.
 
 Registration (`registry.registration`). A new cloud token is probed and its reply checked; a
 mismatch is refused with an event and a log line naming the deployment and the reason, and
@@ -55,7 +49,6 @@ import functools
 import gc
 import logging
 import queue
-import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -71,35 +64,27 @@ from common.file_safety import check_private_file
 from common.keys import Role
 from common.membership import MemberChange, MembershipView
 from common.session import open_session
-from common.wire import registry as msg
 from common.wire.telemetry import ProbeReport, TelemetryRecord
+from registry.control_loop import ControlLoop, Evaluate, Event
 from registry.latency import LatencyBound
 from registry.measurements import Measurements
-from registry.pools import PoolKeeper, pool_keeper, pool_planner
-from registry.prober import Probed, Prober
+from registry.pool_keeper import pool_keeper
+from registry.pools import pool_planner
+from registry.prober import Prober
 from registry.profile_saver import PacedSaver
 from registry.publications import PublicationReader
 from registry.refusals import Refusals
-from registry.registration import Registrar, RegistrationState, fleet_model_digest
-from registry.replies import answer, answer_error, error_payload
+from registry.registration import Registrar, fleet_model_digest
+from registry.replies import answer_error
 from registry.requests import (
-    QueuedRequest,
     RequestQueue,
-    drain,
     refuse_queued,
-    reroute,
-    route_change,
 )
-from registry.rib import MEMORY, Rib, RobotRow, RouteRow
-from registry.round_inputs import deployment_table, prefer_initial, robot_view, waiting_for
-from registry.scheduler import DeploymentTable, Reason, RouteDecision, Scheduler, SchedulerParams
+from registry.rib import MEMORY, Rib
+from registry.scheduler import Scheduler, SchedulerParams
 from registry.switch import (
     CTL_TIMEOUT_S,
     Switcher,
-    SwitchOutcome,
-    SwitchResult,
-    TransportError,
-    carry_out,
 )
 from registry.transport import ZenohTransport
 from registry.views import RibViews
@@ -131,27 +116,15 @@ def tune_collector() -> None:
     gc.set_threshold(max(young, GC_YOUNG_THRESHOLD), older, oldest)
 
 
-# -- events for the control loop (besides MemberChange and Probed) ------------------------------
-@dataclass(frozen=True)
-class _Evaluate:
-    robot: str
-
-
-_Event = MemberChange | Probed | _Evaluate | QueuedRequest
-
-
 @dataclass(frozen=True)
 class _Started:
     """What startup made that the callbacks and the control loop use."""
 
     session: zenoh.Session
     rib: Rib
-    transport: ZenohTransport
-    switcher: Switcher
     registrar: Registrar
     views: RibViews
-    prober: Prober
-    pools: PoolKeeper | None  # round robin only
+    loop: ControlLoop
 
 
 class RegistryDaemon(Daemon):
@@ -188,8 +161,6 @@ class RegistryDaemon(Daemon):
         self.max_request_bytes = cfg.registry.max_request_bytes
         # Error replies and dropped publications, by input and code (Zenoh threads count).
         self.refusals = Refusals()
-        # Set once the registry's token is declared: it serves from then on.
-        self.ready = threading.Event()
         self.scheduler = Scheduler(self.bound, self.params)
         self.measurements = Measurements(
             self.bound.window,
@@ -198,16 +169,13 @@ class RegistryDaemon(Daemon):
             on_bad_sample=self._bad_input,
         )
 
-        self._events: queue.Queue[_Event] = queue.Queue()
+        self._events: queue.Queue[Event] = queue.Queue()
         self._publications = PublicationReader(
             self.refusals, self._bad_input, max_bytes=self.max_request_bytes
         )
         self._requests = RequestQueue(
             self.fleet, self._events.put, max_request_bytes=self.max_request_bytes
         )
-        # Control-loop state (only the control loop touches these).
-        self._confirmed: set[str] = set()  # robots whose route was confirmed in this run
-        self._started_at = 0.0
         self._started: _Started | None = None  # made in startup, dropped after shutdown
 
     # -- what startup made ---------------------------------------------------------------------
@@ -231,7 +199,7 @@ class RegistryDaemon(Daemon):
     # -- lifecycle -----------------------------------------------------------------------------
     def startup(self) -> None:
         """Open the RIB and the session, declare everything, follow membership, then go live."""
-        self._started_at = time.monotonic()
+        started_at = time.monotonic()
         cfg, fleet = self.cfg, self.fleet
         if str(self.db_path) != MEMORY:
             check_private_file(self.db_path, "RIB file")  # refuse a world-writable RIB
@@ -268,11 +236,23 @@ class RegistryDaemon(Daemon):
             pools=pool_planner(cfg, rib),
             in_flight=registrar.robot_in_flight,
         )
-        self._started = _Started(
-            session=session,
+        loop = ControlLoop(
+            cfg,
             rib=rib,
             transport=transport,
             switcher=switcher,
+            registrar=registrar,
+            prober=prober,
+            pools=pool_keeper(switcher),
+            scheduler=self.scheduler,
+            measurements=self.measurements,
+            throttled=self.throttled,
+            started_at=started_at,
+            restore_grace_s=self.restore_grace_s,
+        )
+        self._started = _Started(
+            session=session,
+            rib=rib,
             registrar=registrar,
             views=RibViews(
                 fleet,
@@ -283,8 +263,7 @@ class RegistryDaemon(Daemon):
                 cfg.deadline_s,
                 max_request_bytes=self.max_request_bytes,
             ),
-            prober=prober,
-            pools=pool_keeper(switcher),
+            loop=loop,
         )
         self._declare(session)
         self.hold(
@@ -298,7 +277,6 @@ class RegistryDaemon(Daemon):
             "membership view",
         )
         self.announce(session.liveliness().declare_token(keys.alive_registry(fleet, self.id)))
-        self.ready.set()
         log.info(
             "registry %s of fleet %s: listening on %s, RIB %s (%d routes restored)",
             self.id,
@@ -350,7 +328,9 @@ class RegistryDaemon(Daemon):
             self.hold(session.declare_subscriber(key, follow), f"subscriber {key}")
 
     def main_loop(self) -> None:
-        """The control loop: queued events at once, the scheduler every tick."""
+        """The control loop (`registry.control_loop`): queued events at once, the scheduler
+        every tick, the load refresh and the paced profile save on their intervals."""
+        loop = self._parts.loop
         now = time.monotonic()
         next_tick = now
         next_refresh = now + self.load_refresh_interval_s
@@ -363,25 +343,24 @@ class RegistryDaemon(Daemon):
         while not self.should_exit.is_set():
             wait_s = min(self.tick_s, max(0.0, next_tick - time.monotonic()))
             try:
-                event: _Event | None = self._events.get(timeout=wait_s)
+                event: Event | None = self._events.get(timeout=wait_s)
             except queue.Empty:
                 event = None
             if event is not None:
-                self._safely(self._handle, event)
+                self._safely(loop.handle, event)
             now = time.monotonic()
             if now >= next_tick:
-                self._safely(self._schedule_all)
+                self._safely(loop.schedule_all)
                 self._safely(saver.tick, now)
                 next_tick = now + self.tick_s
             if now >= next_refresh:
-                self._safely(self._refresh_deployments)
+                self._safely(loop.refresh_deployments)
                 next_refresh = now + self.load_refresh_interval_s
 
     def shutdown(self) -> None:
         """Token first, then everything startup made in reverse: the membership view, the
         queryables and subscribers, queued requests (refused), the prober, the session, the
         measurements (saved), the RIB. Safe twice."""
-        self.ready.clear()
         super().shutdown()
         self._started = None
         refused = self.refusals.summary()
@@ -401,7 +380,7 @@ class RegistryDaemon(Daemon):
     def _on_telemetry(self, sample: zenoh.Sample) -> None:
         rec = self._publications.read(sample, TelemetryRecord, "telemetry")
         if rec is not None and self.measurements.record_telemetry(rec, str(sample.key_expr)):
-            self._events.put(_Evaluate(rec.robot))
+            self._events.put(Evaluate(rec.robot))
 
     def _on_probe_report(self, sample: zenoh.Sample) -> None:
         rep = self._publications.read(sample, ProbeReport, "probe report")
@@ -421,234 +400,6 @@ class RegistryDaemon(Daemon):
         except Exception:
             what = getattr(fn, "__name__", fn)
             self.throttled.error("%s: unexpected error in %s", self.name, what, exc_info=True)
-
-    def _handle(self, event: _Event) -> None:
-        if isinstance(event, MemberChange):
-            self._on_membership(event)
-        elif isinstance(event, Probed):
-            self._on_probed(event)
-        elif isinstance(event, _Evaluate):
-            self._evaluate(event.robot)
-        else:
-            self._on_request(event)
-
-    def _on_request(self, event: QueuedRequest) -> None:
-        """Act on a queued drain or reroute and answer it (an internal error if acting failed)."""
-        rib, request = self._parts.rib, event.message
-        try:
-            if isinstance(request, msg.DrainRequest):
-                reply = drain(request, rib, self._parts.registrar, self._evaluate)
-            else:
-                assert isinstance(request, msg.RerouteRequest)
-                reply = reroute(request, rib, self.measurements, self._evaluate)
-            payload = reply.to_wire()
-        except Exception as exc:
-            self.throttled.error("%s: unexpected error in %s", self.name, event.key, exc_info=True)
-            payload = error_payload(exc)
-        answer(event.query, (event.key, payload))
-
-    def _on_membership(self, change: MemberChange) -> None:
-        rib = self._parts.rib
-        if Role(change.role) is Role.ROBOT:
-            robot = change.id
-            if change.alive:
-                if robot not in self.cfg.machines:
-                    log.info("robot %s is not in the fleet file; serving it anyway", robot)
-                rib.upsert_robot(robot, service=self.service)
-                log.info("robot %s is up", robot)
-            elif rib.set_robot_alive(robot, False, "liveliness token gone"):
-                log.info("robot %s is gone", robot)
-                self.scheduler.forget(robot)
-                self.measurements.forget_robot(robot)
-            return
-        deployment = change.id
-        if change.alive:
-            if self._parts.registrar.token_came(deployment):
-                self._parts.prober.submit(deployment, refresh=False)
-            return
-        registration = self._parts.registrar.token_gone(deployment)
-        self.measurements.forget_deployment(deployment)  # a returning process starts clean
-        if registration is None or registration.state is not RegistrationState.ACCEPTED:
-            return
-        rib.set_deployment_alive(deployment, False, "liveliness token gone")
-        log.info("deployment %s is gone", deployment)
-        for route in rib.routes():
-            if route.deployment == deployment:
-                self._evaluate(route.robot)
-            elif deployment in route.pool and self._parts.pools is not None:
-                self._parts.pools.rebuild(route.robot, "pool member gone")
-
-    def _on_probed(self, event: Probed) -> None:
-        deployment, reply = event.deployment, event.reply
-        registrar = self._parts.registrar
-        if event.refresh:
-            if reply is not None and registrar.refresh(deployment, reply):
-                self._repair(deployment, reply)
-        elif registrar.admit(deployment, reply, event.error):
-            assert reply is not None
-            self._repair(deployment, reply)
-            self._restore_routes(deployment)
-
-    def _repair(self, deployment: str, reply: msg.ProbeReply) -> None:
-        """Anycast repair: a deployment serving a robot the RIB routes elsewhere is put back in
-        standby."""
-        for robot, state in reply.states.items():
-            if state is not msg.DeploymentState.SERVICE:
-                continue
-            routed_to, epoch = self.measurements.route(robot)
-            if routed_to == deployment or (routed_to is None and epoch == 0):
-                continue
-            if deployment in self._parts.rib.pool(robot):
-                continue  # a member of the robot's round-robin pool serves it by design
-            log.warning(
-                "deployment %s serves %s, routed to %s: putting it in standby",
-                deployment,
-                robot,
-                routed_to or "local",
-            )
-            self._parts.switcher.fence(robot, deployment, at_least=reply.epochs.get(robot, 0))
-
-    def _restore_routes(self, deployment: str) -> None:
-        """Re-assert every restored route to this deployment that this run has not confirmed."""
-        for route in self._parts.rib.routes():
-            if route.deployment != deployment or route.robot in self._confirmed:
-                continue
-            result = self._parts.switcher.reassert(route.robot)
-            if result.attempts and result.attempts[-1].outcome is SwitchOutcome.ACKED:
-                self._confirmed.add(route.robot)
-                row = self._parts.rib.robot(route.robot)
-                # A robot not back yet holds no room there: a round counts it once it is.
-                pool = route.pool if row is not None and row.alive else None
-                self.measurements.set_route(result.robot, result.deployment, result.epoch, pool)
-                if not result.changed:
-                    # Tell the robot again (receivers ignore an epoch they hold already).
-                    self._publish(route.robot, deployment, result.epoch, "restore", pool=route.pool)
-                log.info(
-                    "restored route %s -> %s (epoch %d)", route.robot, deployment, result.epoch
-                )
-            else:
-                detail = result.attempts[-1].detail if result.attempts else result.reason
-                log.warning(
-                    "cannot restore route %s -> %s: %s; rerouting",
-                    route.robot,
-                    deployment,
-                    detail,
-                )
-                self._evaluate(route.robot, unusable=frozenset({deployment}))
-
-    def _refresh_deployments(self) -> None:
-        self.measurements.flush_loads(self._parts.rib)
-        for deployment, refresh in self._parts.registrar.to_probe():
-            self._parts.prober.submit(deployment, refresh=refresh)
-
-    # -- decisions -------------------------------------------------------------------------------
-    def _schedule_all(self) -> None:
-        # One read of the RIB for the round (live robots with their routes, the deployments as
-        # one table), not three per robot (`registry.round_inputs`).
-        rib = self._parts.rib
-        rows = rib.deployments()
-        deployments = deployment_table(rows)
-        pools = self._parts.pools
-        usable = pools.planner.usable(rows) if pools is not None else set()
-        for robot_row, route_row in rib.live_robots():
-            result = self._evaluate(robot_row.id, read=(robot_row, route_row, deployments))
-            if (
-                pools is not None
-                and route_row is not None
-                and (result is None or not result.changed)
-            ):
-                pools.tend(route_row, usable)
-
-    def _evaluate(
-        self,
-        robot: str,
-        *,
-        unusable: frozenset[str] = frozenset(),
-        read: tuple[RobotRow | None, RouteRow | None, DeploymentTable] | None = None,
-    ) -> SwitchResult | None:
-        """Ask the scheduler about one robot and carry out its decision (control loop only).
-        `read`: the robot's row, its route and the deployments as the round read them (else
-        they are read here)."""
-        rib, registrar = self._parts.rib, self._parts.registrar
-        if read is None:
-            read = (
-                rib.robot(robot),
-                rib.route(robot),
-                deployment_table(rib.deployments(), unusable),
-            )
-        robot_row, route_row, deployments = read
-        current = route_row.deployment if route_row else None
-        if not unusable:
-            grace_until = self._started_at + self.restore_grace_s
-            if (
-                waiting_for(self.cfg, registrar, robot, current, grace_until=grace_until)
-                is not None
-            ):
-                return None
-        measures = self.measurements.for_scheduler(
-            robot, current, route_row.pool if route_row else ()
-        )
-        view = robot_view(
-            robot,
-            robot_row,
-            current,
-            measures,
-            default_service=self.service,
-            model_digest=registrar.robot_digest(robot),
-        )
-        decision = self.scheduler.evaluate(view, deployments, measures.profiles)
-        if decision is None:
-            return None
-        return self._carry_out(prefer_initial(self.cfg, decision))
-
-    def _carry_out(self, decision: RouteDecision) -> SwitchResult:
-        switcher, scheduler = self._parts.switcher, self.scheduler
-        if decision.reason is Reason.INITIAL:
-            # A placement is not a move: it must not start the scheduler's dwell time, or a
-            # robot placed on a slow deployment would wait min_dwell_s on top of the hysteresis.
-            result = switcher.apply(decision)
-            if not result.changed and result.attempts:
-                scheduler.record_failure(decision.robot)
-        else:
-            result = carry_out(scheduler, switcher, decision)
-        if result.changed and decision.reason is Reason.NO_CAPACITY:
-            self.measurements.set_route(result.robot, None, result.epoch)
-            log.info(
-                "route %s: no deployment has room, the robot computes locally (epoch %d)",
-                result.robot,
-                result.epoch,
-            )
-        elif result.changed:
-            self._confirmed.add(decision.robot)
-            self.measurements.set_route(result.robot, result.deployment, result.epoch, result.pool)
-            log.info(
-                "route %s: %s -> %s (epoch %d, %s)",
-                result.robot,
-                result.previous or "local",
-                result.deployment or "local",
-                result.epoch,
-                decision.reason.value,
-            )
-        elif result.attempts:
-            tried = ", ".join(f"{a.deployment}: {a.outcome.value}" for a in result.attempts)
-            log.warning("route %s not moved (%s): %s", result.robot, decision.reason.value, tried)
-        return result
-
-    def _publish(
-        self,
-        robot: str,
-        deployment: str | None,
-        epoch: int,
-        reason: str,
-        *,
-        pool: tuple[str, ...] = (),
-    ) -> None:
-        try:
-            self._parts.transport.publish_route(
-                route_change(robot, deployment, epoch, reason, pool=pool)
-            )
-        except TransportError as exc:
-            log.warning("%s", exc)
 
 
 def _latency_bound(cfg: FleetConfig) -> LatencyBound:

@@ -7,9 +7,9 @@ member's key in turn (`common.keys.svc_infer_at`), so each frame is computed exa
 members' compute adds up (the navigation paper's replicated workers).
 
 `PoolPlanner` only chooses members; the switch protocol (`registry.switch.Switcher`) puts them in
-service and publishes the route. `PoolKeeper` is the registry control loop's part: every round it
-asks `needs_repool` of each route, and when a member's token goes it rebuilds the pools it was in,
-so a member that died is dropped and a live standby joins.
+service and publishes the route. `registry.pool_keeper.PoolKeeper` is the registry control loop's
+part: every round it asks `needs_repool` of each route, and when a member's token goes it rebuilds
+the pools it was in, so a member that died is dropped and a live standby joins.
 
 Members are ranked by how many robots' pools they are in already (fewest first, then by id), so
 robots spread over the deployments when pools are smaller than the fleet. A full pool is left
@@ -19,16 +19,11 @@ alone while its members live: ranking alone never moves a member, so pools do no
 from __future__ import annotations
 
 import logging
-import time
 from collections import Counter
-from collections.abc import Callable, Iterable, Sequence
-from typing import TYPE_CHECKING
+from collections.abc import Iterable, Sequence
 
 from common.config import DispatchMode, FleetConfig
 from registry.rib import DeploymentRow, Rib, RouteRow
-
-if TYPE_CHECKING:  # the switch protocol uses the planner; the keeper drives the switch
-    from registry.switch import Switcher
 
 log = logging.getLogger(__name__)
 
@@ -88,50 +83,3 @@ def _serving(route: RouteRow) -> Sequence[str]:
     if route.pool:
         return route.pool
     return (route.deployment,) if route.deployment is not None else ()
-
-
-class PoolKeeper:
-    """`PoolKeeper(switcher)` (its `pools` set): rebuilds robots' pools from the control loop, at
-    most once per `retry_s` for a robot, so a member that keeps refusing cannot turn every round
-    into a switch."""
-
-    def __init__(
-        self,
-        switcher: Switcher,
-        *,
-        retry_s: float = POOL_RETRY_S,
-        clock: Callable[[], float] = time.monotonic,
-    ) -> None:
-        if switcher.pools is None:
-            raise ValueError("a pool keeper needs a switcher with a pool planner")
-        self._switcher = switcher
-        self.planner: PoolPlanner = switcher.pools
-        self._retry_s = retry_s
-        self._clock = clock
-        self._after: dict[str, float] = {}  # robot -> clock time of its next rebuild
-
-    def tend(self, route: RouteRow, usable: set[str]) -> None:
-        """Rebuild `route`'s pool if it needs it (`PoolPlanner.needs_repool`)."""
-        if self.planner.needs_repool(route, usable):
-            self.rebuild(route.robot, "pool")
-
-    def rebuild(self, robot: str, reason: str) -> None:
-        """Rebuild `robot`'s pool now, unless it was rebuilt less than `retry_s` ago."""
-        now = self._clock()
-        if now < self._after.get(robot, 0.0):
-            return
-        self._after[robot] = now + self._retry_s
-        result = self._switcher.repool(robot, reason=reason)
-        if result.changed:
-            log.info(
-                "route %s: pool %s (epoch %d, %s)",
-                robot,
-                ", ".join(self._switcher.rib.pool(robot)) or "-",
-                result.epoch,
-                reason,
-            )
-
-
-def pool_keeper(switcher: Switcher) -> PoolKeeper | None:
-    """The keeper of a round-robin fleet's pools; None in an anycast fleet."""
-    return PoolKeeper(switcher) if switcher.pools is not None else None

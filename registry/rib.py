@@ -2,7 +2,8 @@
 
 Tables: deployments, deployment_states (per deployment and robot: standby, service or draining, with
 the epoch of the last state change), robots, routes (robot → deployment, epoch), profiles
-(latency samples per robot × deployment × source) and events (every transition, with its reason).
+(latency samples per robot × deployment × source: `registry.rib_profiles`) and events (every
+transition, with its reason).
 The file survives restarts: a restarted registry reads routes and epochs back and resumes from
 them, so epochs keep growing and the anycast invariant can be repaired. Liveness flags are not
 trusted after a restart: call `reset_liveness()` and seed membership again from liveliness.
@@ -20,10 +21,9 @@ so they mean something after a restart and on another host.
 from __future__ import annotations
 
 import json
-import math
 import sqlite3
 import time
-from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass
 from enum import Enum
 from pathlib import Path
@@ -32,9 +32,10 @@ from typing import Any
 # One definition of a deployment's state per robot: the wire's (re-exported here for the RIB's
 # callers).
 from common.wire.registry import DeploymentState
+from registry.rib_profiles import ProfileRow as ProfileRow  # re-exported
+from registry.rib_profiles import RibProfiles
 from registry.rib_store import MEMORY as MEMORY  # re-exported: callers open Rib(MEMORY)
 from registry.rib_store import SCHEMA_VERSION as SCHEMA_VERSION
-from registry.rib_store import RibStore
 
 # Events are kept for inspection, not forever: older rows are pruned past this count.
 EVENTS_KEEP = 10_000
@@ -125,21 +126,6 @@ class DeploymentStateRow:
 
 
 @dataclass(frozen=True)
-class ProfileRow:
-    """Persisted latency samples of one robot × deployment × source (oldest first)."""
-
-    robot: str
-    deployment: str
-    source: str
-    samples: tuple[float, ...]
-    updated_at: float
-
-    def to_dict(self) -> dict[str, Any]:
-        """Plain data for a JSON view."""
-        return {**asdict(self), "samples": list(self.samples)}
-
-
-@dataclass(frozen=True)
 class EventRow:
     """One recorded transition."""
 
@@ -166,7 +152,7 @@ def _check_count(what: str, value: int) -> None:
         raise ValueError(f"{what} must be an integer >= 0, got {value!r}")
 
 
-class Rib(RibStore):
+class Rib(RibProfiles):
     """The routing information base over one sqlite file (or `":memory:"` for tests)."""
 
     def __init__(self, path: str | Path, *, clock: Callable[[], float] = time.time) -> None:
@@ -562,78 +548,6 @@ class Rib(RibStore):
         """The highest epoch ever issued for a robot (0 when none)."""
         rows = self._query("SELECT issued_epoch FROM routes WHERE robot = ?", (robot,))
         return int(rows[0][0]) if rows else 0
-
-    # -- profiles --------------------------------------------------------------------------------
-    def save_profile(
-        self,
-        robot: str,
-        deployment: str,
-        source: str,
-        samples: Iterable[float],
-        updated_at: float | None = None,
-    ) -> None:
-        """Persist a window's samples (oldest first) so a restarted registry keeps its profiles."""
-        self.save_profiles([(robot, deployment, source, list(samples), updated_at)])
-
-    def save_profiles(
-        self, rows: Iterable[tuple[str, str, str, Sequence[float], float | None]]
-    ) -> int:
-        """Persist many windows, (robot, deployment, source, samples, updated_at) each, in one
-        transaction (a registry of 1,000 robots and 100 deployments saves 100,000 windows every
-        few seconds); returns how many were written. Samples are kept to six significant
-        digits."""
-        now = self._clock()
-        written = 0
-
-        def params() -> Iterator[tuple[str, str, str, str, float]]:
-            # Made one at a time as sqlite takes them: 100,000 rows are never all in memory, and
-            # a bad one raises inside the transaction, which then writes none of them.
-            nonlocal written
-            for robot, deployment, source, samples, updated_at in rows:
-                values = [float(s) for s in samples]
-                if not all(math.isfinite(v) and v >= 0 for v in values):
-                    raise ValueError(
-                        f"profile samples of {robot}/{deployment} must be finite numbers >= 0,"
-                        f" got {values!r}"
-                    )
-                source_s = str(getattr(source, "value", source))
-                stamp = now if updated_at is None else updated_at
-                written += 1
-                yield robot, deployment, source_s, _samples_json(values), stamp
-
-        with self._tx() as conn:
-            conn.executemany(
-                "INSERT INTO profiles (robot, deployment, source, samples, updated_at)"
-                " VALUES (?,?,?,?,?) ON CONFLICT (robot, deployment, source) DO UPDATE SET"
-                " samples=excluded.samples, updated_at=excluded.updated_at",
-                params(),
-            )
-        return written
-
-    def profiles(self, robot: str | None = None) -> list[ProfileRow]:
-        """Persisted profiles, optionally of one robot."""
-        if robot is None:
-            rows = self._query("SELECT * FROM profiles ORDER BY robot, deployment, source")
-        else:
-            rows = self._query(
-                "SELECT * FROM profiles WHERE robot = ? ORDER BY deployment, source", (robot,)
-            )
-        return [
-            ProfileRow(
-                robot=r["robot"],
-                deployment=r["deployment"],
-                source=r["source"],
-                samples=tuple(float(x) for x in json.loads(r["samples"])),
-                updated_at=r["updated_at"],
-            )
-            for r in rows
-        ]
-
-
-def _samples_json(values: Sequence[float]) -> str:
-    """A JSON list of latency samples to six significant digits (a microsecond at 100 ms):
-    writing every float in full was most of the time of saving 100,000 windows."""
-    return "[" + ",".join(["%.6g"] * len(values)) % tuple(values) + "]"
 
 
 def _deployment_row(r: sqlite3.Row) -> DeploymentRow:

@@ -29,7 +29,7 @@ from common.models import cache_dir, read_cached_json, write_cached_json
 from common.partition.runtime import SplitModel
 from robotd.policies import RAW_CODEC, fixed_action
 from robotd.policies.nav_options import nav_option
-from robotd.source_names import CameraSpec, SourceSpec, parse_source
+from robotd.source_names import CameraSpec, SourceSpec, calibration_source
 from robotd.source_open import open_source_for
 from robotd.stereo_frame import StereoFrame
 
@@ -58,9 +58,10 @@ def calibration_frames(
     source: str | SourceSpec, inputs: ImageInputs, count: int, seed: int
 ) -> list[dict[str, np.ndarray]]:
     """`count` model feeds from a fresh instance of `source` (every CALIBRATION_STRIDE-th
-    frame, except for a camera, whose frames are taken as they come); a stereo source's views
-    feed the model's inputs of their names."""
-    source = parse_source(source)
+    frame, except for a camera, whose frames are taken as they come; a source fed over Zenoh
+    is measured on photographs, `robotd.source_names.calibration_source`); a stereo source's
+    views feed the model's inputs of their names."""
+    source = calibration_source(source)
     stride = 1 if isinstance(source, CameraSpec) else CALIBRATION_STRIDE
     frames = []
     with open_source_for(source, inputs, seed=seed) as src:

@@ -60,6 +60,8 @@ class Frame:
     # Whether the frame's result was dropped (a newer frame's was applied first,
     # `robotd.pipeline.ResultOrder`); None until it is applied or dropped.
     stale: bool | None = None
+    # Frames the source dropped unread just before this one (a newer one had arrived).
+    dropped_stale: int = 0
 
     @property
     def offloaded(self) -> bool:
@@ -118,4 +120,5 @@ class Frame:
             energy_j=energy_j,
             epoch=self.epoch,
             stale=bool(self.stale),
+            dropped_stale=self.dropped_stale,
         )

@@ -24,10 +24,13 @@ from common.logs import DEFAULT_LOG_LEVEL, LOG_LEVEL_ENV, LOG_LEVEL_HELP, loggin
 
 
 def register(app: typer.Typer) -> None:
-    """Add `robot` to the root app."""
+    """Add `robot` (and `results`, which follows a robot's results) to the root app."""
+    from robotd import results_cli
+
     app.command("robot", help="Run a robot: split each frame between the robot and the cloud.")(
         robot_command
     )
+    results_cli.register(app)
 
 
 def robot_command(
@@ -37,8 +40,9 @@ def robot_command(
         None,
         "--source",
         help="synthetic[:key=F,every=N], photo[:NAME][,motion=M] (real photographs through a "
-        "moving camera), video:PATH, camera:N, or a stereo pair for a two-image model: "
-        "stereo:world, stereo:motorcycle, stereo:LEFT,RIGHT; default: the machine's.",
+        "moving camera), video:PATH, camera:N, a stereo pair for a two-image model: "
+        "stereo:world, stereo:motorcycle, stereo:LEFT,RIGHT, or zenoh (frames an application "
+        "publishes on ef/<fleet>/in/<robot>); default: the machine's.",
     ),
     frames: int | None = typer.Option(
         None, "--frames", help="Stop after this many frames (default: run until Ctrl-C)."

@@ -29,7 +29,7 @@ from robotd.policies import Decision
 from robotd.robot_profile import measured_profile
 from robotd.source_names import SourceSpec
 from robotd.source_open import open_source_for
-from robotd.sources import FrameSource
+from robotd.sources import FrameSource, SourceSession
 from robotd.stereo_frame import CameraFrame, StereoFrame
 
 
@@ -73,10 +73,13 @@ class RobotModel:
             policy_spec=policy_spec,
         )
 
-    def open_source(self, spec: str | SourceSpec, *, seed: int) -> FrameSource:
-        """The frame source `spec` at the model's input size; a one-line UserError when its
-        views do not match the model's image inputs."""
-        return open_source_for(spec, self.inputs, seed=seed)
+    def open_source(
+        self, spec: str | SourceSpec, *, seed: int, session: SourceSession | None = None
+    ) -> FrameSource:
+        """The frame source `spec` at the model's input size (one fed over Zenoh on the
+        daemon's `session`); a one-line UserError when its views do not match the model's
+        image inputs."""
+        return open_source_for(spec, self.inputs, seed=seed, session=session)
 
     def feeds(self, frame: CameraFrame) -> dict[str, np.ndarray]:
         """The model's input for camera frame `frame` (an image, or a stereo frame's views)."""

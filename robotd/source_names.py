@@ -40,6 +40,8 @@ STEREO_WORLD = "world"
 STEREO_MOTORCYCLE = "motorcycle"
 # `stereo:maneuver:N`: maneuver N of the navigation circuit, driven live (`robotd.maneuver_source`).
 STEREO_MANEUVER = "maneuver"
+# `zenoh`: frames an application publishes on `ef/<fleet>/in/<robot>` (`robotd.zenoh_source`).
+ZENOH = "zenoh"
 MANEUVER_FORM = "stereo:maneuver:N[:lap=L][:assist=on|off][:t_dead=S][:out=PATH]"
 MANEUVER_OPTIONS = ("lap", "assist", "out", "t_dead")
 
@@ -73,6 +75,13 @@ class SourceSpec:
         """This spec with its file paths passed through `resolve` (the fleet file makes them
         relative to itself); kinds without paths return themselves."""
         return self
+
+    @property
+    def needs_session(self) -> bool:
+        """Whether the source receives its frames over the robot daemon's Zenoh session: it is
+        opened once the session is open (`robotd.sources.SourceSession`), and is not opened a
+        second time for the start's calibration frames."""
+        return False
 
     def __str__(self) -> str:
         return self.text
@@ -139,6 +148,15 @@ class StereoManeuverSpec(SourceSpec):
     assist: bool = True
     out: Path | None = None
     t_dead_s: float | None = None
+
+
+@dataclass(frozen=True)
+class ZenohSpec(SourceSpec):
+    """`zenoh`: frames from `ef/<fleet>/in/<robot>`."""
+
+    @property
+    def needs_session(self) -> bool:
+        return True
 
 
 # -- the kinds -----------------------------------------------------------------------------------
@@ -312,6 +330,12 @@ def _t_dead(spec: str, text: str | None) -> float | None:
     return value
 
 
+def _parse_zenoh(spec: str, args: str) -> ZenohSpec:
+    if args.strip():
+        raise SourceError(f"source {spec!r}: zenoh takes no options (its key is the robot's)")
+    return ZenohSpec(spec)
+
+
 # The kinds, by name. A new kind is one entry here (and its opener in robotd.source_open).
 KINDS: dict[str, SourceKind] = {
     kind.name: kind
@@ -323,6 +347,7 @@ KINDS: dict[str, SourceKind] = {
         SourceKind("video", "video:PATH", _parse_video),
         SourceKind("camera", "camera:INDEX", _parse_camera),
         SourceKind("stereo", STEREO_FORMS, _parse_stereo),
+        SourceKind(ZENOH, ZENOH, _parse_zenoh),
     )
 }
 
@@ -347,3 +372,16 @@ def parse_source(spec: str | SourceSpec) -> SourceSpec:
             f"{source_forms()}"
         )
     return kind.parse(text, text[cut + 1 :])
+
+
+def needs_session(spec: str | SourceSpec) -> bool:
+    """Whether source `spec` receives its frames over the daemon's Zenoh session."""
+    return parse_source(spec).needs_session
+
+
+def calibration_source(spec: str | SourceSpec) -> SourceSpec:
+    """The source the start's codec measurement reads its frames from: the robot's own, except
+    for a source fed over the session (no frame may have arrived yet, and frames taken for the
+    measurement would be lost to the run), measured on the camera-like photographs instead."""
+    parsed = parse_source(spec)
+    return parse_source(DEFAULT_CAMERA_SOURCE) if parsed.needs_session else parsed

@@ -24,16 +24,38 @@ from robotd.source_names import (
     StereoWorldSpec,
     SyntheticSpec,
     VideoSpec,
+    ZenohSpec,
     parse_source,
 )
-from robotd.sources import CameraSource, FrameSource, PhotoSource, SyntheticSource, VideoSource
+from robotd.sources import (
+    CameraSource,
+    FrameSource,
+    PhotoSource,
+    SourceSession,
+    SyntheticSource,
+    VideoSource,
+)
 
 
-def open_source(spec: str | SourceSpec, *, height: int, width: int, seed: int = 0) -> FrameSource:
-    """Open the source of `spec`; synthetic, photo and stereo frames are made `height`×`width`
-    (the model's input size). A SourceError names a spec that does not parse or a source that
-    cannot be opened."""
+def open_source(
+    spec: str | SourceSpec,
+    *,
+    height: int,
+    width: int,
+    seed: int = 0,
+    session: SourceSession | None = None,
+    views: tuple[str, ...] | None = None,
+) -> FrameSource:
+    """Open the source of `spec`; synthetic, photo, stereo and zenoh frames are made
+    `height`×`width` (the model's input size). A source fed over Zenoh needs the daemon's
+    `session`, and `views`, the model's image inputs when it has several. A SourceError names a
+    spec that does not parse or a source that cannot be opened."""
     parsed = parse_source(spec)
+    if parsed.needs_session and session is None:
+        raise SourceError(
+            f"source {parsed.text!r} receives its frames over Zenoh: it is opened by the robot "
+            "daemon, on its session"
+        )
     match parsed:
         case SyntheticSpec():
             return SyntheticSource(
@@ -58,14 +80,34 @@ def open_source(spec: str | SourceSpec, *, height: int, width: int, seed: int = 
             from robotd.stereo_sources import open_stereo_source
 
             return open_stereo_source(parsed, height=height, width=width, seed=seed)
+        case ZenohSpec():
+            # Imported here: the wire's image decoders and a subscriber, for this kind only.
+            from robotd.zenoh_source import ZenohSource
+
+            assert session is not None
+            return ZenohSource(session, height=height, width=width, views=views)
     raise SourceError(f"source {parsed.text!r}: no opener for {type(parsed).__name__}")
 
 
-def open_source_for(spec: str | SourceSpec, inputs: ImageInputs, *, seed: int = 0) -> FrameSource:
-    """`open_source` at the size of the model's image inputs; a one-line UserError (and the
-    source closed) when its frames do not feed them: a mono source on a model with several
-    image inputs, a stereo source on a one-input model, views not named like the inputs."""
-    source = open_source(spec, height=inputs.height, width=inputs.width, seed=seed)
+def open_source_for(
+    spec: str | SourceSpec,
+    inputs: ImageInputs,
+    *,
+    seed: int = 0,
+    session: SourceSession | None = None,
+) -> FrameSource:
+    """`open_source` at the size of the model's image inputs (one fed over Zenoh on the daemon's
+    `session`); a one-line UserError (and the source closed) when its frames do not feed them:
+    a mono source on a model with several image inputs, a stereo source on a one-input model,
+    views not named like the inputs."""
+    source = open_source(
+        spec,
+        height=inputs.height,
+        width=inputs.width,
+        seed=seed,
+        session=session,
+        views=inputs.views,
+    )
     try:
         inputs.check_views(source.views, str(spec).strip())
     except UserError:

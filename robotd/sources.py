@@ -18,6 +18,9 @@ A source yields uint8 BGR frames (H×W×3, OpenCV's layout) one at a time, or st
 - `video:PATH`: a video file read with OpenCV, looped at its end (a file stands in for a camera,
   so `--frames N` is honoured whatever the file's length).
 - `camera:N`: the camera with index N through OpenCV.
+- `zenoh`: frames an application publishes on `ef/<fleet>/in/<robot>` (`robotd.zenoh_source`),
+  the newest first (older waiting frames are dropped and counted), fitted to the model's size
+  like the photographs (`fit_frame`).
 - `stereo:...`: a stereo pair a frame (`robotd.stereo_sources`: a rendered world, the Motorcycle
   pair, two image files, a scripted maneuver); its frames are `robotd.stereo_frame.StereoFrame`s
   of named views.
@@ -25,7 +28,8 @@ A source yields uint8 BGR frames (H×W×3, OpenCV's layout) one at a time, or st
 The specs' grammar is `robotd.source_names` (parsed once into a typed value); `robotd.source_open`
 opens a parsed spec. A source that cannot be opened is a `SourceError` (a `UserError`) naming it.
 A source may end (`EndOfStream`) and may take each served frame's result (`on_result`, after the
-daemon's own).
+daemon's own). A source fed over Zenoh (`zenoh`: `SourceSpec.needs_session`) is opened with the
+daemon's session (`SourceSession`), once that is open; opened without one it is a `SourceError`.
 `common.image_input.InputAdapter` turns a frame into the model's input; the photographs
 themselves are `common.photos`.
 """
@@ -35,6 +39,8 @@ from __future__ import annotations
 import abc
 import contextlib
 import math
+import threading
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -46,6 +52,9 @@ from robotd.source_names import PHOTO, SYNTHETIC, CameraMotion, SourceError, mot
 from robotd.stereo_frame import CameraFrame
 
 if TYPE_CHECKING:
+    import zenoh
+
+    from common.config import FleetConfig
     from robotd.frame import FrameResult
 
 DEFAULT_KEY_FRACTION = 0.25
@@ -82,6 +91,19 @@ class EndOfStream(Exception):
     it does after `--frames` (frames in flight finish, the daemon stops cleanly)."""
 
 
+@dataclass(frozen=True)
+class SourceSession:
+    """What a source fed over Zenoh needs from the robot daemon: its open session (whose
+    lifetime covers the source's: the source is released first), the fleet's config and the
+    robot's id (the keys it listens on are the robot's)."""
+
+    session: zenoh.Session
+    config: FleetConfig
+    robot: str
+    # The daemon's stop flag: a source waiting for frames ends (EndOfStream) once it is set.
+    stop: threading.Event | None = None
+
+
 class FrameSource(abc.ABC):
     """Yields uint8 BGR frames (H×W×3), or stereo frames of named views; `close()` releases the
     device or file."""
@@ -93,10 +115,18 @@ class FrameSource(abc.ABC):
     """The capture stamp (ns since the epoch) of the frame `read()` returned last, where the
     source knows it (a camera message's header, a bag record); None: the robot stamps the frame
     with its own clock when it reads it."""
+    dropped_stale: int = 0
+    """Frames the source dropped, unread, because a newer one arrived first (a source fed by
+    others at their own rate, e.g. `zenoh`: the robot works on the newest frame); counted in
+    each frame's telemetry and the run summary."""
 
     @abc.abstractmethod
     def read(self) -> CameraFrame:
         """The next frame; SourceError when none can be read."""
+
+    def rejected_frames(self) -> dict[str, int]:
+        """Frames received but not decodable, by error code (a source fed by others)."""
+        return {}
 
     def on_result(self, result: FrameResult) -> None:  # noqa: B027 - most sources ignore it
         """Frame `result.frame` (the n-th frame read, from 0) was served and applied: a source
@@ -345,6 +375,23 @@ class CameraPath:
         return np.array(
             [[a, -b, cx - (a * qx - b * qy)], [b, a, cy - (b * qx + a * qy)]], dtype=np.float64
         )
+
+
+def fit_frame(image: np.ndarray, height: int, width: int) -> np.ndarray:
+    """`image` at `height`×`width` as the photo source frames a photograph: the largest centred
+    rectangle of the frame's aspect is kept (nothing is stretched), then scaled with area
+    interpolation when it shrinks, linear when it grows. An image of that size is returned as
+    it is."""
+    h, w = image.shape[:2]
+    if (h, w) == (height, width):
+        return image
+    rect_h, rect_w = fit_rect(h, w, height, width)
+    crop_h, crop_w = max(1, round(rect_h)), max(1, round(rect_w))
+    top, left = (h - crop_h) // 2, (w - crop_w) // 2
+    view = image[top : top + crop_h, left : left + crop_w]
+    shrink = crop_h > height or crop_w > width
+    interpolation = cv2.INTER_AREA if shrink else cv2.INTER_LINEAR
+    return cv2.resize(view, (width, height), interpolation=interpolation)
 
 
 def fit_rect(photo_h: int, photo_w: int, height: int, width: int) -> tuple[float, float]:

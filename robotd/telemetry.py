@@ -8,9 +8,11 @@ suffix_local_s, latency_s, robot_cpu_s, energy_j, deployment, fallback, reason) 
 knew), `entropy` (the frame's normalized grey-level entropy), `hedged` (the local suffix ran
 alongside the cloud), `served_by` (`cloud` or `robot`: which result the frame used), `detail`
 (why the cloud failed, for a person: the record's `detail`), `phase` (the emulation phase the
-frame ran in, `robotd.emulation`; null without `--phases`) and `stale` (the frame's result was
-dropped, not applied: a newer frame's had been, `robotd.pipeline`). Lines are flushed as they
-are written, so a reader can follow the file while the robot runs.
+frame ran in, `robotd.emulation`; null without `--phases`), `stale` (the frame's result was
+dropped, not applied: a newer frame's had been, `robotd.pipeline`) and `dropped_stale` (frames
+the source dropped unread just before this one: a newer one had arrived,
+`robotd.zenoh_source`). Lines are flushed as they are written, so a reader can follow the file
+while the robot runs.
 
 The record itself is built here too (`frame_record`), from what the frame loop measured and what
 came of the cloud call; `RemoteTimes` splits the call's round trip into the network's share and
@@ -35,7 +37,17 @@ from common.wire.telemetry import JSONL_FIELDS, TelemetryRecord, action_label, p
 if TYPE_CHECKING:  # only read here; importing it would load onnxruntime and zenoh
     from robotd.offload import CallResult
 
-EXTRA_FIELDS = ("at", "epoch", "entropy", "hedged", "served_by", "detail", "phase", "stale")
+EXTRA_FIELDS = (
+    "at",
+    "epoch",
+    "entropy",
+    "hedged",
+    "served_by",
+    "detail",
+    "phase",
+    "stale",
+    "dropped_stale",
+)
 SERVED_BY_CLOUD = "cloud"
 SERVED_BY_ROBOT = "robot"
 P95 = 95.0
@@ -78,6 +90,7 @@ def frame_record(
     epoch: int,
     stale: bool = False,
     end: int | None = None,
+    dropped_stale: int = 0,
 ) -> TelemetryRecord:
     """The telemetry record of a completed frame.
 
@@ -87,7 +100,8 @@ def frame_record(
     `end`: the segment's end cut (the action is `cut:<k>-<end>`), for a segment offload.
     `local_s`: the robot's own suffix run, if one ran. `epoch`: the route epoch the robot held
     when the frame started; an answered frame reports its reply's instead. `stale`: its result
-    was dropped, a newer frame's having been applied.
+    was dropped, a newer frame's having been applied. `dropped_stale`: frames the source
+    dropped unread just before this one.
     """
     reply = result.reply if result is not None else None
     fallback = cut is not None and reply is None
@@ -112,6 +126,7 @@ def frame_record(
         epoch=reply.epoch if reply is not None else epoch,
         at=time.time(),
         stale=stale,
+        dropped_stale=dropped_stale,
     )
 
 
@@ -134,6 +149,7 @@ def jsonl_object(
         detail=record.detail or None,
         phase=phase,
         stale=record.stale,
+        dropped_stale=record.dropped_stale,
     )
     return obj
 
@@ -179,6 +195,10 @@ class RunSummary:
         self.hedged = 0
         self.served_by_robot = 0
         self.stale_dropped = 0
+        # Frames the source dropped unread (a newer one arrived first), and frames it could not
+        # decode by error code: set from the source when the run ends.
+        self.dropped_stale = 0
+        self.rejected_frames: dict[str, int] = {}
         self.reasons: Counter[str] = Counter()
         self.by_deployment: Counter[str] = Counter()
         self.actions: Counter[str] = Counter()
@@ -206,7 +226,8 @@ class RunSummary:
 
     def to_json(self) -> dict[str, Any]:
         """`{robot, frames, answered, fallbacks, fallback_reasons, by_deployment, actions, hedged,
-        served_by_robot, stale_dropped, mean_latency_s, p95_latency_s, fps}`."""
+        served_by_robot, stale_dropped, dropped_stale, rejected_frames, mean_latency_s,
+        p95_latency_s, fps}`."""
         lat = np.asarray(self.latencies, dtype=np.float64)
         mean = float(lat.mean()) if lat.size else None
         p95 = float(np.percentile(lat, P95)) if lat.size else None
@@ -227,6 +248,8 @@ class RunSummary:
             "hedged": self.hedged,
             "served_by_robot": self.served_by_robot,
             "stale_dropped": self.stale_dropped,
+            "dropped_stale": self.dropped_stale,
+            "rejected_frames": dict(sorted(self.rejected_frames.items())),
             "mean_latency_s": _round(mean),
             "p95_latency_s": _round(p95),
             "fps": _round(fps),
@@ -249,9 +272,19 @@ class RunSummary:
             f"  finished on the robot after offloading: {s['fallbacks']} ({reasons})",
             f"  hedged: {s['hedged']}, served by the robot's own result: {s['served_by_robot']}",
             f"  stale results dropped (a newer frame's applied first): {s['stale_dropped']}",
+            f"  stale frames dropped unread (a newer one arrived first): {s['dropped_stale']}",
+            *(
+                [f"  frames rejected: {_counts(s['rejected_frames'])}"]
+                if s["rejected_frames"]
+                else []
+            ),
             f"  actions: {actions}",
             f"  latency: mean {ms(s['mean_latency_s'])}, p95 {ms(s['p95_latency_s'])}",
         ]
+
+
+def _counts(counts: dict[str, int]) -> str:
+    return ", ".join(f"{k} {v}" for k, v in counts.items())
 
 
 def _round(value: float | None) -> float | None:

@@ -5,6 +5,8 @@
 - `cloud_to_robot`: InferReply, BusyReply (and ErrorReply, which any replier may send).
 - `registry`: registration, probe, control, routes, drain, RIB views (registry <-> daemons).
 - `telemetry`: what a robot publishes for anyone (per-frame records, probe reports).
+- `robot_to_app`: FrameResultMessage, each applied frame's result for applications (`out/<robot>`).
+- `app_to_robot`: FrameIn, a camera frame an application sends a robot (`in/<robot>`).
 
 Typical use::
 
@@ -18,7 +20,15 @@ Typical use::
 Only this package imports msgpack.
 """
 
-from common.wire import cloud_to_robot, registry, robot_to_cloud, telemetry, tensor_codecs
+from common.wire import (
+    app_to_robot,
+    cloud_to_robot,
+    registry,
+    robot_to_app,
+    robot_to_cloud,
+    telemetry,
+    tensor_codecs,
+)
 from common.wire.codec import (
     DEFAULT_MAX_PAYLOAD_BYTES,
     DTYPES,
@@ -94,6 +104,7 @@ __all__ = [
     "UnknownSchemaVersion",
     "WireError",
     "WrongFieldType",
+    "app_to_robot",
     "applies",
     "cloud_to_robot",
     "codec_names_for",
@@ -108,6 +119,7 @@ __all__ = [
     "error_reply",
     "parse_codec",
     "registry",
+    "robot_to_app",
     "robot_to_cloud",
     "telemetry",
     "tensor_codecs",

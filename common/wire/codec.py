@@ -312,10 +312,6 @@ def _decoder_for(tp: Any) -> _Decoder:
     raise TypeError(f"no wire decoder for {tp}")
 
 
-def _encode_any(value: Any) -> Any:
-    return value
-
-
 def _encoder_for(tp: Any) -> _Encoder | None:
     """None where the value goes on the wire as it is."""
     if tp in _SIMPLE_DECODERS:

@@ -133,7 +133,9 @@ class TelemetryRecord(Message):
     offloading (busy, error, timeout: `reason` says which, `detail` says it for a person);
     `deployment` answered (None if none). `at` is the robot's wall clock when the frame
     completed. `stale`: the frame's result was not applied, a newer frame's had been (a robot
-    with frames in flight, `max_in_flight`). A `reason` given as its string is read as the wire
+    with frames in flight, `max_in_flight`). `dropped_stale`: frames the source dropped unread
+    just before this one, a newer one having arrived (a source fed at its sender's rate, e.g.
+    `zenoh`). A `reason` given as its string is read as the wire
     reads it."""
 
     TYPE: ClassVar[str] = "telemetry"
@@ -156,6 +158,7 @@ class TelemetryRecord(Message):
     epoch: int = 0
     at: float = 0.0
     stale: bool = False
+    dropped_stale: int = 0
 
     def __post_init__(self) -> None:
         if self.reason is not None:
@@ -164,7 +167,7 @@ class TelemetryRecord(Message):
             except ValueError as exc:
                 raise self._invalid("reason", str(exc)) from None
         self._check_ids("robot", "deployment")
-        self._check_non_negative("frame", "bytes_up", "bytes_down", "epoch")
+        self._check_non_negative("frame", "bytes_up", "bytes_down", "epoch", "dropped_stale")
         try:
             parse_action(self.action)
         except ValueError as exc:

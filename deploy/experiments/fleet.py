@@ -26,7 +26,7 @@ import yaml
 
 from common.config import FleetConfig, fleet_from_dict
 from common.fleet_tls import tls_settings, write_certs
-from deploy.procs import merge_into
+from deploy.local_fleet import merge_into
 from robotd.source_names import DEFAULT_CAMERA_SOURCE
 
 from .defaults import DEFAULT_INPUT_SHAPE, DEFAULT_MODEL

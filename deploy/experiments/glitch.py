@@ -17,10 +17,17 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from .fleet import FleetSpec
 from .options import BenchOptions, open_fleet
 from .report import fmt, md_table, save_plot, use_agg
 from .runner import TestbedFleet
+from .single_edge import (
+    CHANGE_WAIT_S,
+    DEADLINE_S,
+    HOSTS,
+    fleet_spec,
+    preset_split,
+    run_timeout_s,
+)
 from .stats import by_frame, lost_frames, phases
 
 POLICIES = ("elastic", "elastic-nohedge", "cloud:jpeg80", "cloud", "robot")
@@ -28,17 +35,14 @@ TABLE2_GLITCHES = ((10.0, 3.0), (5.0, 1.0), (10.0, 1.0))
 # Frames of one run: warm-up (left out), before the change, after it.
 FULL_SPLIT = (10, 20, 50)
 QUICK_SPLIT = (4, 10, 24)
-DEADLINE_S = 15.0
-RUN_SLACK_S = 120.0
-CHANGE_WAIT_S = 300.0
-"""Bound of the wait for the frame at which the cap changes."""
 
 
 def frame_split(options: BenchOptions) -> tuple[int, int, int]:
     """(warm-up, before, after) frames; --frames N splits N as 1/8, 1/4, 5/8."""
-    if options.frames is None:
-        return QUICK_SPLIT if options.quick else FULL_SPLIT
-    n = options.frames
+    preset = preset_split(options, FULL_SPLIT, QUICK_SPLIT)
+    if preset is not None:
+        return preset
+    n = int(options.frames or 0)
     warmup, before = max(1, n // 8), max(3, n // 4)
     return warmup, before, max(3, n - warmup - before)
 
@@ -61,7 +65,7 @@ def run_one(
     tf.shape_robot(to_mbit)
     change_frame = tf.follower.last_frame() + 1
     options.log(f"{policy}: uplink {from_mbit:g} -> {to_mbit:g} Mbit/s at frame {change_frame}")
-    records = by_frame(tf.finish_robot(RUN_SLACK_S + frames * (DEADLINE_S + 1)))
+    records = by_frame(tf.finish_robot(run_timeout_s(frames)))
     ph = phases(records, start, change_frame)
     row: dict[str, Any] = {
         "policy": policy,
@@ -85,16 +89,6 @@ def run_one(
     return row
 
 
-def _spec(tf: TestbedFleet, options: BenchOptions) -> FleetSpec:
-    return FleetSpec(
-        fleet=tf.next_fleet_name("gl-"),
-        clouds=("edge-1",),
-        model=options.model,
-        input_shape=options.input_shape,
-        deadline_s=DEADLINE_S,
-    )
-
-
 def run(
     options: BenchOptions,
     from_mbit: float,
@@ -114,8 +108,8 @@ def run_table2(
     options.check()
     warmup, before, after = frame_split(options)
     results = []
-    with open_fleet(options, hosts=("registry", "robot", "edge-1", "bench")) as tf:
-        tf.launch(_spec(tf, options))
+    with open_fleet(options, hosts=HOSTS) as tf:
+        tf.launch(fleet_spec(tf, options, "gl-"))
         for from_mbit, to_mbit in glitches:
             for policy in policies:
                 results.append(run_one(tf, options, policy, from_mbit, to_mbit))
@@ -131,12 +125,6 @@ def run_table2(
         },
         "results": results,
     }
-
-
-def public(result: dict[str, Any]) -> dict[str, Any]:
-    """The JSON of `bench glitch --json` / `bench table2 --json` (traces left out)."""
-    rows = [{k: v for k, v in r.items() if k != "trace"} for r in result["results"]]
-    return {"settings": result["settings"], "results": rows}
 
 
 def markdown(result: dict[str, Any]) -> str:

@@ -28,7 +28,8 @@ from dataclasses import dataclass
 from typing import Any
 
 from common.errors import UserError
-from deploy.procs import DaemonError, wait_until
+from deploy.procs import DaemonError
+from deploy.readiness import wait_until
 
 from .fleet import CLOUD_HOSTS, ROBOT_ID, FleetSpec
 from .nav import CALIBRATION_FRAMES, DEFAULT_UPLINK_MBIT, MODEL, SOURCE

@@ -18,7 +18,8 @@ A failed request answers `{"id": N, "ok": false, "error": "one line"}`; the help
 It prints `{"event": "ready"}` once its session is open. End of input, `quit`, SIGINT or SIGTERM
 close the session and exit. Its traffic (liveliness, registry views, ctl) is small and crosses
 only the bench host's own link and the link of whoever it asks. In a TLS fleet it shows the
-registry's certificate (`deploy.procs.observer_identity`), which carries the bench host's address.
+registry's certificate (`deploy.local_fleet.observer_identity`), which carries the bench host's
+address.
 """
 
 from __future__ import annotations
@@ -32,7 +33,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from deploy.procs import LocalFleet, TokenWatch, observer_identity
+from deploy.local_fleet import LocalFleet, observer_identity
+from deploy.readiness import TokenWatch
 
 
 class _NamespaceObserver(LocalFleet):

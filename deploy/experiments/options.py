@@ -18,7 +18,9 @@ from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+from common.defaults import ZOO_PREFIX
 from common.errors import UserError
+from common.path_options import model_path, option_dir
 
 from .defaults import DEFAULT_INPUT_SHAPE, DEFAULT_MODEL, DEFAULT_ROBOT_CPU
 from .fleet import POLICY_VARIANTS
@@ -32,7 +34,11 @@ class BenchOptions:
     """Options of every `elasticfog bench` command."""
 
     model: str = DEFAULT_MODEL
-    input_shape: tuple[int, ...] = DEFAULT_INPUT_SHAPE
+    """zoo:NAME or an ONNX file; `check()` makes a file's path absolute (relative: to the
+    working directory)."""
+    input_shape: tuple[int, ...] = ()
+    """(): the default, set by `check()`: a file's own input shape when its dimensions are fixed,
+    else (a zoo model, dynamic dimensions) DEFAULT_INPUT_SHAPE."""
     robot_cpu: float = DEFAULT_ROBOT_CPU
     frames: int | None = None
     """Frames per robot run; None: the experiment's default (smaller with `quick`)."""
@@ -48,16 +54,45 @@ class BenchOptions:
     log: Callable[[str], None] = lambda message: None
 
     def check(self) -> None:
+        """Check the options and resolve the paths and the shape, before anything starts: a
+        relative path is the working directory's (the fleet files are written elsewhere)."""
         if not (math.isfinite(self.robot_cpu) and 0.01 <= self.robot_cpu <= 16):
             raise UserError(f"--robot-cpu {self.robot_cpu:g}: expected 0.01 to 16 (cores)")
         if self.frames is not None and self.frames < 1:
             raise UserError(f"--frames {self.frames}: expected at least 1")
+        self.model = model_path(self.model)
+        if not self.input_shape:
+            self.input_shape = default_input_shape(self.model)
+        if self.workdir is not None:
+            self.workdir = option_dir(self.workdir, "--workdir")
+        if self.plots_dir is not None:
+            self.plots_dir = option_dir(self.plots_dir, "--plots-dir")
 
     def frames_or(self, full: int, quick: int) -> int:
         """The frames of one run: --frames if given, else the experiment's default."""
         if self.frames is not None:
             return self.frames
         return quick if self.quick else full
+
+
+def default_input_shape(model: str) -> tuple[int, ...]:
+    """The shape a bench gives `model` when --input-shape is not given: an ONNX file's own when
+    every dimension of its first input is fixed (besides a dynamic batch), else
+    DEFAULT_INPUT_SHAPE (a zoo model; dynamic dimensions)."""
+    if model.startswith(ZOO_PREFIX):
+        return DEFAULT_INPUT_SHAPE
+    # Imported here: onnx is only needed for a file.
+    from common.partition.errors import OptionError
+    from common.partition.loading import load_onnx, resolve_input_shapes
+
+    graph = load_onnx(Path(model)).graph
+    initializers = {t.name for t in graph.initializer}
+    inputs = [vi for vi in graph.input if vi.name not in initializers]
+    try:
+        shapes = resolve_input_shapes(inputs[:1], None)
+    except OptionError:  # a dynamic dimension besides the batch: the default fills it
+        return DEFAULT_INPUT_SHAPE
+    return next(iter(shapes.values()), DEFAULT_INPUT_SHAPE)
 
 
 def parse_floats(text: str, what: str) -> list[float]:

@@ -46,7 +46,8 @@ from typing import IO, Any
 from common import keys
 from common.config import FleetConfig
 from common.errors import UserError
-from deploy.procs import DaemonError, DaemonProc, ProcessSet, elasticfog_argv, wait_until
+from deploy.procs import DaemonError, DaemonProc, ProcessSet, elasticfog_argv
+from deploy.readiness import wait_until
 from deploy.testbed import Testbed, require_root
 
 from .fleet import (
@@ -314,40 +315,39 @@ class TestbedFleet:
         self.runs = 0
         self.measure_from = 0
         """The first frame of the latest robot run that ran under its CPU quota."""
-        self._entered = False
+        # What `__enter__` made, released by `close` in reverse: the daemons stopped, the process
+        # set closed, the testbed removed.
+        self._owned = contextlib.ExitStack()
 
     # -- lifecycle ---------------------------------------------------------------------------
     def __enter__(self) -> TestbedFleet:
         require_root()
         self.workdir.mkdir(parents=True, exist_ok=True)
-        # The process set first: from here SIGTERM is a KeyboardInterrupt and takes the same
-        # cleanup path as Ctrl-C.
-        self.procs.__enter__()
-        self._entered = True
-        try:
+        with contextlib.ExitStack() as owned:
+            # Removed last, also after a half-made `up()`.
+            owned.callback(self._testbed_down)
+            # The process set next: from here SIGTERM is a KeyboardInterrupt and takes the same
+            # cleanup path as Ctrl-C.
+            owned.enter_context(self.procs)
             self.log(f"testbed {self.testbed.name}: up")
             self.testbed.up()
-        except BaseException:
-            self.close()
-            raise
+            owned.callback(self.stop_daemons)
+            self._owned = owned.pop_all()
         return self
 
     def __exit__(self, *exc: object) -> None:
         self.close()
 
     def close(self) -> None:
-        """Stop everything and remove the testbed; safe to call twice."""
-        if not self._entered:
-            return
-        self._entered = False
-        try:
-            self.stop_daemons()
-        finally:
-            self.procs.close()
-            # Removing the testbed must finish even if the user presses Ctrl-C again.
-            with _sigint_ignored():
-                self.testbed.down()
-            self.log(f"testbed {self.testbed.name}: down")
+        """Stop every daemon, close the process set and remove the testbed (each step runs even
+        if the one before failed); safe to call twice."""
+        self._owned.close()
+
+    def _testbed_down(self) -> None:
+        # Removing the testbed must finish even if the user presses Ctrl-C again.
+        with _sigint_ignored():
+            self.testbed.down()
+        self.log(f"testbed {self.testbed.name}: down")
 
     @property
     def tb(self) -> Testbed:

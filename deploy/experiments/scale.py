@@ -43,10 +43,11 @@ from common.config import FleetConfig, load_fleet
 from common.errors import UserError
 from deploy.cpu_pinning import CpuSplit, off_set_threads, pin_process, split_for_cloud, usable_cpus
 from deploy.load_generator import ARRIVALS, LoadGenerator, summarize
-from deploy.procs import DaemonProc, LocalFleet, write_local_fleet
+from deploy.local_fleet import LocalFleet, write_local_fleet
+from deploy.procs import DaemonProc
 
 from . import scale_defaults as defaults
-from .options import bench_workdir
+from .options import bench_workdir, model_path, option_dir
 from .report import fmt, md_table, save_plot, use_agg
 
 LOAD_KIND = "load generator (emulated robots; real Zenoh requests to real cloud daemons)"
@@ -110,6 +111,10 @@ class ScaleOptions:
             raise UserError(f"--arrivals {self.arrivals!r}: expected one of {', '.join(ARRIVALS)}")
         if self.pin_cloud:
             self.cpu_split(max(self.deployments))  # refused here, before any daemon starts
+        # Paths are the working directory's, checked before anything starts.
+        self.model = model_path(self.model)
+        if self.workdir is not None:
+            self.workdir = option_dir(self.workdir, "--workdir")
 
     def cpu_split(self, deployments: int) -> CpuSplit:
         """With `pin_cloud`: a CPU per worker of the deployments, at most all CPUs but one."""

@@ -13,7 +13,7 @@ from collections import Counter
 from collections.abc import Iterable, Sequence
 from typing import Any
 
-from common.wire.telemetry import ACTION_ROBOT, parse_action
+from common.wire.telemetry import parse_action
 
 Record = dict[str, Any]
 
@@ -140,7 +140,3 @@ def phases(
         "on": summary(between(window, change_frame, settled_at)),
         "after": summary(between(window, settled_at)),
     }
-
-
-def is_robot(action: str | None) -> bool:
-    return action == ACTION_ROBOT

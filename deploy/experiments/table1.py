@@ -13,18 +13,15 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from .fleet import FleetSpec
 from .options import BenchOptions, open_fleet
 from .report import fmt, md_table, save_plot, use_agg
+from .single_edge import DEADLINE_S, HOSTS, fleet_spec, run_timeout_s
 from .stats import between, by_frame, lost_frames, summary
 
 UPLINKS_MBIT = (0.5, 1.0, 2.0, 5.0, 20.0)
 POLICIES = ("robot", "cloud", "cloud:jpeg80", "elastic", "elastic-nohedge", "neurosurgeon", "ans")
 FULL_FRAMES, QUICK_FRAMES = 40, 14
 FULL_WARMUP, QUICK_WARMUP = 10, 4
-DEADLINE_S = 15.0
-"""Far above a full offload at 0.5 Mbit/s (3.9 s for 230 KB): "cloud" is measured, not cut off."""
-RUN_SLACK_S = 120.0
 
 
 def run(
@@ -37,21 +34,14 @@ def run(
     frames = options.frames_or(FULL_FRAMES, QUICK_FRAMES)
     warmup = min(FULL_WARMUP if not options.quick else QUICK_WARMUP, max(0, frames - 3))
     results: list[dict[str, Any]] = []
-    with open_fleet(options, hosts=("registry", "robot", "edge-1", "bench")) as tf:
-        spec = FleetSpec(
-            fleet=tf.next_fleet_name("t1-"),
-            clouds=("edge-1",),
-            model=options.model,
-            input_shape=options.input_shape,
-            deadline_s=DEADLINE_S,
-        )
-        tf.launch(spec)
+    with open_fleet(options, hosts=HOSTS) as tf:
+        tf.launch(fleet_spec(tf, options, "t1-"))
         for uplink in uplinks:
             tf.shape_robot(uplink)
             for policy in policies:
                 options.log(f"uplink {uplink:g} Mbit/s, policy {policy}")
                 tf.start_robot(policy, frames=frames, cpu_fraction=options.robot_cpu)
-                records = by_frame(tf.finish_robot(RUN_SLACK_S + frames * (DEADLINE_S + 1)))
+                records = by_frame(tf.finish_robot(run_timeout_s(frames)))
                 window = between(records, tf.measure_from + warmup)
                 row = {"uplink_mbit": uplink, "policy": policy, **summary(window)}
                 row["lost"] = len(lost_frames(records, frames))

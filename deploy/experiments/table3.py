@@ -14,10 +14,17 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from .fleet import FleetSpec
 from .options import BenchOptions, open_fleet
 from .report import fmt, md_table, save_plot, use_agg
 from .runner import TestbedFleet
+from .single_edge import (
+    CHANGE_WAIT_S,
+    DEADLINE_S,
+    HOSTS,
+    fleet_spec,
+    preset_split,
+    run_timeout_s,
+)
 from .stats import by_frame, lost_frames, phases
 
 POLICIES = ("elastic", "elastic-nohedge", "robot", "cloud:jpeg80", "cloud")
@@ -26,15 +33,13 @@ HIGH_CPU = 1.0
 # Frames of one run: warm-up (left out), whole core, low quota, whole core again.
 FULL_SPLIT = (10, 25, 40, 40)
 QUICK_SPLIT = (4, 12, 20, 20)
-DEADLINE_S = 15.0
-RUN_SLACK_S = 120.0
-CHANGE_WAIT_S = 300.0
 
 
 def frame_split(options: BenchOptions) -> tuple[int, int, int, int]:
-    if options.frames is None:
-        return QUICK_SPLIT if options.quick else FULL_SPLIT
-    n = options.frames
+    preset = preset_split(options, FULL_SPLIT, QUICK_SPLIT)
+    if preset is not None:
+        return preset
+    n = int(options.frames or 0)
     warmup, high = max(1, n // 12), max(3, n // 5)
     low = max(3, (n - warmup - high) // 2)
     return warmup, high, low, max(3, n - warmup - high - low)
@@ -53,7 +58,7 @@ def run_one(tf: TestbedFleet, options: BenchOptions, policy: str) -> dict[str, A
     tf.cpu_robot(HIGH_CPU)
     recover_frame = tf.follower.last_frame() + 1
     options.log(f"{policy}: CPU dropped at frame {drop_frame}, back at {recover_frame}")
-    records = by_frame(tf.finish_robot(RUN_SLACK_S + frames * (DEADLINE_S + 1)))
+    records = by_frame(tf.finish_robot(run_timeout_s(frames)))
     drop = phases(records, start, drop_frame, stop=recover_frame)
     recover = phases(records, drop_frame, recover_frame)
     return {
@@ -80,16 +85,8 @@ def run(options: BenchOptions, policies: Sequence[str] = POLICIES) -> dict[str, 
     options.check()
     warmup, high, low, again = frame_split(options)
     results = []
-    with open_fleet(options, hosts=("registry", "robot", "edge-1", "bench")) as tf:
-        tf.launch(
-            FleetSpec(
-                fleet=tf.next_fleet_name("t3-"),
-                clouds=("edge-1",),
-                model=options.model,
-                input_shape=options.input_shape,
-                deadline_s=DEADLINE_S,
-            )
-        )
+    with open_fleet(options, hosts=HOSTS) as tf:
+        tf.launch(fleet_spec(tf, options, "t3-"))
         for policy in policies:
             results.append(run_one(tf, options, policy))
     return {
@@ -104,11 +101,6 @@ def run(options: BenchOptions, policies: Sequence[str] = POLICIES) -> dict[str, 
         },
         "results": results,
     }
-
-
-def public(result: dict[str, Any]) -> dict[str, Any]:
-    rows = [{k: v for k, v in r.items() if k != "trace"} for r in result["results"]]
-    return {"settings": result["settings"], "results": rows}
 
 
 PHASES = ("before", "drop_on", "drop_after", "recover_on", "recover_after")

@@ -18,7 +18,6 @@ the two cuts and the robot runs the rest from the reply (the nav options of
 from __future__ import annotations
 
 import abc
-import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Final, Literal, TypeAlias
@@ -139,11 +138,6 @@ class Outcome:
     local_s: float | None = None
     latency_s: float | None = None
     waited_s: float | None = None
-
-    @property
-    def cloud_answered(self) -> bool:
-        """True when the cloud's reply arrived in time."""
-        return self.cloud_s is not None
 
 
 class _CodecModel(BaseModel):
@@ -318,10 +312,6 @@ class CutTable:
             ends=(*self.ends, end),
         )
 
-    def action_at(self, position: int) -> Action:
-        """The cut (or P) of the action in column `position`."""
-        return PURE_ROBOT if position == self.size else self.indices[position]
-
     def undominated(self, slack: float) -> CutTable:
         """The actions that some link speed can make the best, given a robot no faster than the
         cloud (else nothing pays for offloading).
@@ -396,8 +386,3 @@ class Policy(abc.ABC):
     def state(self) -> dict[str, Any]:
         """A small snapshot for telemetry and debugging (JSON-friendly)."""
         return {"policy": self.name}
-
-
-def finite_or_none(value: float) -> float | None:
-    """`value` when finite, else None (for JSON)."""
-    return value if math.isfinite(value) else None

@@ -33,12 +33,13 @@ update the regression.
   moment that still finishes it when the greedy choice would have served the frame; one expected
   to lose to it once the reply is overdue. A local run that cannot beat the expected reply then
   does not compete with the offload for the robot's CPU.
-- robot probes: when the robot has not been timed for `robot_probe_frames` frames (its actions run
-  less than `SHORT_RUN_SHARE` of the model there, e.g. cut 0 with a JPEG encode), the next offloaded
-  frame is hedged at once, so a robot that got faster again is noticed. Without hedging the probe
-  serves the frame on the robot (P) instead, and each probe that finds the estimate right doubles
-  the interval to the next (up to `ROBOT_PROBE_MAX_FACTOR` times), as these probes cost latency; one
-  that finds it wrong is confirmed by a probe on the next frame.
+- robot probes (`robotd.policies.robot_probes`): when the robot has not been timed for
+  `robot_probe_frames` frames (its actions run less than `SHORT_RUN_SHARE` of the model there,
+  e.g. cut 0 with a JPEG encode), the next offloaded frame is hedged at once, so a robot that got
+  faster again is noticed. Without hedging the probe serves the frame on the robot (P) instead,
+  and each probe that finds the estimate right doubles the interval to the next (up to
+  `ROBOT_PROBE_MAX_FACTOR` times), as these probes cost latency; one that finds it wrong is
+  confirmed by a probe on the next frame.
 - confirmation: after a single miss the next frame is a forced frame (so it samples the cloud,
   hedged if the policy would not otherwise offload), and a change is confirmed within
   `change_frames` frames rather than `change_frames` forced intervals.
@@ -78,6 +79,7 @@ from robotd.policies.base import (
 from robotd.policies.objective import Objective, cloud_cost
 from robotd.policies.params import AnsParams, ElasticParams
 from robotd.policies.ridge import RidgeEstimator, quadratic_features
+from robotd.policies.robot_probes import RobotProbes
 from robotd.policies.robotcost import SHORT_RUN_SHARE, RobotCostModel
 from robotd.policies.schedule import ForcedSchedule
 
@@ -94,9 +96,6 @@ BYTES_CHANGE_SHARE = 0.02
 # Action costs within this share of the whole model's time count as equal when dominated
 # actions are left out (`CutTable.undominated`).
 DOMINANCE_SLACK = 0.05
-# Without hedging, a robot probe serves a frame on the robot (P). Each probe that finds the
-# estimate right doubles the interval to the next, up to this multiple of robot_probe_frames.
-ROBOT_PROBE_MAX_FACTOR = 4
 
 
 class ElasticPolicy(Policy):
@@ -179,14 +178,8 @@ class ElasticPolicy(Policy):
         # Per column, the least cloud-side cost it was ever seen to take (`_hint_cheaper`).
         self._best_seen: dict[int, float] = {}
         self._next_hint = 0  # no hint before this frame
-        # Robot probes: frames since the robot was last timed or a probe was tried, the current
-        # interval (grows while unhedged probes find the estimate right), and whether a probe
-        # was already tried for the measurement that is awaiting confirmation.
-        self._since_probe = 0
-        self._probe_interval = params.robot_probe_frames
-        self._suspect_probed = False
-        self._p_probe = False
-        self.robot_probes = 0
+        # When to time the robot on a frame whose action runs nothing measurable there.
+        self._probes = RobotProbes(params, self._robot, self._untimed)
         # Score parts, cut order: base = E^c + bytes cost + α̂ᵀv (inf where restricted away in
         # `_allowed_base`), width = sqrt(vᵀQ⁻¹v); score = base − sqrt(1−σ)·β·E_P·width, with
         # `_bonus_scale` = β·E_P; `_pred` = α̂ᵀv.
@@ -205,7 +198,7 @@ class ElasticPolicy(Policy):
         self._frame = n + 1
         robot = self._robot
         robot.tick()
-        self._since_probe += 1
+        self._probes.tick()
         params = self.params
         best, j = self._best_key if ctx.entropy >= params.key_entropy else self._best_nonkey
         p_cost = robot.full_cost
@@ -220,12 +213,11 @@ class ElasticPolicy(Policy):
             j, forced = challenger, True
         if regular_p and not forced:
             return Decision(PURE_ROBOT, updating=self._updating, predicted_cost=p_cost)
-        probe = self._needs_probe(j)
+        probe = self._probes.due(j)
         if not params.hedge:
             if probe and self._p_allowed and not forced:
                 # Without hedging the robot is timed by serving the frame on it.
-                self._probe_tried()
-                self._p_probe = True
+                self._probes.tried(on_p=True)
                 return Decision(PURE_ROBOT, updating=self._updating, predicted_cost=p_cost)
             return self.cuts.decision_at(
                 j, forced=forced, updating=self._updating, predicted_cost=self._base[j]
@@ -237,7 +229,7 @@ class ElasticPolicy(Policy):
         hedge = greedy != j or self._updating or probe
         after_s = 0.0
         if hedge:
-            self._probe_tried()  # a hedged frame times the robot when its local run wins
+            self._probes.tried()  # a hedged frame times the robot when its local run wins
             if not probe:
                 after_s = self._hedge_after_s(j, greedy)
         return self.cuts.decision_at(
@@ -249,20 +241,6 @@ class ElasticPolicy(Policy):
             hedge_after_s=after_s,
             local_expected=hedge and greedy < 0,
         )
-
-    def _needs_probe(self, j: int) -> bool:
-        """Time the robot: cut j runs nothing measurable there, and the robot's speed is stale
-        (or, when hedging, a surprising measurement awaits confirmation)."""
-        if not self._untimed[j] or self.params.robot_probe_frames == 0:
-            return False
-        if self.params.hedge and self._robot.suspect and not self._suspect_probed:
-            return True
-        return self._since_probe >= self._probe_interval
-
-    def _probe_tried(self) -> None:
-        self._since_probe = 0
-        if self._robot.suspect:
-            self._suspect_probed = True
 
     def _hedge_after_s(self, j: int, greedy: int) -> float:
         """When a hedged frame of cut j starts its local run, in seconds after the request left.
@@ -294,15 +272,14 @@ class ElasticPolicy(Policy):
     def observe(self, decision: Decision, outcome: Outcome) -> None:
         robot = self._robot
         if decision.action == PURE_ROBOT:
-            self._timed(robot.observe(outcome.prefix_s, self.cuts.full_s), self._p_probe)
-            self._p_probe = False
+            self._probes.timed(robot.observe(outcome.prefix_s, self.cuts.full_s), on_p=True)
             self._refresh(learned=False)
             return
         j = self._position[(int(decision.action), decision.codec)]
         self._learn_bytes(j, outcome.bytes_up)
-        self._timed(robot.observe(outcome.prefix_s, self._prefix_s[j]), False)
+        self._probes.timed(robot.observe(outcome.prefix_s, self._prefix_s[j]))
         if outcome.local_s is not None:
-            self._timed(robot.observe(outcome.local_s, self._suffix_s[j]), False)
+            self._probes.timed(robot.observe(outcome.local_s, self._suffix_s[j]))
         if outcome.cloud_s is not None:
             target = cloud_cost(
                 self._wait_rate, self._radio_rate, outcome.cloud_s, outcome.cloud_compute_s
@@ -338,22 +315,6 @@ class ElasticPolicy(Policy):
         self._features[j, -1] = self.objective.bytes * mb
         self._features[k + j, d : d + d * d] = quadratic_features(self.contexts[j : j + 1])[0]
         self._features[2 * k + j, 0] = mb
-
-    def _timed(self, miss: int | None, p_probe: bool) -> None:
-        """After a robot measurement (`miss`: `RobotCostModel.observe`'s answer)."""
-        if miss is None:
-            return
-        self._since_probe = 0
-        self._suspect_probed = False
-        if p_probe:
-            self.robot_probes += 1
-            base = self.params.robot_probe_frames
-            if miss == 0:  # the estimate was right: probe less often
-                self._probe_interval = min(2 * self._probe_interval, ROBOT_PROBE_MAX_FACTOR * base)
-            elif self._robot.suspect:  # a surprise: confirm it on the next frame
-                self._probe_interval = 1
-            else:
-                self._probe_interval = base
 
     def _track(self, j: int, target: float) -> None:
         """Update the regression and the change detector with one cloud-side observation."""
@@ -594,6 +555,11 @@ class ElasticPolicy(Policy):
         return p.sigma_key if entropy >= p.key_entropy else p.sigma_nonkey
 
     @property
+    def robot_probes(self) -> int:
+        """Frames served on the robot (P) to time it, without hedging."""
+        return self._probes.count
+
+    @property
     def updating(self) -> bool:
         """True inside a parameter-update period."""
         return self._updating
@@ -624,7 +590,7 @@ class ElasticPolicy(Policy):
             "takeovers": self.takeovers,
             "direction": self._direction,
             "robot_speed_ratio": self._robot.ratio,
-            "robot_probes": self.robot_probes,
+            "robot_probes": self._probes.count,
         }
 
 

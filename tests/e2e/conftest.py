@@ -23,7 +23,7 @@ import psutil
 import pytest
 import yaml
 
-from deploy.procs import LocalFleet, merge_into, write_local_fleet
+from deploy.local_fleet import LocalFleet, merge_into, write_local_fleet
 from deploy.testbed import ETC_NETNS_DIR, NETNS_DIR
 
 E2E_TEST_TIMEOUT_S = 90

@@ -19,12 +19,10 @@ from typer.testing import CliRunner
 from common.cli import app
 from deploy.procs import elasticfog_argv
 from tests.e2e.conftest import processes_under, remains_of_testbed
+from tests.helpers.gates import root_only
 
 pytestmark = pytest.mark.e2e
 
-root_only = pytest.mark.skipif(
-    os.geteuid() != 0, reason="needs root: creates network namespaces, tc qdiscs and cgroups"
-)
 
 ROW_KEYS = {
     "pool_size",

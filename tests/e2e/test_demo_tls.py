@@ -25,7 +25,8 @@ import pytest
 
 from common.config import load_fleet
 from deploy.demo import read_telemetry
-from deploy.procs import elasticfog_argv, wait_until
+from deploy.procs import elasticfog_argv
+from deploy.readiness import wait_until
 from tests.e2e.test_runtime_lifecycle import DEMO_KEYS
 
 pytestmark = [pytest.mark.e2e, pytest.mark.usefixtures("e2e_watchdog")]

@@ -27,13 +27,12 @@ from tests.e2e.conftest import (
     processes_under,
     remains_of_testbed,
 )
+from tests.helpers.gates import root_only
 
 pytestmark = [
     pytest.mark.e2e,
     pytest.mark.netns,
-    pytest.mark.skipif(
-        os.geteuid() != 0, reason="needs root: creates network namespaces, tc qdiscs and cgroups"
-    ),
+    root_only,
 ]
 
 HOSTS = ("registry", "robot", "edge-1", "edge-2", "bench")

@@ -13,7 +13,6 @@ action alike.
 from __future__ import annotations
 
 import contextlib
-import os
 import statistics
 from collections.abc import Callable
 
@@ -24,13 +23,12 @@ from deploy.experiments.runner import TestbedFleet
 from deploy.experiments.stats import action_order, between, by_frame, final_action, summary
 from deploy.procs import DaemonError
 from tests.e2e import test_multihost as mh
+from tests.helpers.gates import root_only
 
 pytestmark = [
     pytest.mark.e2e,
     pytest.mark.netns,
-    pytest.mark.skipif(
-        os.geteuid() != 0, reason="needs root: creates network namespaces, tc qdiscs and cgroups"
-    ),
+    root_only,
 ]
 
 fleet = mh.fleet  # the fixture: a testbed fleet per test, torn down and checked

@@ -18,7 +18,7 @@ from typing import Any
 import pytest
 
 from deploy.demo import answered_by, read_telemetry
-from deploy.procs import LocalFleet
+from deploy.local_fleet import LocalFleet
 
 pytestmark = [pytest.mark.e2e, pytest.mark.usefixtures("e2e_watchdog")]
 

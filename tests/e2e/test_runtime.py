@@ -20,7 +20,8 @@ import pytest
 
 from common import keys
 from deploy.demo import answered_by, read_telemetry, summarize
-from deploy.procs import LocalFleet, wait_until
+from deploy.local_fleet import LocalFleet
+from deploy.readiness import wait_until
 from registry.scheduler import (
     DEFAULT_IMPROVE_HOLD_S,
     DEFAULT_MIN_DWELL_S,

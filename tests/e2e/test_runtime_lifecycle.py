@@ -22,7 +22,8 @@ import pytest
 import yaml
 
 from deploy.demo import answered_by, read_telemetry
-from deploy.procs import elasticfog_argv, free_tcp_port, wait_until
+from deploy.procs import elasticfog_argv, free_tcp_port
+from deploy.readiness import wait_until
 
 pytestmark = [pytest.mark.e2e, pytest.mark.usefixtures("e2e_watchdog")]
 

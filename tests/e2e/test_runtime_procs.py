@@ -12,7 +12,8 @@ from pathlib import Path
 import psutil
 import pytest
 
-from deploy.procs import DaemonError, ProcessSet, wait_until
+from deploy.procs import DaemonError, ProcessSet
+from deploy.readiness import wait_until
 
 pytestmark = [pytest.mark.e2e, pytest.mark.usefixtures("e2e_watchdog")]
 

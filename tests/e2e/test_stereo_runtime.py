@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from deploy.demo import answered_by, read_telemetry
-from deploy.procs import LocalFleet
+from deploy.local_fleet import LocalFleet
 from robotd.daemon import FrameResult, RobotDaemon, RobotOptions
 from robotd.telemetry import SERVED_BY_CLOUD, SERVED_BY_ROBOT
 

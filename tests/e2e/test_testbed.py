@@ -27,13 +27,12 @@ from common.errors import UserError
 from deploy import cli as testbed_cli
 from deploy.cgroups import DEFAULT_CFS_PERIOD_US, MIN_QUOTA_US, find_cpu_mount
 from deploy.testbed import ETC_NETNS_DIR, NETNS_DIR, SH, Testbed, TestbedError
+from tests.helpers.gates import root_only
 
 pytestmark = [
     pytest.mark.e2e,
     pytest.mark.netns,
-    pytest.mark.skipif(
-        os.geteuid() != 0, reason="needs root: creates network namespaces, tc qdiscs and cgroups"
-    ),
+    root_only,
 ]
 
 HOSTS = ("registry", "robot", "edge-1", "edge-2")

@@ -33,7 +33,9 @@ from common.config import FleetConfig
 from common.session import open_session, zenoh_config
 from common.wire.registry import CtlOp, CtlRequest
 from deploy.demo import answered_by, read_telemetry
-from deploy.procs import DaemonProc, LocalFleet, TokenWatch, elasticfog_argv, free_tcp_port
+from deploy.local_fleet import LocalFleet
+from deploy.procs import DaemonProc, elasticfog_argv, free_tcp_port
+from deploy.readiness import TokenWatch
 from tests.e2e.conftest import (
     TEST_DEADLINE_S,
     TEST_FPS,

@@ -46,6 +46,7 @@ from common.wire.registry import (
 )
 from common.wire.robot_to_cloud import InferRequest
 from common.wire.tensor_codecs import EncodedTensor
+from deploy.readiness import wait_until
 from tests.integration.conftest import Router, find_free_port, loopback_endpoint
 from tests.unit.test_cloudd_validate import TINY_BATCH, TINY_DIM, write_tiny_model
 
@@ -57,6 +58,8 @@ STOP_WITHIN_S = 2.0
 RESULT_ATOL = 1e-4
 INJECTED_DELAY_S = 0.3
 POLL_S = 0.05
+SLOTS_RELEASED_S = 5.0
+"""Bound of the wait for a deployment's slots to be free again after its requests are answered."""
 
 
 # -- fixtures --------------------------------------------------------------------------------------
@@ -149,14 +152,13 @@ def ask_one(session: zenoh.Session, key: str, payload: bytes | None = None) -> M
 def wait_reply(session: zenoh.Session, key: str, payload: bytes | None = None) -> Message:
     """The first reply on `key`, asking again until one comes (a declaration still on its way
     from the daemon to this session), or fail after WAIT_S."""
-    deadline = time.monotonic() + WAIT_S
-    pause = threading.Event()
-    while time.monotonic() < deadline:
-        replies = ask(session, key, payload, timeout_s=1.0)
-        if replies:
-            return replies[0]
-        pause.wait(POLL_S)
-    pytest.fail(f"no reply on {key} within {WAIT_S} s")
+    replies = wait_until(
+        lambda: ask(session, key, payload, timeout_s=1.0),
+        timeout_s=WAIT_S,
+        what=f"a reply on {key}",
+        interval_s=POLL_S,
+    )
+    return replies[0]
 
 
 def probe_key(daemon: CloudDaemon) -> str:
@@ -458,9 +460,12 @@ def test_a_full_pool_answers_busy_at_once(
     assert busy and "InferReply" in kinds, kinds
     assert all(b.capacity == 1 and b.queued >= 1 and b.deployment == "edge-1" for b in busy)
     # A worker releases its slot just after its reply is sent: poll the probe, bounded in time.
-    deadline = time.monotonic() + 5.0
-    while probe(session, daemon).load != 0:
-        assert time.monotonic() < deadline, "every slot is released"
+    wait_until(
+        lambda: probe(session, daemon).load == 0,
+        timeout_s=SLOTS_RELEASED_S,
+        what="every slot released",
+        interval_s=POLL_S,
+    )
 
 
 def test_injected_delay_from_start_and_from_ctl_delays_replies(
@@ -623,11 +628,12 @@ def test_registry_token_is_followed(start_cloud, open_peer, zenoh_router: Router
         assert daemon.registry_seen.wait(WAIT_S), "the registry's token was not seen"
     finally:
         token.undeclare()
-    deadline = time.monotonic() + WAIT_S
-    pause = threading.Event()
-    while daemon.registry_seen.is_set() and time.monotonic() < deadline:
-        pause.wait(POLL_S)
-    assert not daemon.registry_seen.is_set(), "the registry's token was not seen to go"
+    wait_until(
+        lambda: not daemon.registry_seen.is_set(),
+        timeout_s=WAIT_S,
+        what="the registry's token seen to go",
+        interval_s=POLL_S,
+    )
 
 
 def test_port_in_use_is_a_clear_error(start_cloud) -> None:

@@ -11,7 +11,7 @@ from typer.testing import CliRunner, Result
 
 from common.cli import app
 from common.models import file_digest
-from tests.unit.test_partition import diamond, late_input, make_model, node, save, vi
+from tests.helpers.onnx_graphs import diamond, late_input, make_model, node, save, vi
 from tests.unit.test_prep import conv_net
 
 runner = CliRunner()

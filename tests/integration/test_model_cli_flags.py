@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pytest
 
+from tests.helpers.onnx_graphs import chain, dynamic, save
 from tests.integration.test_model_cli import assert_one_line_error, invoke
-from tests.unit.test_partition import chain, dynamic, save
 
 
 @pytest.mark.parametrize(

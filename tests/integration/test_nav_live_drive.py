@@ -23,8 +23,8 @@ from common.config import FleetConfig, fleet_from_dict
 from nav.live_drive import read_outcome
 from robotd.daemon import FrameResult, RobotDaemon, RobotOptions
 from robotd.telemetry import SERVED_BY_CLOUD
+from tests.helpers.registry import LEASE_MS, TEST_PARAMS, RunningRegistry
 from tests.integration.conftest import find_free_port, loopback_endpoint, running_cloud
-from tests.integration.test_registry import LEASE_MS, TEST_PARAMS, RunningRegistry
 
 SERVICE = "nav"
 DEPLOYMENT = "edge-1"

@@ -25,8 +25,8 @@ import pytest
 from common.config import FleetConfig, fleet_from_dict
 from robotd.daemon import FrameResult, RobotDaemon, RobotOptions
 from robotd.telemetry import SERVED_BY_CLOUD, SERVED_BY_ROBOT
+from tests.helpers.registry import LEASE_MS, TEST_PARAMS, RunningRegistry
 from tests.integration.conftest import find_free_port, loopback_endpoint, running_cloud
-from tests.integration.test_registry import LEASE_MS, TEST_PARAMS, RunningRegistry
 
 SERVICE = "nav"
 DEPLOYMENT = "edge-1"

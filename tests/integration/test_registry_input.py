@@ -23,8 +23,8 @@ from common.wire.registry import (
     RerouteRequest,
     RouteChange,
 )
-from tests.integration import test_registry as reg
-from tests.integration.test_registry import (
+from tests.helpers import registry as reg
+from tests.helpers.registry import (
     ROBOT,
     FakeDeployment,
     FakeRobot,

@@ -35,6 +35,8 @@ from typing import Any
 
 import pytest
 
+from deploy.readiness import wait_until
+
 REPO_ROOT = Path(__file__).resolve().parents[2]
 LEASE_MS = 1000
 QUERY_TIMEOUT_S = 0.3
@@ -185,11 +187,12 @@ def _probe() -> dict[str, Any]:
                         return True
                 return False
 
-            deadline = time.monotonic() + READY_TIMEOUT_S
-            while not (answered() and len(list(session.info.peers_zid())) == 3):
-                if time.monotonic() > deadline:
-                    raise RuntimeError("the three hosts were not all connected and answering")
-                time.sleep(QUERY_EVERY_S)
+            wait_until(
+                lambda: answered() and len(list(session.info.peers_zid())) == 3,
+                timeout_s=READY_TIMEOUT_S,
+                what="the three hosts all connected and answering",
+                interval_s=QUERY_EVERY_S,
+            )
             peers_before = len(list(session.info.peers_zid()))
             _pull_cables(lost)
             cut = last = time.monotonic()

@@ -10,8 +10,6 @@ unnoticed and stay routed to. The registry here is a peer of a router that runs 
 
 from __future__ import annotations
 
-import threading
-import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -23,9 +21,9 @@ from common import keys
 from common.config import FleetConfig
 from common.session import open_session
 from common.wire import decode
-from tests.integration import test_registry as reg
-from tests.integration.conftest import find_free_port, loopback_endpoint
-from tests.integration.test_registry import (
+from deploy.readiness import wait_until
+from tests.helpers import registry as reg
+from tests.helpers.registry import (
     LEASE_MS,
     QUERY_TIMEOUT_S,
     WAIT_S,
@@ -35,6 +33,7 @@ from tests.integration.test_registry import (
     view,
     write_fleet,
 )
+from tests.integration.conftest import find_free_port, loopback_endpoint
 
 peer = reg.peer
 start_registry = reg.start_registry
@@ -85,15 +84,16 @@ def _wait_deployments(
     """Ask the `deployments` view until its rows satisfy `predicate`, each round waiting on the
     get. A get may find no registry yet: the router relays no queries between peers, and the
     observer learns the registry's queryable only once gossip has linked them."""
-    deadline = time.monotonic() + WAIT_S
-    rows: tuple[Any, ...] | None = None
-    pause = threading.Event()
-    while time.monotonic() < deadline:
+    seen: list[tuple[Any, ...]] = []
+
+    def rows_now() -> tuple[Any, ...] | None:
         replies = session.get(keys.rib(cfg.fleet, "deployments"), timeout=QUERY_TIMEOUT_S)
         answers = [decode(r.ok.payload.to_bytes()) for r in replies if r.ok is not None]
-        if answers:
-            rows = answers[0].rows
-            if predicate(rows):
-                return rows
-        pause.wait(0.05)
-    pytest.fail(f"the deployments view never got there within {WAIT_S} s: {rows}")
+        if not answers:
+            return None
+        seen[:] = [answers[0].rows]
+        return answers[0].rows if predicate(answers[0].rows) else None
+
+    return wait_until(
+        rows_now, timeout_s=WAIT_S, what=f"the deployments view to hold (last: {seen})"
+    )

@@ -23,9 +23,9 @@ from common import keys
 from common.cli import app
 from common.config import FleetConfig
 from common.session import open_session
-from tests.integration import test_registry as reg
+from tests.helpers import registry as reg
+from tests.helpers.registry import ROBOT, Fleet, RunningRegistry, wait_view, write_fleet
 from tests.integration.conftest import find_free_port, loopback_endpoint
-from tests.integration.test_registry import ROBOT, Fleet, RunningRegistry, wait_view, write_fleet
 
 # The registry fixtures, shared with test_registry.py.
 fleet = reg.fleet

@@ -21,8 +21,8 @@ from common.config import fleet_from_dict
 from common.errors import UserError
 from robotd.daemon import RobotDaemon, RobotOptions
 from robotd.emulation import Phase
+from tests.helpers.onnx_graphs import make_model, node, save, vi
 from tests.integration.conftest import Router
-from tests.unit.test_partition import make_model, node, save, vi
 
 ROBOT = "robot-1"
 INPUT_SHAPE = (1, 3, 96, 96)

@@ -27,6 +27,7 @@ from common.partition import load_partition, sample_feeds
 from common.partition.runtime import SplitModel
 from robotd.policies import Decision, FrameContext, Outcome, Policy
 from robotd.policies.base import CutTable
+from tests.helpers.onnx_graphs import make_model, node, save, vi
 from tests.integration.conftest import Router
 from tests.integration.test_robotd import (
     DEPLOYMENT,
@@ -36,7 +37,6 @@ from tests.integration.test_robotd import (
     fleet_config,
     run_robot,
 )
-from tests.unit.test_partition import make_model, node, save, vi
 
 INPUT_SHAPE = (1, 3, 32, 32)
 CHANNELS = 64

@@ -41,8 +41,8 @@ from robotd.pacing import BITS_PER_BYTE
 from robotd.policies import Decision, FrameContext, Outcome, Policy
 from robotd.policies.base import CutTable
 from robotd.telemetry import EXTRA_FIELDS
+from tests.helpers.onnx_graphs import make_model, node, save, vi
 from tests.integration.conftest import Router
-from tests.unit.test_partition import make_model, node, save, vi
 
 FLEET = "robotd-it"
 SERVICE = "vision"

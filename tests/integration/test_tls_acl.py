@@ -31,6 +31,7 @@ from common.config import FleetConfig, TlsConfig, load_fleet
 from common.init_cli import write_fleet
 from common.session import open_session, zenoh_config
 from common.tls_preflight import probe_endpoint
+from deploy.readiness import wait_until
 from tests.integration.conftest import WAIT_TIMEOUT_S, find_free_port
 
 QUERY_TIMEOUT_S = 1.0
@@ -67,12 +68,7 @@ def _answer(calls: list[str], name: str) -> Callable[[zenoh.Query], None]:
 
 def _wait(predicate: Callable[[], Any], what: str, timeout_s: float = WAIT_TIMEOUT_S) -> Any:
     """Poll `predicate` (each call is itself bounded: a query with a timeout) until it holds."""
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        value = predicate()
-        if value:
-            return value
-    pytest.fail(f"timed out after {timeout_s:g} s waiting for {what}")
+    return wait_until(predicate, timeout_s=timeout_s, what=what)
 
 
 def _ok_replies(session: zenoh.Session, key: str, **kwargs: Any) -> list[bytes]:

@@ -1,7 +1,7 @@
 """`common.acl`: the access control generated from the fleet file. Each host may send only what
 its role needs on its own keys (checked with Zenoh's own key-expression inclusion, the test Zenoh
-applies), the CLI reads views only, only the registry drives ctl and routes, and Zenoh accepts
-the generated section."""
+applies), the CLI reads views and follows results only, only the registry drives ctl and routes,
+and Zenoh accepts the generated section."""
 
 from __future__ import annotations
 
@@ -99,6 +99,7 @@ def test_the_cli_reads_views_and_nothing_else(fleet: FleetConfig) -> None:
     for message in Message:
         if message is not Message.QUERY:
             assert not allowed(fleet, "cli", message, keys.rib_routes(f)), message
+    assert not allowed(fleet, "cli", Message.DECLARE_SUBSCRIBER, keys.route(f, "robot-1"))
 
 
 def test_nothing_outside_the_fleet(fleet: FleetConfig) -> None:
@@ -134,3 +135,16 @@ def test_table_lists_every_grant(fleet: FleetConfig) -> None:
     rows = acl.table(fleet)
     assert ("cli", "query", keys.rib_all(fleet.fleet), "read the RIB views") in rows
     assert {r[0] for r in rows} == set(acl.grants(fleet))
+
+
+def test_a_robot_publishes_its_own_results_and_takes_its_own_frames(fleet: FleetConfig) -> None:
+    f = fleet.fleet
+    assert allowed(fleet, "robot-1", Message.PUT, keys.results_out(f, "robot-1"))
+    assert not allowed(fleet, "robot-1", Message.PUT, keys.results_out(f, "robot-2"))
+    for message in (Message.DECLARE_SUBSCRIBER, Message.PUT):
+        assert allowed(fleet, "robot-1", message, keys.frames_in(f, "robot-1"))
+        assert not allowed(fleet, "robot-1", message, keys.frames_in(f, "robot-2"))
+    # The CLI (`elasticfog results`) follows every robot's results and sends no frame.
+    assert allowed(fleet, "cli", Message.DECLARE_SUBSCRIBER, keys.results_out(f, "robot-2"))
+    assert not allowed(fleet, "cli", Message.PUT, keys.frames_in(f, "robot-1"))
+    assert not allowed(fleet, "cli", Message.PUT, keys.results_out(f, "robot-1"))

@@ -12,6 +12,7 @@ import os
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -90,3 +91,21 @@ def test_version_prints_the_package_version_and_imports_nothing_heavy(flag: str)
     code = BUILD + RUN + REPORT
     imported = json.loads(_run([sys.executable, "-c", code, flag]).stdout.strip().splitlines()[-1])
     assert imported == []
+
+
+def test_help_texts_are_paragraphs_wrapped_by_the_terminal_not_the_source() -> None:
+    import typer.main
+
+    from common.cli import app, as_paragraphs
+
+    assert as_paragraphs("one\n    two\n\n    three\n") == "one two\n\nthree"
+    helps: list[tuple[str, str]] = []
+
+    def walk(command: Any, path: str) -> None:
+        helps.append((path, command.help or ""))
+        for sub_name, sub in getattr(command, "commands", {}).items():
+            walk(sub, f"{path} {sub_name}")
+
+    walk(typer.main.get_command(app), "elasticfog")
+    wrapped = [path for path, text in helps if any("\n" in p for p in text.split("\n\n"))]
+    assert not wrapped, f"help wrapped mid-paragraph: {wrapped}"

@@ -213,3 +213,30 @@ def test_throttled_log_counts_what_it_suppressed_when_the_next_window_opens(
         "edge-1: 3 more warnings were not logged in the last 10 s",
         "bad request 5",
     ]
+
+
+class Recording(Daemon):
+    """Records whether `ready` was set when startup ran and when the main loop ran."""
+
+    name = "recording"
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.seen: dict[str, bool] = {}
+
+    def startup(self) -> None:
+        self.seen["startup"] = self.ready.is_set()
+
+    def main_loop(self) -> None:
+        self.seen["main_loop"] = self.ready.is_set()
+
+
+def test_ready_is_set_between_startup_and_the_main_loop_and_cleared_by_shutdown() -> None:
+    daemon = Recording()
+    assert daemon.run() == 0
+    assert daemon.seen == {"startup": False, "main_loop": True}
+    assert not daemon.ready.is_set()
+    failing = FailingStartup()
+    with pytest.raises(RuntimeError):
+        failing.run()
+    assert not failing.ready.is_set()  # a startup that failed never says ready

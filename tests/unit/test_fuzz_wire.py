@@ -1,6 +1,7 @@
 """Fuzzing every wire decoder as its receiver calls it: each key's receiver (the cloud on its
-service, probe and ctl keys, the robot on replies and routes, the registry on its request keys and
-on telemetry and probe reports, the CLI on the RIB views) with its expected types and size limit.
+service, probe and ctl keys, the robot on replies, routes and frames in, the registry on its
+request keys and on telemetry and probe reports, the CLI on the RIB views, an application on a
+robot's results) with its expected types and size limit.
 
 Inputs: arbitrary bytes; message maps generated from the message classes' own type hints (right
 wire types, arbitrary values, fields left out or added: this reaches the checks behind the type
@@ -40,6 +41,7 @@ from common.wire import (
     encode_tensor,
     error_reply,
 )
+from common.wire.app_to_robot import FrameIn, decode_image
 from common.wire.cloud_to_robot import INFER_REPLIES
 from common.wire.codec import MAX_ANY_DEPTH, MESSAGE_TYPES, Buffer
 from common.wire.registry import (
@@ -55,9 +57,11 @@ from common.wire.registry import (
     RibQuery,
     RouteChange,
 )
+from common.wire.robot_to_app import FrameResultMessage
 from common.wire.robot_to_cloud import InferRequest
 from common.wire.telemetry import ProbeReport, TelemetryRecord
 from common.wire.tensor_codecs import CODECS
+from robotd.sources import MAX_SOURCE_SIDE_PX
 from tests.unit.fuzz_support import budget, byte_edits, mutate, run_decoder
 from tests.unit.test_wire import SAMPLES, assert_same
 
@@ -81,6 +85,14 @@ class Receiver:
         if isinstance(message, InferRequest):
             # The cloud decodes the tensors next, each within its limit.
             decode_tensors(message.tensors, max_bytes=self.max_bytes)
+        elif isinstance(message, FrameResultMessage):
+            decode_tensors(message.outputs, max_bytes=self.max_bytes)  # as the client does
+        elif isinstance(message, FrameIn):
+            # The robot's zenoh source decodes each image, its sides bounded by the source's.
+            for name, image in message.images.items():
+                decode_image(
+                    image, max_side_px=MAX_SOURCE_SIDE_PX, max_bytes=self.max_bytes, where=name
+                )
         return message
 
 
@@ -101,6 +113,8 @@ RECEIVERS = [
     Receiver("registry on tele/<robot>", (TelemetryRecord,), REGISTRY_LIMIT_BYTES),
     Receiver("registry on tele/<robot>/probe", (ProbeReport,), REGISTRY_LIMIT_BYTES),
     Receiver("cli: rib views", (*RIB_VIEW_REPLIES.values(), ErrorReply), VIEWS_LIMIT_BYTES),
+    Receiver("app on out/<robot>", (FrameResultMessage,), CLOUD_LIMIT_BYTES),
+    Receiver("robot on in/<robot>", (FrameIn,), CLOUD_LIMIT_BYTES),
 ]
 # Peak allocation a decode may reach: the payload once as msgpack's objects, decoded tensors
 # within the limit, and copies of the payload's size for the tensors' intermediate stages.

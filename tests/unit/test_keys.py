@@ -144,3 +144,14 @@ def test_parse_round_trip(fleet: str, robot: str, service: str) -> None:
     assert parse_key(keys.alive_robot(fleet, robot)) == KeyParts(
         fleet, KeyKind.ALIVE, id=robot, role="robot"
     )
+
+
+def test_results_out_and_frames_in_are_the_contract_keys() -> None:
+    assert keys.results_out(F, "robot-1") == "ef/lab/out/robot-1"
+    assert keys.frames_in(F, "robot-1") == "ef/lab/in/robot-1"
+    assert keys.results_out_all(F) == "ef/lab/out/*"
+    assert keys.frames_in_all(F) == "ef/lab/in/*"
+    assert parse_key(keys.results_out(F, "r")) == KeyParts(F, KeyKind.RESULTS_OUT, id="r")
+    assert parse_key(keys.frames_in(F, "r")) == KeyParts(F, KeyKind.FRAMES_IN, id="r")
+    with pytest.raises(InvalidIdError):
+        keys.results_out(F, "a/b")

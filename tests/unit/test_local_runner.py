@@ -21,7 +21,7 @@ from onnx import TensorProto, helper, numpy_helper
 from common.partition import sample_feeds, split_model
 from common.partition.runtime import SplitModel
 from robotd.offload import SPECULATIVE_NICE, LocalRunner
-from tests.unit.test_partition import diamond, make_model, save
+from tests.helpers.onnx_graphs import diamond, make_model, save
 
 WAIT_S = 10.0
 SIZE = 256

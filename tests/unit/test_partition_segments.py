@@ -17,7 +17,7 @@ from common.partition.graph import DataflowGraph
 from common.partition.manifest import excluded_cut
 from common.partition.runtime import SplitModel
 from common.partition.segments import plan_segment
-from tests.unit.test_partition import chain, late_input, residual, save
+from tests.helpers.onnx_graphs import chain, late_input, residual, save
 
 
 def pairs(part: Partition) -> list[tuple[int, int]]:

@@ -14,7 +14,8 @@ from common.errors import UserError
 from common.wire import decode
 from common.wire.codec import InvalidValue
 from common.wire.registry import DeploymentState, RouteChange
-from registry.pools import PoolKeeper, PoolPlanner, pool_planner
+from registry.pool_keeper import PoolKeeper
+from registry.pools import PoolPlanner, pool_planner
 from registry.rib import SCHEMA_VERSION, Rib
 from registry.switch import Switcher
 from robotd.pool_turns import PoolTurns

@@ -13,7 +13,7 @@ from onnx import TensorProto, numpy_helper
 from common import prep
 from common.errors import UserError
 from common.prep import ChannelOrder, Layout, prep_model
-from tests.unit.test_partition import make_model, node, save, vi
+from tests.helpers.onnx_graphs import make_model, node, save, vi
 
 IMAGENET = {"mean": (0.485, 0.456, 0.406), "std": (0.229, 0.224, 0.225)}
 

@@ -10,7 +10,7 @@ from common import profiler
 from common.errors import UserError
 from common.models import file_digest
 from common.profiler import profile_model
-from tests.unit.test_partition import matmul_chain, residual, save
+from tests.helpers.onnx_graphs import matmul_chain, residual, save
 
 CUT_KEYS = {"index", "tensors", "bytes", "prefix_ms", "suffix_ms", "prefix_flops", "suffix_flops"}
 

@@ -12,7 +12,7 @@ import pytest
 
 from common.partition import sample_feeds, split_model
 from common.partition.runtime import SplitModel
-from tests.unit.test_partition import diamond, late_input, matmul_chain, save, two_outputs
+from tests.helpers.onnx_graphs import diamond, late_input, matmul_chain, save, two_outputs
 
 # A 15-layer MatMul chain has 16 cuts (the inputs, after each ReLU, before the final Identity);
 # each layer's weights are 640x640 float32 (1.6 MB).

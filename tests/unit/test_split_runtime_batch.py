@@ -13,7 +13,7 @@ from onnx import helper, numpy_helper
 
 from common.partition import sample_feeds, split_model
 from common.partition.runtime import BATCH_DIM, NotBatchable, SplitModel, batch_axis_model
-from tests.unit.test_partition import make_model, matmul_chain, node, save, vi
+from tests.helpers.onnx_graphs import make_model, matmul_chain, node, save, vi
 
 CHAIN_LAYERS = 4
 CHAIN_DIM = 256  # weights big enough to live in the split's shared weights file

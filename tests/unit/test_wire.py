@@ -41,6 +41,7 @@ from common.wire import (
     error_reply,
     to_jsonable,
 )
+from common.wire.app_to_robot import FrameIn, ImageEncoding, ImageIn
 from common.wire.cloud_to_robot import INFER_REPLIES, BusyReply, InferReply
 from common.wire.codec import MESSAGE_TYPES
 from common.wire.registry import (
@@ -71,6 +72,7 @@ from common.wire.registry import (
     RoutesView,
     check_registration,
 )
+from common.wire.robot_to_app import FrameResultMessage, ServedBy
 from common.wire.robot_to_cloud import InferRequest
 from common.wire.telemetry import (
     JSONL_FIELDS,
@@ -245,6 +247,27 @@ SAMPLES: list[Message] = [
         load=0,
         capacity=5,
         expected_latency_s=0.04,
+    ),
+    FrameResultMessage(
+        robot="robot-1",
+        frame=12,
+        stamp_ns=1_700_000_000_123_456_789,
+        served_by=ServedBy.CLOUD,
+        deployment="edge-1",
+        action="cut:2:int8",
+        cut=2,
+        codec="int8",
+        fallback=False,
+        latency_s=0.031,
+        published_ns=1_700_000_000_160_000_000,
+        outputs={"logits": EncodedTensor.raw(np.arange(10, dtype=np.float32).reshape(1, 10))},
+    ),
+    FrameIn(
+        stamp_ns=1_700_000_000_123_456_789,
+        images={
+            "image": ImageIn(encoding=ImageEncoding.RGB8, data=bytes(range(24)), height=2, width=4),
+            "right": ImageIn(encoding=ImageEncoding.JPEG, data=b"\xff\xd8 not checked here"),
+        },
     ),
 ]
 
