@@ -179,6 +179,7 @@ class CloudDaemon(Daemon):
             max_request_bytes=self.limits.request_bytes,
             refusals=self.refusals,
             throttled=self.throttled,
+            set_in_flight=self._set_in_flight,
         )
         self._costs = BatchCosts()
         self.batch_stats = BatchStats()
@@ -399,6 +400,12 @@ class CloudDaemon(Daemon):
         return workers, admission
 
     # -- service keys ----------------------------------------------------------------------
+    def _set_in_flight(self, robot: str, announced: int) -> int | None:
+        """The Controller passes on the frames in flight a robot announced; the limit now in
+        force for it (None before the queue exists)."""
+        started = self._started
+        return None if started is None else started.queue.set_in_flight(robot, announced)
+
     def _declare_service(self, robot: str) -> None:
         """Declare `robot`'s service key and this deployment's pool member key for it (the
         Controller calls this before acking service). A robot of an anycast fleet queries the

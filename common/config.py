@@ -40,6 +40,8 @@ from pydantic import (
 from common import rmw_zenoh
 from common.defaults import (
     DEFAULT_CALIBRATION_FRAMES,
+    DEFAULT_MAX_BAD_PIXEL_SHARE,
+    DEFAULT_MAX_OUTPUT_REL_ERR,
     DEFAULT_MAX_REQUEST_BYTES,
     DEFAULT_REGISTRY_PORT,
     ZOO_PREFIX,
@@ -267,9 +269,11 @@ class BatchingConfig(_Model):
         description="Batch sizes run without waiting; the largest is the biggest batch.",
     )
     max_in_flight_per_robot: int = Field(
-        default=2,
+        default=8,
         ge=1,
-        description="Requests of one robot admitted at once (queued or running); one robot "
+        description="Cap on the requests of one robot admitted at once (queued or running): a "
+        "robot is admitted as many as the frames it keeps in flight (announced at registration, "
+        "max_in_flight) plus one, at most this; one that announced nothing gets this. One robot "
         "sending as fast as it can then cannot take every worker or queue slot.",
     )
     heavy_robots_low_priority: bool = Field(
@@ -729,10 +733,18 @@ class FidelityConfig(_Model):
         "a lossy codec must leave unchanged.",
     )
     max_output_rel_err: float | None = Field(
-        default=None,
+        default=DEFAULT_MAX_OUTPUT_REL_ERR,
         gt=0,
-        description="Largest relative L2 error of any output a lossy codec may cause; null: not "
-        "checked (a model without classifier outputs then crosses lossless only).",
+        description="Largest relative L2 error a lossy codec may cause on any output that is "
+        "not a classifier's (a classifier's is judged by min_top1_agreement); null: such "
+        "outputs admit no lossy codec.",
+    )
+    max_bad_pixel_share: float | None = Field(
+        default=DEFAULT_MAX_BAD_PIXEL_SHARE,
+        ge=0,
+        le=1,
+        description="Largest share of a disparity-like output's pixels a lossy codec may move "
+        "by more than 1 px (or make appear or vanish); null: such outputs admit no lossy codec.",
     )
     lossy_features: bool = Field(
         default=False,

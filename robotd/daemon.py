@@ -403,6 +403,7 @@ class RobotDaemon(Daemon):
             model_digest=model.digest,
             throttled=self.throttled,
             guard=self.guarded,
+            max_in_flight=self.max_in_flight,
         )
         self._sink.declare(self, session, self.fleet)
         route_key = keys.route(self.fleet, self.robot)

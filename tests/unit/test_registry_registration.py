@@ -4,11 +4,13 @@ reference model digest. The RIB lives in memory."""
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Iterator
 
 import pytest
 
 from common import keys
+from common.wire import WireError
 from common.wire.registry import (
     CAP_CTL,
     CAP_INFER,
@@ -155,6 +157,19 @@ def test_robot_registration_keeps_its_digest_and_refusals_name_the_robot(rib: Ri
     [event] = rib.events(kind=EventKind.REGISTRATION_REFUSED.value)
     assert (event.robot, event.deployment) == ("robot-2", None)
     assert registrar.robot_digest("robot-2") is None
+
+
+def test_a_robot_announces_its_frames_in_flight_at_registration(rib: Rib) -> None:
+    registrar = Registrar("f", rib, SERVICE, DIGEST)
+    request = robot_request("robot-1")
+    assert registrar.register(request) is None
+    assert registrar.robot_in_flight("robot-1") is None, "an older robot announces nothing"
+    piped = RegisterRequest.from_wire(dataclasses.replace(request, max_in_flight=3).to_wire())
+    assert piped.max_in_flight == 3
+    assert registrar.register(piped) is None
+    assert registrar.robot_in_flight("robot-1") == 3
+    with pytest.raises(WireError, match="max_in_flight: must be at least 1"):
+        dataclasses.replace(request, max_in_flight=0)
 
 
 def robot_request(robot: str) -> RegisterRequest:
