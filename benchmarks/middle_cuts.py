@@ -52,7 +52,9 @@ def measure(model_spec: str, shape: tuple[int, ...], frames: int, seed: int) -> 
     codecs = profile_codecs(model, calib, fidelity)
     for entries in codecs.values():
         for e in entries:  # every codec that keeps the answers, not only the best 4 of a cut
-            e["action"] = not e["lossy"] or fidelity.admits(e["top1_agreement"], e["rel_err"])
+            e["action"] = not e["lossy"] or fidelity.admits(
+                e["top1_agreement"], e["rel_err"], e.get("bad_pixel_share")
+            )
     return robot_profile(model, sample_feeds(specs), codecs=codecs)
 
 

@@ -2,12 +2,14 @@
 
 Why per-robot queues: with one FIFO queue, a robot that sends as fast as it can fills it, and
 every other robot waits behind its requests or is answered 'busy'. Here each robot has a queue
-of its own and at most `max_in_flight_per_robot` requests admitted at once (queued or running);
-past that, or when every slot of the deployment is taken, `offer` refuses at once and the daemon
-answers 'busy' (the robot finishes the frame itself). Workers serve the robots in turn: the
-robot served least recently goes first (a robot that was never served, or not for a while, goes
-before one just served), so a robot waits for at most one batch per robot ahead of it, never
-for another robot's backlog.
+of its own and at most as many requests admitted at once (queued or running) as it keeps frames
+in flight (announced at registration, passed on by the registry with `service`, plus one: a
+request the robot gave up on may still be here), capped by `max_in_flight_per_robot` (a robot
+that announced nothing gets the cap); past that, or when every slot of the deployment is taken,
+`offer` refuses at once and the daemon answers 'busy' (the robot finishes the frame itself).
+Workers serve the robots in turn: the robot served least recently goes first (a robot that was
+never served, or not for a while, goes before one just served), so a robot waits for at most
+one batch per robot ahead of it, never for another robot's backlog.
 
 Batches (after Triton's dynamic batcher). A worker starts from the head request of the robot
 whose turn it is; its group (the cut: requests of one cut can share one model run) decides who
@@ -58,6 +60,9 @@ ACTIVE_WINDOW_S = 1.0
 delay), not for robots that went quiet."""
 
 COST_EWMA_WEIGHT = 0.2
+# A robot with N frames in flight is admitted N + this many requests: one it stopped waiting for
+# (its deadline passed, it finished the frame itself) may still be queued or running here.
+IN_FLIGHT_SLACK = 1
 """Weight of the newest run in a batch size's running cost."""
 
 
@@ -193,6 +198,9 @@ class FairQueue(Generic[T]):
         self._turn = 0
         self._seq = itertools.count()
         self._in_flight: dict[str, int] = {}
+        # Per robot: its requests admitted at once, from the frames in flight it announced
+        # (`set_in_flight`); a robot that announced none gets the cap.
+        self._limits: dict[str, int] = {}
         self._last_seen: dict[str, float] = {}
         self._load = 0
         self._closed = False
@@ -214,6 +222,22 @@ class FairQueue(Generic[T]):
         with self._cond:
             return self._in_flight.get(robot, 0)
 
+    def limit(self, robot: str) -> int:
+        """Requests of `robot` admitted at once (`set_in_flight`, else the cap)."""
+        with self._cond:
+            return self._limits.get(robot, self.policy.max_in_flight_per_robot)
+
+    def set_in_flight(self, robot: str, announced: int) -> int:
+        """`robot` keeps `announced` frames in flight: admit that many of its requests at once,
+        plus `IN_FLIGHT_SLACK`, at most the cap (`max_in_flight_per_robot`); the limit now in
+        force for it."""
+        if announced < 1:
+            raise ValueError(f"announced frames in flight must be >= 1, got {announced}")
+        limit = min(announced + IN_FLIGHT_SLACK, self.policy.max_in_flight_per_robot)
+        with self._cond:
+            self._limits[robot] = limit
+        return limit
+
     @property
     def closed(self) -> bool:
         with self._cond:
@@ -226,7 +250,8 @@ class FairQueue(Generic[T]):
             self._last_seen[item.robot] = item.arrived
             if self._closed:
                 return Refusal.CLOSED
-            if self._in_flight.get(item.robot, 0) >= self.policy.max_in_flight_per_robot:
+            limit = self._limits.get(item.robot, self.policy.max_in_flight_per_robot)
+            if self._in_flight.get(item.robot, 0) >= limit:
                 return Refusal.ROBOT_LIMIT
             if self._load >= self.capacity:
                 return Refusal.FULL

@@ -12,12 +12,13 @@ counted (`cloudd.refusals`).
 from __future__ import annotations
 
 import logging
+import threading
 from collections.abc import Callable
 
 import zenoh
 
 from cloudd.faults import FaultInjector, describe
-from cloudd.refusals import Refusals, decode_refusal
+from cloudd.refusals import RefusalReason, Refusals, decode_refusal
 from cloudd.replies import Replier, query_payload
 from cloudd.robot_book import RobotBook
 from cloudd.state import Verdict
@@ -45,6 +46,7 @@ class Controller:
         max_request_bytes: int,
         refusals: Refusals,
         throttled: ThrottledLog,
+        set_in_flight: Callable[[str, int], int | None] = lambda robot, announced: None,
     ) -> None:
         self.deployment = deployment
         self.key = key
@@ -55,6 +57,10 @@ class Controller:
         self._max_request_bytes = max_request_bytes
         self._refusals = refusals
         self._throttled = throttled
+        self._set_in_flight = set_in_flight
+        # Robots whose announced frames in flight exceed the cap: counted and logged once each.
+        self._over_cap: set[str] = set()
+        self._over_cap_lock = threading.Lock()
 
     def on_query(self, query: zenoh.Query) -> None:
         """The ctl queryable's callback: answered at once, in every fault state."""
@@ -106,7 +112,29 @@ class Controller:
             state=state,
         )
 
+    def _admit_in_flight(self, robot: str, announced: int) -> None:
+        """Admit as many of the robot's requests at once as it keeps frames in flight, up to
+        the cap; a robot asking for more than the cap is counted and logged once."""
+        limit = self._set_in_flight(robot, announced)
+        if limit is None or limit >= announced:
+            return
+        with self._over_cap_lock:
+            if robot in self._over_cap:
+                return
+            self._over_cap.add(robot)
+        self._refusals.count(RefusalReason.IN_FLIGHT_CAP)
+        log.warning(
+            "%s: %s keeps %d frames in flight, but this deployment admits %d of its requests at "
+            "once (batching.max_in_flight_per_robot): the rest are answered busy",
+            self.deployment,
+            robot,
+            announced,
+            limit,
+        )
+
     def _service_or_standby(self, request: CtlRequest, robot: str, sender: str) -> CtlReply:
+        if request.max_in_flight is not None:
+            self._admit_in_flight(robot, request.max_in_flight)
         decision = self._book.decide(request.op, robot, request.epoch)
         verdict = decision.verdict
         if decision.stopping:

@@ -86,6 +86,7 @@ from common.membership import MembershipView
 from common.metrics import MetricsEndpoint, serve
 from common.partition import TensorSpec
 from common.partition.runtime import SplitModel
+from common.providers import ProviderCheck
 from common.wire.registry import (
     CAP_CTL,
     CAP_FAULT_INJECTION,
@@ -181,9 +182,13 @@ class CloudDaemon(Daemon):
             max_request_bytes=self.limits.request_bytes,
             refusals=self.refusals,
             throttled=self.throttled,
+            set_in_flight=self._set_in_flight,
         )
         self._costs = BatchCosts()
         self.batch_stats = BatchStats()
+        self.providers: ProviderCheck | None = None
+        """The providers the suffix sessions got (after startup; `fell_back` with
+        `providers_fallback: allow` when they did not get an accelerator asked for)."""
 
         # Made in startup, released by the lifecycle: the model as soon as it is loaded (a probe
         # never comes before the session, but startup may stop in between), the rest in one
@@ -247,6 +252,8 @@ class CloudDaemon(Daemon):
             epochs={robot: st.wire_epoch for robot, st in snapshot.items()},
             served=served,
             refused=self.refusals.snapshot(),
+            providers=self.providers.got if self.providers is not None else (),
+            providers_fallback=self.providers is not None and self.providers.fell_back,
         )
 
     def control(self, request: CtlRequest) -> CtlReply:
@@ -333,9 +340,16 @@ class CloudDaemon(Daemon):
             self.deployment,
             states=self.states,
             queue=queue,
-            providers=self.machine.providers,
+            providers=self._provider_names,
             model=self._model_names,
         )
+
+    def _provider_names(self) -> tuple[str, ...]:
+        """The execution providers the suffix sessions run on once loaded (the check's `got`),
+        before that the ones the machine asks for, for the metrics."""
+        if self.providers is not None:
+            return self.providers.got
+        return tuple(p.ort_name for p in self.machine.providers)
 
     def _model_names(self) -> tuple[str, str]:
         """(the fleet's model, its digest once loaded), for the metrics."""
@@ -356,16 +370,17 @@ class CloudDaemon(Daemon):
         log.info("%s: loading %s", self.deployment, self.cfg.model)
         model = open_split_model(self.cfg, self.machine)
         self._model = self.hold(model, "model sessions")
-        cut_specs = warm_suffixes(
+        warm = warm_suffixes(
             model,
             self.machine,
             deployment=self.deployment,
             model_name=self.cfg.model,
             stop=self.should_exit,
         )
-        if cut_specs is None:
+        if warm is None:
             return
-        self._cut_specs = cut_specs
+        self._cut_specs = cut_specs = warm.cut_specs
+        self.providers = warm.providers
         oversized = self.limits.oversized_tensors(cut_specs)
         if oversized:
             log.warning(
@@ -376,12 +391,13 @@ class CloudDaemon(Daemon):
                 self.limits.tensor_bytes,
             )
         log.info(
-            "%s: model %s (%s) loaded: %d cuts, %.1f MB of weights, in %.1f s",
+            "%s: model %s (%s) loaded: %d cuts, %.1f MB of weights, on %s, in %.1f s",
             self.deployment,
             model.partition.model,
             model.digest[:12],
             model.num_cuts,
             model.weight_bytes / 1e6,
+            ", ".join(warm.providers.got),
             time.monotonic() - started,
         )
 
@@ -431,6 +447,12 @@ class CloudDaemon(Daemon):
         return workers, admission
 
     # -- service keys ----------------------------------------------------------------------
+    def _set_in_flight(self, robot: str, announced: int) -> int | None:
+        """The Controller passes on the frames in flight a robot announced; the limit now in
+        force for it (None before the queue exists)."""
+        started = self._started
+        return None if started is None else started.queue.set_in_flight(robot, announced)
+
     def _declare_service(self, robot: str) -> None:
         """Declare `robot`'s service key and this deployment's pool member key for it (the
         Controller calls this before acking service). A robot of an anycast fleet queries the

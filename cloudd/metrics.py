@@ -56,6 +56,11 @@ REFUSAL_OUTCOMES = {
 }
 """The outcome of a request refused for each counted reason."""
 
+NOT_REQUESTS = frozenset({RefusalReason.IN_FLIGHT_CAP})
+"""Counted refusals that refuse no request, so have no outcome: a robot announcing more frames
+in flight than the cap is counted once at its service ctl (`cloudd.control`); its requests past
+the cap are then refused one by one as `robot_in_flight` (`busy`)."""
+
 ERROR_OUTCOMES = {
     ErrorCode.DEADLINE_EXPIRED: Outcome.EXPIRED,
     ErrorCode.NOT_SERVING: Outcome.NOT_SERVING,
@@ -73,7 +78,8 @@ class CloudMetrics:
     """The metrics of deployment `deployment` in `registry`.
 
     `states()`: each robot's state here; `queue()`: (requests pending, requests queued,
-    capacity), or None before the queue exists; `providers` and `model` describe the sessions.
+    capacity), or None before the queue exists; `providers()` (the execution providers the
+    sessions run on) and `model()` describe the sessions.
     """
 
     def __init__(
@@ -83,13 +89,13 @@ class CloudMetrics:
         *,
         states: Callable[[], dict[str, RobotState]],
         queue: Callable[[], tuple[int, int, int] | None],
-        providers: Sequence[str],
+        providers: Callable[[], Sequence[str]],
         model: Callable[[], tuple[str, str]],
     ) -> None:
         self.deployment = deployment
         self._states = states
         self._queue = queue
-        self._providers = tuple(providers)
+        self._providers = providers
         self._model = model
         ns, sub = NAMESPACE, "cloud"
         self._requests = Counter(
@@ -181,24 +187,30 @@ class CloudMetrics:
                 state.add_metric([d, robot, s.value], 1.0 if st.state is s else 0.0)
         yield state
         name, digest = self._model()
+        providers = tuple(self._providers())
         info = InfoMetricFamily(
             f"{ns}_cloud_model",
             "The model this deployment serves and the execution providers of its sessions, "
             "in order of preference.",
             labels=["deployment"],
         )
-        info.add_metric(
-            [d], {"model": name, "digest": digest, "providers": ",".join(self._providers)}
-        )
+        info.add_metric([d], {"model": name, "digest": digest, "providers": ",".join(providers)})
         yield info
         ranks = GaugeMetricFamily(
             f"{ns}_cloud_provider_rank",
             "Each execution provider of the sessions and its rank (0: preferred).",
             labels=["deployment", "provider"],
         )
-        for rank, provider in enumerate(self._providers):
+        for rank, provider in enumerate(providers):
             ranks.add_metric([d, provider], rank)
         yield ranks
 
 
-__all__ = ["ERROR_OUTCOMES", "REFUSAL_OUTCOMES", "CloudMetrics", "Outcome", "error_outcome"]
+__all__ = [
+    "ERROR_OUTCOMES",
+    "NOT_REQUESTS",
+    "REFUSAL_OUTCOMES",
+    "CloudMetrics",
+    "Outcome",
+    "error_outcome",
+]

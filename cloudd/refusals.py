@@ -26,7 +26,9 @@ class RefusalReason(str, enum.Enum):
     TENSOR_TOO_LARGE = "tensor_too_large"  # a tensor over limits.max_tensor_bytes
     ECHO_TOO_LARGE = "echo_too_large"  # a probe asking for more than limits.max_echo_bytes
     WRONG_ROBOT = "wrong_robot"  # the body names another robot than its service key
-    ROBOT_IN_FLIGHT = "robot_in_flight"  # busy: batching.max_in_flight_per_robot reached
+    ROBOT_IN_FLIGHT = "robot_in_flight"  # busy: the robot's in-flight limit reached
+    # A robot announced more frames in flight than batching.max_in_flight_per_robot (once each).
+    IN_FLIGHT_CAP = "in_flight_cap"
     QUEUE_FULL = "queue_full"  # busy: every worker and queue slot taken
     STOPPING = "stopping"  # busy: the deployment is shutting down
     BAD_REQUEST = "bad_request"  # any other request that does not decode or fit the model

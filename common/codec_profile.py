@@ -7,8 +7,12 @@ model's answer survives it. So each candidate codec of each cut is run on calibr
 
 - bytes on the wire (median and the 10th/90th percentiles: they follow the content),
 - encode time (the robot's cost) and decode time (the cloud's), medians,
-- fidelity against the uncompressed model: top-1 agreement of every classifier-shaped output
-  (N×C with C ≥ 2) and the largest relative L2 error of any output over the frames.
+- fidelity against the uncompressed model, per output by its kind (`OutputKind`: declared in
+  the model's metadata as `elasticfog.output.<name>`, else read from its shape and name): top-1
+  agreement of classifier outputs (N×C with C ≥ 2), the relative L2 error of every other output
+  (of its worst element for a distance output, e.g. zoo:stereo's d_coll), and for disparity-like
+  outputs (a per-pixel map in pixels) the share of pixels off by more
+  than 1 px, a disparity present on one side only counting as off; the worst frame of each.
 
 `Fidelity` (fleet.yaml `fidelity:`, `--fidelity` on the CLI) decides which lossy codecs are
 actions; lossless codecs always are, when they save at least `MIN_SAVING_SHARE` of the raw
@@ -17,19 +21,23 @@ answers meet the bound): a feature map crosses lossy only with `lossy_features: 
 A codec a baseline asks for by name (`cloud:jpeg80`) is measured and kept whatever the bound.
 
 The result is one list per cut of the profile's `codecs` entries
-(`{name, bytes, bytes_p10, bytes_p90, encode_ms, decode_ms, top1_agreement, rel_err, lossy}`),
-raw first; `robotd.policies.CutTable` turns every entry into an action.
+(`{name, bytes, bytes_p10, bytes_p90, encode_ms, decode_ms, top1_agreement, rel_err,
+bad_pixel_share, lossy}`; a measure with no output of its kind is null), raw first;
+`robotd.policies.CutTable` turns every entry into an action.
 """
 
 from __future__ import annotations
 
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from enum import Enum
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from common.defaults import DEFAULT_MAX_BAD_PIXEL_SHARE, DEFAULT_MAX_OUTPUT_REL_ERR
 from common.errors import UserError
 from common.partition import TensorSpec
 from common.wire import WireError
@@ -48,35 +56,138 @@ MIN_SAVING_SHARE = 0.1
 # Offloading actions per cut, raw included: keeps the decision cost flat (16 cuts × 4 codecs).
 MAX_CODECS_PER_CUT = 4
 MS_PER_S = 1000.0
+# A disparity off by more than this many pixels is a bad pixel (Middlebury's bad-1).
+BAD_PIXEL_THRESHOLD_PX = 1.0
+# Reference values below this magnitude are taken as this in relative errors of one element.
+MIN_REFERENCE = 1e-6
+# Model metadata key naming an output's kind: `elasticfog.output.d_coll` = `distance`.
+OUTPUT_KIND_PREFIX = "elasticfog.output."
 
 Feeds = dict[str, np.ndarray]
+
+
+class OutputKind(str, Enum):
+    """How a lossy crossing is judged on one model output."""
+
+    CLASSIFIER = "classifier"  # N×C scores: the top-1 class must stay
+    DISPARITY = "disparity"  # a per-pixel map in pixels: bad-1 share and relative error
+    # A distance per element (zoo:stereo's d_coll, metres per curvature bin): the largest
+    # relative error of one element, so a bin whose obstacle vanished is not averaged away.
+    DISTANCE = "distance"
+    VALUE = "value"  # anything else: relative L2 error
+
+
+def output_kind(name: str, shape: Sequence[int], declared: Mapping[str, OutputKind]) -> OutputKind:
+    """The kind of output `name` of `shape`: declared by the model, else N×C (C ≥ 2) is a
+    classifier's, a name with `disparity` a disparity map, anything else a value."""
+    if name in declared:
+        return declared[name]
+    if len(shape) == 2 and shape[1] >= 2:
+        return OutputKind.CLASSIFIER
+    if "disparity" in name.lower():
+        return OutputKind.DISPARITY
+    return OutputKind.VALUE
+
+
+def declared_output_kinds(model_path: str | Path) -> dict[str, OutputKind]:
+    """{output name: kind} the ONNX model declares in its metadata (`OUTPUT_KIND_PREFIX`);
+    UserError for a kind that does not exist."""
+    import onnx
+
+    model = onnx.load(str(model_path), load_external_data=False)
+    found: dict[str, OutputKind] = {}
+    for prop in model.metadata_props:
+        if prop.key.startswith(OUTPUT_KIND_PREFIX):
+            try:
+                found[prop.key[len(OUTPUT_KIND_PREFIX) :]] = OutputKind(prop.value)
+            except ValueError:
+                known = ", ".join(k.value for k in OutputKind)
+                raise UserError(
+                    f"{model_path}: metadata {prop.key}: unknown output kind {prop.value!r} "
+                    f"(known: {known})"
+                ) from None
+    return found
+
+
+def relative_error(got: np.ndarray, want: np.ndarray) -> float:
+    """||got − want|| / ||want|| (L2) over the elements finite on both sides (the absolute
+    error when the reference is all zero)."""
+    g = np.asarray(got, dtype=np.float64)
+    w = np.asarray(want, dtype=np.float64)
+    both = np.isfinite(g) & np.isfinite(w)
+    norm = float(np.linalg.norm(w[both]))
+    diff = float(np.linalg.norm(g[both] - w[both]))
+    return diff / norm if norm > 0 else diff
+
+
+def worst_relative_error(got: np.ndarray, want: np.ndarray) -> float:
+    """The largest |got − want| / |want| of one element (inf where one side is finite and the
+    other not: an obstacle that appeared or vanished)."""
+    g = np.asarray(got, dtype=np.float64)
+    w = np.asarray(want, dtype=np.float64)
+    if g.size == 0:
+        return 0.0
+    if np.any(np.isfinite(g) != np.isfinite(w)):
+        return float("inf")
+    both = np.isfinite(g) & np.isfinite(w)
+    if not both.any():
+        return 0.0
+    scale = np.maximum(np.abs(w[both]), MIN_REFERENCE)
+    return float(np.max(np.abs(g[both] - w[both]) / scale))
+
+
+def bad_pixel_share(got: np.ndarray, want: np.ndarray) -> float:
+    """Share of pixels whose disparity is off by more than `BAD_PIXEL_THRESHOLD_PX`, a pixel
+    with a disparity on one side only (NaN, inf or ≤ 0 on the other: no match) counting as off."""
+    g = np.asarray(got, dtype=np.float64)
+    w = np.asarray(want, dtype=np.float64)
+    if g.size == 0:
+        return 0.0
+    have_g = np.isfinite(g) & (g > 0)
+    have_w = np.isfinite(w) & (w > 0)
+    both = have_g & have_w
+    off = np.zeros(g.shape, dtype=bool)
+    off[both] = np.abs(g[both] - w[both]) > BAD_PIXEL_THRESHOLD_PX
+    off |= have_g != have_w
+    return float(off.mean())
 
 
 @dataclass(frozen=True)
 class Fidelity:
     """How close to the uncompressed model a lossy codec must keep the answers.
 
-    `min_top1_agreement` applies to classifier-shaped outputs, `max_output_rel_err` (None: not
-    checked) to every output; a model with no classifier output needs `max_output_rel_err` for
-    any lossy codec. `lossy_features` lets non-image tensors cross lossy (fp16, int8)."""
+    `min_top1_agreement` applies to classifier outputs, `max_output_rel_err` to every other
+    output and `max_bad_pixel_share` to disparity-like ones too (`OutputKind`); a bound set to
+    None admits no lossy codec where it would apply. `lossy_features` lets non-image tensors
+    cross lossy (fp16, int8)."""
 
     def allows(self, name: str) -> bool:
         """True when the codec list (if any) lets `name` be tried."""
         return name == CODEC_RAW or self.codecs is None or name in self.codecs
 
     min_top1_agreement: float = 0.98
-    max_output_rel_err: float | None = None
+    max_output_rel_err: float | None = DEFAULT_MAX_OUTPUT_REL_ERR
     lossy_features: bool = False
     codecs: tuple[str, ...] | None = None
     """Only these codecs (and raw) are tried; None: every codec that applies."""
+    max_bad_pixel_share: float | None = DEFAULT_MAX_BAD_PIXEL_SHARE
 
-    def admits(self, top1: float | None, rel_err: float) -> bool:
-        """True when measured answers meet the bound (a bound that cannot be checked fails)."""
-        if top1 is None and self.max_output_rel_err is None:
-            return False
+    def admits(
+        self, top1: float | None, rel_err: float | None, bad_pixels: float | None = None
+    ) -> bool:
+        """True when measured answers meet the bound; each measure is None when the model has
+        no output of its kind, and a measure whose bound is None fails (cannot be checked)."""
+        if top1 is None and rel_err is None:
+            return False  # nothing was compared
         if top1 is not None and top1 < self.min_top1_agreement:
             return False
-        return self.max_output_rel_err is None or rel_err <= self.max_output_rel_err
+        if rel_err is not None and (
+            self.max_output_rel_err is None or rel_err > self.max_output_rel_err
+        ):
+            return False
+        return bad_pixels is None or (
+            self.max_bad_pixel_share is not None and bad_pixels <= self.max_bad_pixel_share
+        )
 
 
 def fidelity_of(config: FidelityConfig) -> Fidelity:
@@ -92,6 +203,7 @@ def fidelity_of(config: FidelityConfig) -> Fidelity:
         max_output_rel_err=config.max_output_rel_err,
         lossy_features=config.lossy_features,
         codecs=tuple(config.codecs) if config.codecs is not None else None,
+        max_bad_pixel_share=config.max_bad_pixel_share,
     )
 
 
@@ -130,6 +242,7 @@ class _Measured:
     decode_s: list[float]
     agree: list[bool]
     rel_err: list[float]
+    bad: list[float] = field(default_factory=list)
 
     def entry(self) -> dict[str, Any]:
         sizes = np.asarray(self.bytes, dtype=np.float64)
@@ -141,7 +254,8 @@ class _Measured:
             "encode_ms": round(float(np.median(self.encode_s)) * MS_PER_S, 4),
             "decode_ms": round(float(np.median(self.decode_s)) * MS_PER_S, 4),
             "top1_agreement": float(np.mean(self.agree)) if self.agree else None,
-            "rel_err": float(max(self.rel_err)) if self.rel_err else 0.0,
+            "rel_err": float(max(self.rel_err)) if self.rel_err else None,
+            "bad_pixel_share": float(max(self.bad)) if self.bad else None,
             "lossy": self.lossy,
         }
 
@@ -152,10 +266,12 @@ def measure_codecs(
     references: Sequence[Mapping[str, np.ndarray]],
     suffix: Callable[[Mapping[str, np.ndarray]], Mapping[str, np.ndarray]],
     names: Iterable[str],
+    declared: Mapping[str, OutputKind] | None = None,
 ) -> list[dict[str, Any]]:
     """Every codec in `names` on one cut: `crossings[i]` are the cut's tensors of calibration
     frame i, `references[i]` the uncompressed model's outputs for it, `suffix` runs the rest of
-    the model. Returns one profile entry per codec (see the module docstring)."""
+    the model, `declared` the output kinds the model declares. Returns one profile entry per
+    codec (see the module docstring)."""
     out = []
     for name in names:
         codec = parse_codec(name)
@@ -174,31 +290,46 @@ def measure_codecs(
             m.decode_s.append(t2 - t1)
             if codec.lossy:
                 outputs = suffix(decoded)
-                agree, err = compare_outputs(outputs, reference)
+                agree, err, bad = compare_outputs(outputs, reference, declared or {})
                 if agree is not None:
                     m.agree.append(agree)
-                m.rel_err.append(err)
+                if err is not None:
+                    m.rel_err.append(err)
+                if bad is not None:
+                    m.bad.append(bad)
         out.append(m.entry())
     return out
 
 
 def compare_outputs(
-    outputs: Mapping[str, np.ndarray], reference: Mapping[str, np.ndarray]
-) -> tuple[bool | None, float]:
-    """(top-1 agreement of every classifier-shaped output, or None if there is none; the largest
-    relative L2 error of any output)."""
+    outputs: Mapping[str, np.ndarray],
+    reference: Mapping[str, np.ndarray],
+    declared: Mapping[str, OutputKind] | None = None,
+) -> tuple[bool | None, float | None, float | None]:
+    """(top-1 agreement of every classifier output; the largest relative error of the other
+    outputs, L2 over each output, of its worst element for a distance output; the largest bad-1
+    share of the disparity-like ones), each None when the model has no output of that kind
+    (`output_kind`)."""
     agree: bool | None = None
-    worst = 0.0
+    worst: float | None = None
+    bad: float | None = None
     for name, ref in reference.items():
         got = np.asarray(outputs[name], dtype=np.float64)
         want = np.asarray(ref, dtype=np.float64)
-        norm = float(np.linalg.norm(want))
-        diff = float(np.linalg.norm(got - want))
-        worst = max(worst, diff / norm if norm > 0 else diff)
-        if want.ndim == 2 and want.shape[1] >= 2:
+        kind = output_kind(name, want.shape, declared or {})
+        if kind is OutputKind.CLASSIFIER:
             same = bool(np.array_equal(got.argmax(axis=1), want.argmax(axis=1)))
             agree = same if agree is None else agree and same
-    return agree, worst
+            continue
+        if kind is OutputKind.DISTANCE:
+            err = worst_relative_error(got, want)
+        else:
+            err = relative_error(got, want)
+        worst = err if worst is None else max(worst, err)
+        if kind is OutputKind.DISPARITY:
+            share = bad_pixel_share(got, want)
+            bad = share if bad is None else max(bad, share)
+    return agree, worst, bad
 
 
 def select_codecs(
@@ -218,7 +349,7 @@ def select_codecs(
         if name in must:
             continue
         if e["lossy"]:
-            if not fidelity.admits(e["top1_agreement"], float(e["rel_err"])):
+            if not fidelity.admits(e["top1_agreement"], e["rel_err"], e.get("bad_pixel_share")):
                 continue
             if name.startswith("jpeg"):
                 if jpeg is None or e["bytes"] < jpeg["bytes"]:
@@ -249,6 +380,7 @@ def profile_codecs(
     if not frames:
         raise ValueError("codec profiling needs at least one calibration frame")
     required = required or {}
+    declared = declared_output_kinds(model.partition.full)
     references = [model.run_full(f) for f in frames]
     result: dict[int, list[dict[str, Any]]] = {}
     for k, cut in enumerate(model.partition.cuts):
@@ -261,7 +393,7 @@ def profile_codecs(
         def suffix(tensors: Mapping[str, np.ndarray], k: int = k) -> Mapping[str, np.ndarray]:
             return model.run_suffix(k, tensors)
 
-        entries = measure_codecs(specs, crossings, references, suffix, names)
+        entries = measure_codecs(specs, crossings, references, suffix, names, declared)
         chosen = {e["name"] for e in select_codecs(entries, fidelity, wanted)}
         result[cut.index] = [{**e, "action": e["name"] in chosen} for e in entries]
         if advance is not None:

@@ -28,6 +28,8 @@ from pydantic import (
     BeforeValidator,
     ConfigDict,
     Field,
+    PlainSerializer,
+    PlainValidator,
     PrivateAttr,
     ValidationError,
     ValidationInfo,
@@ -38,12 +40,21 @@ from pydantic import (
 from common import rmw_zenoh
 from common.defaults import (
     DEFAULT_CALIBRATION_FRAMES,
+    DEFAULT_MAX_BAD_PIXEL_SHARE,
+    DEFAULT_MAX_OUTPUT_REL_ERR,
     DEFAULT_MAX_REQUEST_BYTES,
     DEFAULT_REGISTRY_PORT,
     ZOO_PREFIX,
 )
 from common.errors import UserError
 from common.keys import DEFAULT_FLEET, MACHINE_ROLES, Role, validate_id
+from common.providers import (
+    CPU_PROVIDER,
+    ProviderFallback,
+    ProviderSpec,
+    check_list,
+    parse_provider,
+)
 from common.wire.codec import DEFAULT_MAX_PAYLOAD_BYTES
 from common.yaml_files import format_validation_error, read_yaml
 from robotd.source_names import SourceError, parse_source
@@ -60,6 +71,16 @@ MAX_REQUEST_BYTES_LIMIT = 16 * 1024 * 1024
 LatencyStat = Literal["median", "mean", "p95", "max", "stddev"]
 LATENCY_STATS: tuple[str, ...] = typing.get_args(LatencyStat)
 InitialState = Literal["robot", "service", "standby"]
+
+
+def _yaml_toggle(value: Any) -> Any:
+    # YAML 1.1 reads a bare on/off as true/false: take them as the words that were written.
+    if isinstance(value, bool):
+        return "on" if value else "off"
+    return value
+
+
+Toggle = Annotated[Literal["auto", "on", "off"], BeforeValidator(_yaml_toggle)]
 
 # Zenoh endpoints: <protocol>/<address>[?metadata][#config]; IP protocols need host:port.
 _IP_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
@@ -89,6 +110,13 @@ def _check_endpoint(value: str) -> str:
 
 Id = Annotated[str, AfterValidator(_check_id)]
 Endpoint = Annotated[str, AfterValidator(_check_endpoint)]
+# A provider entry (`cuda`, `{tensorrt: {device_id: 0}}`, `CUDAExecutionProvider` ...), parsed
+# into a typed value as the file is read (`common.providers`).
+Provider = Annotated[
+    ProviderSpec,
+    PlainValidator(parse_provider, json_schema_input_type=str | dict[str, Any]),
+    PlainSerializer(lambda spec: spec.to_config()),
+]
 
 
 class _Model(BaseModel):
@@ -263,9 +291,11 @@ class BatchingConfig(_Model):
         description="Batch sizes run without waiting; the largest is the biggest batch.",
     )
     max_in_flight_per_robot: int = Field(
-        default=2,
+        default=8,
         ge=1,
-        description="Requests of one robot admitted at once (queued or running); one robot "
+        description="Cap on the requests of one robot admitted at once (queued or running): a "
+        "robot is admitted as many as the frames it keeps in flight (announced at registration, "
+        "max_in_flight) plus one, at most this; one that announced nothing gets this. One robot "
         "sending as fast as it can then cannot take every worker or queue slot.",
     )
     heavy_robots_low_priority: bool = Field(
@@ -274,11 +304,39 @@ class BatchingConfig(_Model):
         "others (1.5x the mean, lately) at the lowest CPU priority (Linux SCHED_IDLE), so "
         "lighter robots' runs take the CPUs first; the heavy robot still gets every idle CPU.",
     )
+    buckets: list[Annotated[int, Field(ge=1, le=MAX_BATCH_SIZE)]] | None = Field(
+        default=None,
+        min_length=1,
+        description="With gpu_serving: the batch sizes a run is padded up to (the results of "
+        "the padding are dropped), so a suffix only ever sees these shapes; the largest must "
+        "be at least the largest preferred size. Null: 1, 2, 4, ... up to the largest "
+        "preferred size, and the preferred sizes.",
+    )
 
     @model_validator(mode="after")
     def _sorted_sizes(self) -> BatchingConfig:
         self.preferred_batch_sizes = sorted(set(self.preferred_batch_sizes))
+        if self.buckets is not None:
+            self.buckets = sorted(set(self.buckets))
+            if self.buckets[-1] < self.preferred_batch_sizes[-1]:
+                raise ValueError(
+                    f"buckets: the largest bucket ({self.buckets[-1]}) is below the largest "
+                    f"preferred batch size ({self.preferred_batch_sizes[-1]})"
+                )
         return self
+
+    @property
+    def bucket_sizes(self) -> tuple[int, ...]:
+        """The sizes a batched run is padded up to (`buckets`, or its default), up to the
+        first one that holds the largest batch."""
+        if self.buckets is not None:
+            sizes = set(self.buckets)
+        else:
+            sizes = {2**i for i in range(self.max_batch.bit_length()) if 2**i <= self.max_batch}
+            sizes |= set(self.preferred_batch_sizes)
+        ordered = sorted(sizes | {1})
+        top = next(b for b in ordered if b >= self.max_batch)
+        return tuple(b for b in ordered if b <= top)
 
     @property
     def max_batch(self) -> int:
@@ -350,7 +408,7 @@ class ResultsConfig(_Model):
 
 
 # Fields that only mean something for one role: setting them on the other is an error.
-_CLOUD_ONLY = frozenset({"workers", "queue", "fault", "batching", "limits"})
+_CLOUD_ONLY = frozenset({"workers", "queue", "fault", "batching", "limits", "gpu_serving"})
 _ROBOT_ONLY = frozenset({"source", "fps", "uplink_mbit", "max_in_flight", "results"})
 
 
@@ -399,10 +457,26 @@ class MachineConfig(_Model):
         default=None,
         description="This machine's TLS files (cert and key; ca and mtls default to zenoh.tls).",
     )
-    providers: list[str] = Field(
-        default_factory=lambda: ["CPUExecutionProvider"],
+    providers: list[Provider] = Field(
+        default_factory=lambda: [ProviderSpec(CPU_PROVIDER)],
         min_length=1,
-        description="onnxruntime execution providers, in order of preference.",
+        description="onnxruntime execution providers, in order of preference: cpu, cuda, "
+        "tensorrt or an onnxruntime provider name, each alone or with its options "
+        "({cuda: {device_id: 0}}, {tensorrt: {device_id: 0, engine_cache: DIR, "
+        "timing_cache: DIR}}).",
+    )
+    providers_fallback: ProviderFallback = Field(
+        default=ProviderFallback.REFUSE,
+        strict=False,  # the file's 'allow' is the Enum's value
+        description="'refuse': a session that did not get an accelerator it asked for (CUDA, "
+        "TensorRT ...) stops the daemon at start, naming the missing provider or library; "
+        "'allow': it serves on what it got, with a warning and a flag in its probe reply.",
+    )
+    gpu_serving: Toggle = Field(
+        default="auto",
+        description="Cloud: IO binding of the suffix sessions' inputs and outputs, every "
+        "batch size the batcher can form warmed up at start, and batched runs padded to "
+        "batching.buckets; 'auto': on when the first provider is cuda or tensorrt.",
     )
     threads: int = Field(
         default=0,
@@ -460,8 +534,16 @@ class MachineConfig(_Model):
         description="This machine's Prometheus /metrics endpoint (off unless a port is set).",
     )
 
+    @property
+    def gpu_serving_on(self) -> bool:
+        """`gpu_serving`, resolved: 'auto' is on when the first provider runs on a GPU."""
+        if self.gpu_serving == "auto":
+            return self.providers[0].gpu
+        return self.gpu_serving == "on"
+
     @model_validator(mode="after")
     def _role_fields(self) -> MachineConfig:
+        check_list(self.providers)
         foreign = (_ROBOT_ONLY if self.role is Role.CLOUD else _CLOUD_ONLY) & self.model_fields_set
         if foreign:
             other = Role.ROBOT if self.role is Role.CLOUD else Role.CLOUD
@@ -677,10 +759,18 @@ class FidelityConfig(_Model):
         "a lossy codec must leave unchanged.",
     )
     max_output_rel_err: float | None = Field(
-        default=None,
+        default=DEFAULT_MAX_OUTPUT_REL_ERR,
         gt=0,
-        description="Largest relative L2 error of any output a lossy codec may cause; null: not "
-        "checked (a model without classifier outputs then crosses lossless only).",
+        description="Largest relative L2 error a lossy codec may cause on any output that is "
+        "not a classifier's (a classifier's is judged by min_top1_agreement); null: such "
+        "outputs admit no lossy codec.",
+    )
+    max_bad_pixel_share: float | None = Field(
+        default=DEFAULT_MAX_BAD_PIXEL_SHARE,
+        ge=0,
+        le=1,
+        description="Largest share of a disparity-like output's pixels a lossy codec may move "
+        "by more than 1 px (or make appear or vanish); null: such outputs admit no lossy codec.",
     )
     lossy_features: bool = Field(
         default=False,
@@ -843,6 +933,7 @@ class FleetConfig(_Model):
             if tls is not None:
                 tls.ca, tls.cert, tls.key = resolve(tls.ca), resolve(tls.cert), resolve(tls.key)
         for machine in self.machines.values():
+            machine.providers = [p.with_paths(resolve) for p in machine.providers]
             machine.source = str(parse_source(machine.source).resolved(lambda p: str(resolve(p))))
 
     # -- helpers -----------------------------------------------------------------------------------

@@ -9,6 +9,12 @@ from __future__ import annotations
 DEFAULT_REGISTRY_PORT = 7447
 # Frames the (cut, codec) pairs are measured on (fleet.yaml `fidelity.calibration_frames`).
 DEFAULT_CALIBRATION_FRAMES = 8
+# The fidelity bound's defaults (fleet.yaml `fidelity:`), chosen from the measurements in
+# docs/experiments.md ("A fidelity gate for every output"): an output that is not a classifier's
+# may move by at most this relative error (L2; a distance output's worst element), a disparity
+# map may have at most this share of its pixels off by more than 1 px.
+DEFAULT_MAX_OUTPUT_REL_ERR = 0.05
+DEFAULT_MAX_BAD_PIXEL_SHARE = 0.05
 # Largest request the registry reads (fleet.yaml `registry.max_request_bytes`): its requests,
 # telemetry and probe reports are a few hundred bytes, so anything near this is an attack or a bug.
 DEFAULT_MAX_REQUEST_BYTES = 64 * 1024

@@ -390,7 +390,7 @@ def _codec_table(profile: dict[str, Any], frames: int) -> Table:
                 f"{e['encode_ms']:.2f}",
                 f"{e['decode_ms']:.2f}",
                 "-" if top1 is None else f"{top1:.2f}",
-                f"{e['rel_err']:.3f}" if e["lossy"] else "-",
+                f"{e['rel_err']:.3f}" if e["lossy"] and e["rel_err"] is not None else "-",
                 "yes" if e.get("action") else "",
             )
     return table

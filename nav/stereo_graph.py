@@ -48,6 +48,7 @@ import numpy as np
 import onnx
 from onnx import TensorProto, helper, numpy_helper
 
+from common.codec_profile import OUTPUT_KIND_PREFIX, OutputKind
 from common.partition.named_cuts import NAMED_CUT_PREFIX
 from nav.camera import CameraModel
 from nav.curvature import CurvatureBins, ObstacleBand
@@ -161,6 +162,9 @@ def _metadata(pipeline: StereoPipeline) -> dict[str, str]:
     cam, bins = pipeline.camera, pipeline.bins
     return {
         f"{NAMED_CUT_PREFIX}points": Stage.POINTS.value,
+        # d_coll is 1×B like a classifier's scores, but metres: the fidelity gate bounds each
+        # bin's relative error instead of the argmax (`common.codec_profile.OutputKind`).
+        f"{OUTPUT_KIND_PREFIX}{Stage.DCOLL.value}": OutputKind.DISTANCE.value,
         "nav.max_disparity": str(pipeline.params.max_disparity),
         "nav.bins.k_max_per_m": repr(bins.k_max_per_m),
         "nav.bins.count": str(bins.count),

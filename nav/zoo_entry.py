@@ -17,7 +17,9 @@ from common.zoo import ZooGraph
 # Bump when the graph changes for the same shape (cached exports are named by it).
 # 2: the metadata names the `points` cut (elasticfog.cut.points) for the offloading options.
 # 3: the disparity stage's small-region filter (phantom obstacles at 640×480).
-STEREO_FORMAT = 3
+# 4: the metadata declares d_coll a distance output (elasticfog.output.d_coll), for the fidelity
+# gate.
+STEREO_FORMAT = 4
 
 
 def build_stereo(shape: tuple[int, int, int]) -> Any:

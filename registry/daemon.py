@@ -247,6 +247,7 @@ class RegistryDaemon(Daemon):
             ctl_timeout_s=self.ctl_timeout_s,
             sender=self.id,
             pools=pool_planner(cfg, rib),
+            in_flight=registrar.robot_in_flight,
         )
         loop = ControlLoop(
             cfg,

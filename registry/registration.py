@@ -99,6 +99,8 @@ class Registrar:
         self._table: dict[str, Registration] = {}
         self._seen: set[str] = set()  # deployments accepted in this run
         self._robot_digests: dict[str, str] = {}
+        # Frames in flight each robot announced (`RegisterRequest.max_in_flight`).
+        self._robot_in_flight: dict[str, int] = {}
 
     # -- the table -------------------------------------------------------------------------------
     def token_came(self, deployment: str) -> bool:
@@ -146,6 +148,11 @@ class Registrar:
                 if r.state is RegistrationState.ACCEPTED or r.retry
             ]
 
+    def robot_in_flight(self, robot: str) -> int | None:
+        """The frames in flight the robot announced at registration (None: not announced)."""
+        with self._lock:
+            return self._robot_in_flight.get(robot)
+
     def robot_digest(self, robot: str) -> str | None:
         """The model digest the robot registered with, if it named one."""
         with self._lock:
@@ -179,12 +186,20 @@ class Registrar:
             self._table[deployment] = Registration(RegistrationState.ACCEPTED)
             self._seen.add(deployment)
         log.info(
-            "deployment %s registered (service %s, model %s, capacity %d)",
+            "deployment %s registered (service %s, model %s, capacity %d, on %s)",
             deployment,
             reply.service,
             reply.model_digest[:12],
             reply.capacity,
+            ", ".join(reply.providers) or "unknown providers",
         )
+        if reply.providers_fallback:
+            # Accepted all the same: its machine allows it (`providers_fallback: allow`).
+            log.warning(
+                "deployment %s serves on %s, without an accelerator its machine asks for",
+                deployment,
+                ", ".join(reply.providers),
+            )
         return True
 
     def refresh(self, deployment: str, reply: msg.ProbeReply) -> bool:
@@ -274,9 +289,14 @@ class Registrar:
         )
         if reason is not None:
             self.refuse(Role(request.role), request.id, reason)
-        elif Role(request.role) is Role.ROBOT and request.model_digest:
+        elif Role(request.role) is Role.ROBOT:
             with self._lock:
-                self._robot_digests[request.id] = request.model_digest
+                if request.model_digest:
+                    self._robot_digests[request.id] = request.model_digest
+                if request.max_in_flight is not None:
+                    self._robot_in_flight[request.id] = request.max_in_flight
+                else:
+                    self._robot_in_flight.pop(request.id, None)
         return reason
 
     def refuse(self, role: Role, machine: str, reason: str) -> None:

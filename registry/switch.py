@@ -125,6 +125,7 @@ class Switcher:
         sender: str = DEFAULT_SENDER,
         clock: Callable[[], float] = time.time,
         pools: PoolPlanner | None = None,
+        in_flight: Callable[[str], int | None] | None = None,
     ) -> None:
         if not ctl_timeout_s > 0:
             raise ValueError(f"ctl_timeout_s must be > 0, got {ctl_timeout_s!r}")
@@ -136,6 +137,9 @@ class Switcher:
         self._clock = clock
         # Round-robin fleets: who joins a robot's pool (None: anycast, one deployment each).
         self.pools = pools
+        # The frames in flight a robot announced at registration, passed on with service and
+        # standby so the deployment admits as many of its requests (None: not known).
+        self._in_flight = in_flight
 
     def apply(self, decision: RouteDecision) -> SwitchResult:
         """Carry out a scheduler decision; a decision about a route that changed meanwhile is
@@ -393,7 +397,15 @@ class Switcher:
             )
 
     def _ctl(self, op: CtlOp, robot: str, epoch: int, reason: str) -> CtlRequest:
-        return CtlRequest(op=op, robot=robot, epoch=epoch, sender=self.sender, reason=reason)
+        in_flight = None if self._in_flight is None else self._in_flight(robot)
+        return CtlRequest(
+            op=op,
+            robot=robot,
+            epoch=epoch,
+            sender=self.sender,
+            reason=reason,
+            max_in_flight=in_flight,
+        )
 
     def _change(
         self,

@@ -284,7 +284,7 @@ class RobotDaemon(Daemon):
             self._sink.metrics = RobotMetrics(
                 self.metrics.registry, self.robot, lambda: self.route, source=self._frame_source
             )
-        model = self.hold(open_split_model(cfg, self.machine), "model sessions")
+        model = self.hold(open_split_model(cfg, self.machine, who=self.robot), "model sessions")
         robot_model = RobotModel(model, cfg.model)
         warm_up(model, robot_model.sample_feeds)
         local = LocalRunner(f"local-run-{self.robot}")
@@ -419,6 +419,7 @@ class RobotDaemon(Daemon):
             model_digest=model.digest,
             throttled=self.throttled,
             guard=self.guarded,
+            max_in_flight=self.max_in_flight,
         )
         self._sink.declare(self, session, self.fleet)
         route_key = keys.route(self.fleet, self.robot)

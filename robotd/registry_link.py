@@ -110,8 +110,11 @@ class RegistryLink:
         model_digest: str,
         throttled: ThrottledLog,
         guard: Guard,
+        max_in_flight: int = 1,
     ) -> None:
         self._session = session
+        # Announced at registration: the deployments serving this robot admit as many.
+        self._max_in_flight = max_in_flight
         self._fleet = config.fleet
         self._service = config.service
         self.endpoint = config.registry.endpoint
@@ -303,6 +306,7 @@ class RegistryLink:
             service=self._service,
             model_digest=self._model_digest,
             software=_software_version(),
+            max_in_flight=self._max_in_flight,
         )
         try:
             replies = self._session.get(

@@ -23,6 +23,7 @@ from common.fleet_model import fleet_partition
 from common.image_input import ImageInputs
 from common.partition import sample_feeds
 from common.partition.runtime import SplitModel
+from common.providers import enforce, ort_providers, prepare
 from common.wire.telemetry import FallbackReason
 from robotd.offload import CallResult
 from robotd.policies import Decision
@@ -33,11 +34,29 @@ from robotd.sources import FrameSource, SourceSession
 from robotd.stereo_frame import CameraFrame, StereoFrame
 
 
-def open_split_model(config: FleetConfig, machine: MachineConfig) -> SplitModel:
-    """The fleet's model, partitioned at its cuts, as sessions on `machine`'s providers."""
-    return SplitModel(
-        fleet_partition(config), providers=machine.providers, threads=machine.threads or None
+def open_split_model(
+    config: FleetConfig, machine: MachineConfig, *, who: str = "robot"
+) -> SplitModel:
+    """The fleet's model, partitioned at its cuts, as sessions on `machine`'s providers; a
+    session that did not get an accelerator asked for is a one-line UserError (or, with
+    `providers_fallback: allow`, a warning: `common.providers.enforce`)."""
+    prepare(machine.providers)
+    model = SplitModel(
+        fleet_partition(config),
+        providers=ort_providers(machine.providers),
+        threads=machine.threads or None,
     )
+    try:
+        enforce(
+            model.session_providers(),
+            machine.providers,
+            machine.providers_fallback,
+            who=who,
+        )
+    except UserError:
+        model.close()
+        raise
+    return model
 
 
 class RobotModel:

@@ -23,6 +23,16 @@ tensors dropped), built from those bytes with the same shared weights, and check
 one-item runs before it serves. A suffix that cannot take a batch (a scalar crossing, a reshape
 to a hard-coded batch of 1, results that differ) keeps running one request at a time, and the
 reason is returned so the daemon can say so.
+
+For a GPU (all off by default; the cloud daemon turns them on with `gpu_serving`):
+- ``io_binding`` runs every session through an ``IOBinding``: inputs are copied to the device the
+  session runs on once, as ``OrtValue``s, and outputs are allocated there and copied back after
+  the run, instead of onnxruntime's per-run staging of numpy feeds and fetches;
+- ``buckets`` pads a batched run up to the next of a fixed set of sizes (repeating its last
+  item; the padding's results are dropped), so a batched suffix only ever sees those shapes: on
+  a GPU every new shape costs a cuDNN algorithm search or a TensorRT engine build;
+- ``warm_batches`` runs a batched suffix once at each of those sizes, so none of that happens on
+  a robot's frame.
 """
 
 from __future__ import annotations
@@ -40,6 +50,7 @@ from onnx import helper, numpy_helper
 from common.partition.errors import ort_reason
 from common.partition.manifest import Partition, TensorSpec
 from common.partition.verify import sample_feeds
+from common.providers import GPU_PROVIDERS
 
 Optimization = Literal["extended", "all"]
 _LEVELS = {
@@ -49,6 +60,10 @@ _LEVELS = {
 _ORT_LOG_ERROR = 3
 # Where a model built from bytes finds its external weights (onnxruntime session config key).
 _EXTERNAL_FOLDER_KEY = "session.model_external_initializers_file_folder_path"
+
+ProviderArg = str | tuple[str, dict[str, str]]
+"""A provider as ``onnxruntime.InferenceSession(providers=...)`` takes it (name, or name and
+options; `common.providers.ort_providers`)."""
 
 BATCH_DIM = "batch"
 """The name given to axis 0 of a batched suffix's inputs and outputs."""
@@ -160,17 +175,28 @@ class SplitModel:
     def __init__(
         self,
         partition: Partition,
-        providers: Sequence[str] = ("CPUExecutionProvider",),
+        providers: Sequence[ProviderArg] = ("CPUExecutionProvider",),
         threads: int | None = None,
         *,
         optimization: Optimization = "extended",
         lazy: bool = False,
         arena: bool = False,
+        io_binding: bool = False,
+        buckets: Sequence[int] | None = None,
     ) -> None:
         self.partition = partition
         if optimization not in _LEVELS:
             raise ValueError(f"optimization must be one of {', '.join(_LEVELS)}")
+        if buckets is not None and (not buckets or min(buckets) < 1):
+            raise ValueError(f"buckets must be sizes >= 1, got {list(buckets)}")
         self.providers = list(providers)
+        self.io_binding = io_binding
+        # One item always runs alone (`run_suffix_batch`), so 1 is always a bucket.
+        self.buckets: tuple[int, ...] | None = (
+            None if buckets is None else tuple(sorted(set(buckets) | {1}))
+        )
+        self.warmed: dict[int, tuple[int, ...]] = {}
+        """Cut -> the batch sizes `warm_batches` ran its suffix at."""
         self.threads = threads
         self.optimization: Optimization = optimization
         self.arena = arena
@@ -367,10 +393,50 @@ class SplitModel:
                 raise ValueError(
                     f"suffix of cut {k}: {', '.join(bad)} must have {rows} row(s) on axis 0"
                 )
+        size = self.bucket_for(len(items))
+        # Padding repeats the last item (real values: no NaN or overflow from made-up ones).
+        padded = [*items, *[items[-1]] * (size - len(items))]
         outputs = self._run(
-            self._suffix_session(k), self._stack(items), f"batched suffix of cut {k}", run_options
+            self._suffix_session(k), self._stack(padded), f"batched suffix of cut {k}", run_options
         )
-        return self._split(outputs, rows, len(items))
+        return self._split(outputs, rows, size)[: len(items)]
+
+    def bucket_for(self, n: int) -> int:
+        """The batch size a run of ``n`` items is padded up to: the smallest bucket that holds
+        them (``n`` itself without buckets, or beyond the largest)."""
+        if self.buckets is None:
+            return n
+        return next((b for b in self.buckets if b >= n), n)
+
+    def warm_batches(self, k: int, sizes: Sequence[int]) -> None:
+        """Run cut ``k``'s batched suffix once at each of ``sizes`` (on zeros), so that the
+        shapes a batcher forms are not met for the first time on a robot's frame. Each size
+        goes through `run_suffix_batch`, so buckets apply; `warmed` records the sizes run."""
+        if not self.batched(k):
+            raise ValueError(f"cut {k}: its suffix takes no batch (enable_batching first)")
+        specs = self.cut_tensor_specs(k)
+        item = {s.name: np.zeros(s.shape, dtype=s.dtype) for s in specs}
+        ran: list[int] = []
+        for n in sorted(set(sizes)):
+            self.run_suffix_batch(k, [item] * n)
+            ran.append(self.bucket_for(n))
+        self.warmed[k] = tuple(sorted(set(ran)))
+
+    def suffix_providers(self, k: int) -> list[str]:
+        """The providers cut ``k``'s suffix session really got (``get_providers()``; onnxruntime
+        falls back to the CPU without raising, `common.providers.check_session`)."""
+        return list(self._suffix_session(k).get_providers())
+
+    def session_providers(self) -> dict[str, list[str]]:
+        """Every session built so far -> the providers it got, named as in errors."""
+        with self._lock:
+            named: list[tuple[str, ort.InferenceSession]] = []
+            if self._full is not None:
+                named.append(("the full model", self._full))
+            named += [(f"prefix of cut {k}", s) for k, s in sorted(self._prefix.items())]
+            named += [(f"suffix of cut {k}", s) for k, s in sorted(self._suffix.items())]
+            named += [(f"segment {a}-{b}", s) for (a, b), s in sorted(self._segment.items())]
+        return {what: list(session.get_providers()) for what, session in named}
 
     @staticmethod
     def _stack(items: Sequence[Mapping[str, np.ndarray]]) -> dict[str, np.ndarray]:
@@ -437,8 +503,44 @@ class SplitModel:
         if missing:
             raise ValueError(f"{what}: missing input(s) {', '.join(missing)}")
         outputs = [o.name for o in session.get_outputs()]
+        if self.io_binding:
+            return self._run_bound(session, names, outputs, feeds, run_options)
         values = session.run(outputs, {n: feeds[n] for n in names}, run_options)
         return dict(zip(outputs, values, strict=True))
+
+    def _run_bound(
+        self,
+        session: ort.InferenceSession,
+        names: Sequence[str],
+        outputs: Sequence[str],
+        feeds: Mapping[str, np.ndarray],
+        run_options: ort.RunOptions | None,
+    ) -> dict[str, np.ndarray]:
+        """One run through an IOBinding: inputs copied to the session's device once, outputs
+        allocated there by onnxruntime and copied back to numpy after the run."""
+        device, device_id = self._device(session)
+        binding = session.io_binding()
+        for name in names:
+            value = np.ascontiguousarray(feeds[name])
+            if device == "cpu":
+                binding.bind_cpu_input(name, value)
+            else:
+                on_device = ort.OrtValue.ortvalue_from_numpy(value, device, device_id)
+                binding.bind_ortvalue_input(name, on_device)
+        for name in outputs:
+            binding.bind_output(name, device, device_id)
+        session.run_with_iobinding(binding, run_options)
+        values = binding.copy_outputs_to_cpu()
+        return dict(zip(outputs, values, strict=True))
+
+    def _device(self, session: ort.InferenceSession) -> tuple[str, int]:
+        """Where a session's inputs and outputs live: the GPU of its first provider when that is
+        CUDA or TensorRT (and the session really got it), else the CPU."""
+        first = session.get_providers()[0]
+        if first not in GPU_PROVIDERS:
+            return "cpu", 0
+        options = session.get_provider_options().get(first, {})
+        return "cuda", int(options.get("device_id", 0))
 
     def _full_session(self) -> ort.InferenceSession:
         with self._lock:

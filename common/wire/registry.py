@@ -113,7 +113,9 @@ class RouteChange(Message):
 @dataclass(frozen=True, slots=True, kw_only=True)
 class RegisterRequest(Message):
     """A daemon announcing itself. `model_digest` is the sha256 of the model it loaded (None if
-    it has not loaded one yet); `software` is its package version, for the event log."""
+    it has not loaded one yet); `software` is its package version, for the event log.
+    `max_in_flight`: a robot's offloaded frames in flight at once (pipelining), passed on to the
+    deployments that serve it (`CtlRequest.max_in_flight`); absent from older robots."""
 
     TYPE: ClassVar[str] = "register"
     role: Role
@@ -123,9 +125,12 @@ class RegisterRequest(Message):
     service: str
     model_digest: str | None = None
     software: str = ""
+    max_in_flight: int | None = None
 
     def __post_init__(self) -> None:
         self._check_ids("id", "service")
+        if self.max_in_flight is not None and self.max_in_flight < 1:
+            raise self._invalid("max_in_flight", f"must be at least 1, got {self.max_in_flight}")
         if self.role not in MACHINE_ROLES:
             raise self._invalid("role", f"expected cloud or robot, got {self.role!r}")
         object.__setattr__(self, "role", Role(self.role))  # "cloud" given by hand: the member
@@ -224,7 +229,10 @@ class ProbeReply(Message):
     """A deployment's profile: identity, protocol, what it serves, its state per robot, its load
     (requests queued or running) against its capacity (workers + queue slots), and the echo.
     `epochs` is the epoch it holds per robot, `served` the frames it computed per robot,
-    `refused` the requests it refused since it started, by reason (`cloudd.refusals`)."""
+    `refused` the requests it refused since it started, by reason (`cloudd.refusals`).
+    `providers` are the onnxruntime providers its suffix sessions run on; `providers_fallback`
+    is set when they did not get an accelerator the machine asked for and it serves anyway
+    (`providers_fallback: allow`)."""
 
     TYPE: ClassVar[str] = "probe_reply"
     deployment: str
@@ -241,6 +249,8 @@ class ProbeReply(Message):
     epochs: dict[str, int] = field(default_factory=dict)
     served: dict[str, int] = field(default_factory=dict)
     refused: dict[str, int] = field(default_factory=dict)
+    providers: tuple[str, ...] = ()
+    providers_fallback: bool = False
 
     def __post_init__(self) -> None:
         self._check_ids("deployment", "service")
@@ -252,7 +262,9 @@ class ProbeReply(Message):
 @dataclass(frozen=True, slots=True, kw_only=True)
 class CtlRequest(Message):
     """`service`/`standby` need `robot` and `epoch`; `fault` needs `fault`; `drain` may name a
-    robot (drain only that robot) or none (the whole deployment)."""
+    robot (drain only that robot) or none (the whole deployment). `max_in_flight` (service and
+    standby): the frames the robot keeps in flight, as it announced at registration; the
+    deployment admits that many of its requests at once, up to its own cap (None: not known)."""
 
     TYPE: ClassVar[str] = "ctl"
     op: CtlOp
@@ -261,10 +273,13 @@ class CtlRequest(Message):
     fault: FaultSpec | None = None
     sender: str = ""
     reason: str = ""
+    max_in_flight: int | None = None
 
     def __post_init__(self) -> None:
         self._check_ids("robot")
         self._check_non_negative("epoch")
+        if self.max_in_flight is not None and self.max_in_flight < 1:
+            raise self._invalid("max_in_flight", f"must be at least 1, got {self.max_in_flight}")
         if self.op in (CtlOp.SERVICE, CtlOp.STANDBY) and self.robot is None:
             raise self._invalid("robot", f"is required for op {self.op.value!r}")
         if self.op is CtlOp.FAULT and self.fault is None:

@@ -17,8 +17,11 @@ same fleet, one run per maneuver in real time, after the option runs of each res
 past it d_coll is not trusted and the robot is braked to rest, so a T_dead under the measured
 latencies keeps the assisted robot still and its zero collisions say nothing.
 
-The JSON contract (`public`) is the result rows only; with `--workdir` the whole result
-(settings, rows, details with each maneuver's outcome) is also kept there as `RESULT_FILE`.
+The JSON contract (`public`) is the result rows and the fidelity rows (`nav_fidelity`: what each
+image codec does to d_coll and the disparity map on rendered frames and the Motorcycle pair, and
+whether the default fidelity bound admits it, measured in-process at each resolution); with
+`--workdir` the whole result (settings, rows, details with each maneuver's outcome) is also kept
+there as `RESULT_FILE`.
 """
 
 from __future__ import annotations
@@ -29,7 +32,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from . import nav_live
+from . import nav_fidelity, nav_live
 from .fleet import ROBOT_ID, FleetSpec
 from .nav_loop import LoopResult, fig8, table5
 from .nav_rows import (
@@ -65,6 +68,8 @@ DEADLINE_S = 30.0
 """Far above option 4 at 640x480 on half a core: every option is measured, not cut off."""
 CLOUD_THREADS = 2
 CALIBRATION_FRAMES = 1
+FIDELITY_FRAMES = 4
+"""Rendered frames the fidelity rows are measured on per resolution (and the Motorcycle pair)."""
 """The robot measures its crossings' codecs at start on this many rendered frames: d_coll is
 no classifier output, so they cross lossless whatever is measured, and at 640x480 the default
 eight pairs (rendered, then every cut's codecs) outlast the start-up wait."""
@@ -168,6 +173,13 @@ def run(options: BenchOptions, settings: NavSettings) -> dict[str, Any]:
     warmup = min(QUICK_WARMUP if options.quick else FULL_WARMUP, max(0, frames - 3))
     laps = settings.laps or (QUICK_LAPS if options.quick else FULL_LAPS)
     measured, live = measure(options, settings, frames, warmup, laps)
+    fidelity = nav_fidelity.summary(
+        [
+            row
+            for width, height in settings.resolutions
+            for row in nav_fidelity.measure(width, height, 1 if options.quick else FIDELITY_FRAMES)
+        ]
+    )
     if settings.table5 == TABLE5_LIVE:
         # Fig. 9 needs a speed trace, which the robot's outcome files do not carry.
         loop = LoopResult({key: runs.figures for key, runs in live.items()})
@@ -219,6 +231,7 @@ def run(options: BenchOptions, settings: NavSettings) -> dict[str, Any]:
             "t_dead_s": settings.t_dead_s,
         },
         "results": rows,
+        "fidelity": fidelity,
         "details": details,
         "plots": {"dcoll": loop.dcoll, "speeds": loop.speeds},
     }
@@ -239,8 +252,8 @@ def keep_result(result: dict[str, Any], workdir: Path) -> Path:
 
 
 def public(result: dict[str, Any]) -> dict[str, Any]:
-    """The JSON contract: {results: [rows]} and nothing else."""
-    return {"results": result["results"]}
+    """The JSON contract: {results: [rows], fidelity: [rows]} and nothing else."""
+    return {"results": result["results"], "fidelity": result.get("fidelity", [])}
 
 
 def _find(rows: list[dict[str, Any]], option: Option, label: str) -> dict[str, Any] | None:
@@ -312,6 +325,12 @@ def markdown(result: dict[str, Any]) -> str:
         how += f", T_dead {s.get('t_dead_s', DEFAULT_T_DEAD_S):g} s"
         out.append(
             f"**Table V: collisions per maneuvers** ({how})\n\n" + md_table(header, table5_rows)
+        )
+    if result.get("fidelity"):
+        out.append(
+            "**Fidelity: each image codec against raw** (worst frame; admitted by the default "
+            "bound: every bin of d_coll within max_output_rel_err of its raw value)\n\n"
+            + nav_fidelity.markdown(result["fidelity"])
         )
     return "\n\n".join(out) + "\n"
 

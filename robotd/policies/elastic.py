@@ -43,6 +43,17 @@ update the regression.
 - confirmation: after a single miss the next frame is a forced frame (so it samples the cloud,
   hedged if the policy would not otherwise offload), and a change is confirmed within
   `change_frames` frames rather than `change_frames` forced intervals.
+- take-up: an offloading action whose observation (its robot part as estimated plus the cloud
+  part observed) costs less than (1 − `takeover_margin`) of the current choice's estimate is
+  sampled again on the next frame (hedged), and `takeover_samples` such observations in a row
+  start an update period on its evidence (the "faster" direction). Change detection only counts
+  misses on actions the model knows; an action that rests on a few samples, e.g. the cloud after
+  a bad phase while the robot served every frame, would otherwise be learned one forced sample
+  at a time, its old samples outweighing the new ones for hundreds of frames. The rule needs no
+  count of samples: it only compares what the action just cost with what is being served.
+- hint: while P serves, an unknown explored action answering faster than predicted makes the next
+  frame sample the action that was cheapest at its best (`_hint_cheaper`), so take-up can judge
+  the action worth taking rather than whichever had the largest confidence bonus.
 
 A frame the cloud did not answer teaches y = the time the robot waited (its deadline): a dead or
 congested route then looks expensive instead of unknown, and the miss feeds change detection.
@@ -159,6 +170,14 @@ class ElasticPolicy(Policy):
         self._streak_sign = 0
         self._confirm = False
         self.update_periods = 0
+        # Take-up: per column, the cloud-side observations in a row that beat the current
+        # choice by the margin; the column to sample on the next frame to confirm them.
+        self._beating: dict[int, list[float]] = {}
+        self._challenger: int | None = None
+        self.takeovers = 0
+        # Per column, the least cloud-side cost it was ever seen to take (`_hint_cheaper`).
+        self._best_seen: dict[int, float] = {}
+        self._next_hint = 0  # no hint before this frame
         # When to time the robot on a frame whose action runs nothing measurable there.
         self._probes = RobotProbes(params, self._robot, self._untimed)
         # Score parts, cut order: base = E^c + bytes cost + α̂ᵀv (inf where restricted away in
@@ -186,6 +205,12 @@ class ElasticPolicy(Policy):
         regular_p = self._p_allowed and p_cost <= best
         forced = self._confirm or self._schedule.is_forced(n)
         self._confirm = False
+        challenger = self._challenger
+        if challenger is not None:
+            # Confirm a take-up candidate on this frame (it is allowed: a restriction starts
+            # only with an update period, which clears the candidate).
+            self._challenger = None
+            j, forced = challenger, True
         if regular_p and not forced:
             return Decision(PURE_ROBOT, updating=self._updating, predicted_cost=p_cost)
         probe = self._probes.due(j)
@@ -263,7 +288,11 @@ class ElasticPolicy(Policy):
             target = cloud_cost(self._wait_rate, self._radio_rate, outcome.waited_s, None)
         else:
             target = UNKNOWN_WAIT_FACTOR * max(self._pred[j], MIN_PREDICTION)
-        if self.params.change_detection:
+        if target < self._best_seen.get(j, math.inf):
+            self._best_seen[j] = target
+        if self._take_up(j, target):
+            pass  # the observation started an update period on this action's evidence
+        elif self.params.change_detection:
             self._track(j, target)
         else:
             self._ridge.update(j, target)
@@ -295,6 +324,10 @@ class ElasticPolicy(Policy):
         scale = max(abs(pred), MIN_PREDICTION)
         tolerance = params.change_tolerance * scale
         sign = 1 if residual > 0 else -1
+        if sign < 0 and abs(residual) > tolerance and self._width[j] > self._known_width:
+            # A surprise on an action the model does not know: change detection ignores it
+            # (below), the hint does not (a known action's misses are confirmed there).
+            self._hint_cheaper(j, target)
         if self._updating:
             missed = abs(residual) > tolerance
             if self._reversed(j, sign, missed, target):
@@ -326,13 +359,80 @@ class ElasticPolicy(Policy):
                 self._streak_sign = sign
             self._streak.append((j, target))
             if len(self._streak) >= params.change_frames:
-                self._enter_update(j, sign)
+                self._enter_update(j, sign, self._streak)
                 return
             self._confirm = params.confirm_misses
         else:
             self._streak.clear()
             self._streak_sign = 0
         self._ridge.update(j, target)
+
+    def _hint_cheaper(self, j: int, target: float) -> None:
+        """Column j answered faster than predicted while P serves every frame: offloading may
+        have got cheaper (a bad phase ended), but j itself need not be the action to take (an
+        explored action far from competitive). Sample on the next frame the action that was
+        cheapest at its best: its robot part plus the least cloud part it was ever seen to
+        take (an action never seen: its prediction shrunk as j's answer shrank), if that beat P
+        by `takeover_margin`. The take-up rule then judges it on its own answers. The sample
+        is hedged; on a link that is still bad it only confirms the estimate."""
+        margin = self.params.takeover_margin
+        if margin <= 0.0 or self._challenger is not None or self._frame < self._next_hint:
+            return
+        if self._direction != 0:
+            return  # a restricted period is learning the new conditions afresh: no hints
+        p_cost, greedy = self._current()
+        if greedy >= 0:
+            return
+        ratio = max(target, 0.0) / max(self._pred[j], MIN_PREDICTION)
+        seen = self._best_seen
+        best_case = [
+            b - y + (seen[a] if a in seen else y * ratio)
+            for a, (b, y) in enumerate(zip(self._allowed_base, self._pred, strict=False))
+        ]
+        best = min(best_case)
+        candidate = best_case.index(best)
+        # Only an action that at its best beat P by the margin is worth a sample; j itself
+        # is not asked for again (its own answers already teach the regression, and samples
+        # of it in a row would make ordinary misses look like a change).
+        if candidate != j and best < (1.0 - margin) * p_cost:
+            self._challenger = candidate
+            # At most one hint per forced interval: on a link that is still bad, every hinted
+            # sample costs a hedged frame (and, paced, delays the frames behind it).
+            self._next_hint = self._frame + self._schedule.interval(self._frame)
+
+    def _current(self) -> tuple[float, int]:
+        """(estimated cost, column) of what the estimates alone choose now; column -1: P."""
+        current, greedy = self._cheapest
+        p_cost = self._robot.full_cost
+        if self._p_allowed and p_cost <= current:
+            return p_cost, -1
+        return current, greedy
+
+    def _take_up(self, j: int, target: float) -> bool:
+        """Take-up rule: True when this observation of column j, with the ones before it in a
+        row, beat the current choice by `takeover_margin` and started an update period on j's
+        evidence; a first beating observation asks for j on the next frame."""
+        params = self.params
+        margin = params.takeover_margin
+        if margin <= 0.0 or not params.change_detection:
+            return False
+        current, greedy = self._current()
+        beating = self._beating.setdefault(j, [])
+        # The robot part and the bytes as estimated (base − prediction), the cloud part seen.
+        observed = self._base[j] - self._pred[j] + target
+        if greedy == j or observed >= (1.0 - margin) * current:
+            beating.clear()
+            return False
+        beating.append(target)
+        if len(beating) < params.takeover_samples:
+            self._challenger = j
+            return False
+        misses = [(j, y) for y in beating]
+        self._beating.clear()
+        self._challenger = None
+        self._enter_update(j, -1, misses, only_p_out=greedy < 0)
+        self.takeovers += 1
+        return True
 
     def _reversed(self, j: int, sign: int, missed: bool, target: float) -> bool:
         """Inside a restricted update period: `change_frames` misses in a row against its
@@ -354,12 +454,16 @@ class ElasticPolicy(Policy):
         self._streak.append((j, target))
         if len(self._streak) < self.params.change_frames:
             return False
-        self._enter_update(j, sign)
+        self._enter_update(j, sign, self._streak)
         return True
 
-    def _enter_update(self, j: int, sign: int) -> None:
-        """Start a parameter-update period after the action in column j missed repeatedly."""
-        misses = list(self._streak)
+    def _enter_update(
+        self, j: int, sign: int, evidence: list[tuple[int, float]], only_p_out: bool = False
+    ) -> None:
+        """Start a parameter-update period after the action in column j missed repeatedly
+        (`evidence`: the (column, observation) pairs that revealed it; `only_p_out`: a take-up
+        of j over P, whose period leaves P out and every cut in)."""
+        misses = list(evidence)
         self._streak.clear()
         self._streak_sign = 0
         # Old evidence describes the old conditions; the misses are the first of the new ones.
@@ -369,7 +473,10 @@ class ElasticPolicy(Policy):
         if self.params.direction_restriction:
             sizes = np.array(self._bytes)
             anchor = sizes[j]
-            if sign > 0:
+            if only_p_out:
+                self._mask = [True] * self._k
+                self._p_allowed = False
+            elif sign > 0:
                 self._mask = (sizes <= anchor).tolist()
                 self._p_allowed = True
             else:
@@ -381,6 +488,8 @@ class ElasticPolicy(Policy):
         self._period_frames = 0
         self._fits = 0
         self._recent.clear()
+        self._beating.clear()
+        self._challenger = None
         self.update_periods += 1
 
     def _leave_update(self) -> None:
@@ -478,6 +587,7 @@ class ElasticPolicy(Policy):
             "samples": self._ridge.samples,
             "updating": self._updating,
             "update_periods": self.update_periods,
+            "takeovers": self.takeovers,
             "direction": self._direction,
             "robot_speed_ratio": self._robot.ratio,
             "robot_probes": self._probes.count,
@@ -492,5 +602,6 @@ def elastic_params_for_ans(params: AnsParams) -> ElasticParams:
         direction_restriction=False,
         hedge=False,
         confirm_misses=False,
+        takeover_margin=0.0,
         robot_probe_frames=0,
     )

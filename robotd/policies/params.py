@@ -152,6 +152,21 @@ class ElasticParams(AnsParams):
         description="After a miss, make the next frame a forced (offloading) frame instead of "
         "waiting for the next scheduled one, so a change is confirmed in change_frames frames.",
     )
+    takeover_margin: float = Field(
+        default=0.2,
+        ge=0,
+        lt=1,
+        description="An offloading action whose last takeover_samples observations each cost "
+        "less than (1 - margin) of the current choice's estimate is taken up (an update period "
+        "on its evidence), however few samples the model has of it; it is sampled on the next "
+        "frames to confirm. 0: off.",
+    )
+    takeover_samples: int = Field(
+        default=2,
+        ge=1,
+        description="Observations in a row of one action beating the current choice by "
+        "takeover_margin that take it up.",
+    )
     robot_probe_frames: int = Field(
         default=10,
         ge=0,

@@ -1,7 +1,8 @@
 """Pipelined frames end to end: registry, a cloud daemon and the robot as real subprocesses on
 loopback, the robot's uplink paced in the application (`--uplink-mbit`), the cloud's processing
 lengthened by its fault injection (a fixed delay before each reply, which holds no worker), and a
-frame rate above what one frame at a time allows.
+frame rate above what one frame at a time allows. The deployment's batching config is the
+default one: the robot announces its frames in flight at registration and is admitted as many.
 
 The same fleet runs the robot twice, one frame in flight and then three (`--max-in-flight`):
 with three the frames per second delivered are higher, every frame has its telemetry record (0
@@ -39,11 +40,9 @@ RUN_S = 60.0
 def _fleet_changes() -> dict[str, Any]:
     return {
         "machines": {
-            # The cloud admits as many of this robot's requests at once as it keeps in flight.
-            "edge-1": {
-                "fault": {"delay_ms": CLOUD_DELAY_MS},
-                "batching": {"max_in_flight_per_robot": IN_FLIGHT + 1},
-            },
+            # The default batching config: the robot announces its frames in flight at
+            # registration, and the deployment admits as many (its default cap is above them).
+            "edge-1": {"fault": {"delay_ms": CLOUD_DELAY_MS}},
             ROBOT: {"fps": FPS},
         }
     }

@@ -223,3 +223,27 @@ def test_a_robot_past_its_in_flight_limit_is_answered_busy_at_once(
     busy = next(r for r in replies if isinstance(r, BusyReply))
     assert busy.deployment == "edge-1" and busy.capacity == 1 * len(ROBOTS) + 4
     assert daemon.refusals.snapshot() == {RefusalReason.ROBOT_IN_FLIGHT.value: 1}
+
+
+def test_a_robot_announcing_more_in_flight_than_the_cap_is_counted_and_logged_once(
+    daemon: CloudDaemon,
+    robots_in_service: zenoh.Session,
+    reference: SplitModel,
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    ctl_key = keys.dep_ctl(daemon.cfg.fleet, "edge-1")
+    for epoch in (2, 3):  # the registry passes it on with every service request
+        ctl = CtlRequest(op=CtlOp.SERVICE, robot="robot-1", epoch=epoch, max_in_flight=4)
+        replies = list(robots_in_service.get(ctl_key, payload=ctl.to_wire()))
+        answer = decode(replies[0].ok.payload.to_bytes()) if replies and replies[0].ok else None
+        assert isinstance(answer, CtlReply) and answer.ok, answer
+    assert daemon.refusals.get(RefusalReason.IN_FLIGHT_CAP) == 1
+    lines = [r.getMessage() for r in caplog.records if "keeps 4 frames in flight" in r.getMessage()]
+    assert len(lines) == 1 and "admits 1 of its requests" in lines[0], lines
+    # The cap of 1 holds: a second request in flight is answered busy.
+    first, _ = request(reference, "robot-1", 1, seed=50)
+    second, _ = request(reference, "robot-1", 1, seed=51)
+    kinds = sorted(
+        type(r).__name__ for r in send_together(robots_in_service, daemon, [first, second])
+    )
+    assert kinds == ["BusyReply", "InferReply"], kinds

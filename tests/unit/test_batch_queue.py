@@ -291,7 +291,7 @@ def test_costs_are_learned_per_batch_size_and_extrapolated() -> None:
 
 def test_policy_from_config() -> None:
     default = BatchingConfig()
-    assert (default.enabled, default.max_batch, default.max_in_flight_per_robot) == (False, 1, 2)
+    assert (default.enabled, default.max_batch, default.max_in_flight_per_robot) == (False, 1, 8)
     assert default.preferred_batch_sizes == [8] and default.max_queue_delay_ms == 5.0
     off = BatchPolicy.from_config(BatchingConfig(max_in_flight_per_robot=3))
     assert (off.max_batch, off.max_queue_delay_s, off.max_in_flight_per_robot) == (1, 0.0, 3)
@@ -329,3 +329,18 @@ def test_a_request_that_would_miss_its_deadline_is_refused_and_a_batch_cut_to_fi
     assert names(take(queue, clock)) == ["b0"], "cut to what keeps every deadline"
     clock.now += DELAY_S
     assert names(take(queue, clock)) == ["c0"]
+
+
+def test_a_robot_is_admitted_the_frames_it_keeps_in_flight_up_to_the_cap() -> None:
+    clock = Clock()
+    queue = make_queue(clock, per_robot=8)
+    assert queue.limit("piped") == 8, "a robot that announced nothing gets the cap"
+    assert queue.set_in_flight("piped", 3) == 4, "3 in flight and one it gave up on"
+    for n in range(4):
+        offer(queue, clock, "piped", n)
+    late = Pending("piped", 0, clock.now, clock.now + FAR_S, "piped4")
+    assert queue.offer(late) is Refusal.ROBOT_LIMIT
+    assert queue.set_in_flight("greedy", 20) == 8, "the cap holds"
+    assert queue.set_in_flight("single", 1) == 2
+    with pytest.raises(ValueError, match=">= 1"):
+        queue.set_in_flight("none", 0)

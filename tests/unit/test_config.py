@@ -111,12 +111,12 @@ def test_the_deployments_that_admit_fewer_than_a_robot_keeps_in_flight() -> None
     data = yaml.safe_load((CASES / "valid-single-host.yaml").read_text())
     data["machines"]["edge-2"]["batching"] = {"max_in_flight_per_robot": 3}
     anycast = fleet_from_dict(data)
-    assert anycast.short_of_in_flight(2) == {}, "default 2 on edge-1"
-    assert anycast.short_of_in_flight(3) == {"edge-1": 2}
-    assert anycast.short_of_in_flight(4) == {"edge-1": 2, "edge-2": 3}
+    assert anycast.short_of_in_flight(3) == {}, "a cap of 3 on edge-2, the default 8 on edge-1"
+    assert anycast.short_of_in_flight(4) == {"edge-2": 3}
+    assert anycast.short_of_in_flight(9) == {"edge-1": 8, "edge-2": 3}
     pooled = fleet_from_dict({**data, "dispatch": "round_robin"})
-    assert pooled.short_of_in_flight(4) == {}, "two frames for each of the two members"
-    assert pooled.short_of_in_flight(5) == {"edge-1": 2}
+    assert pooled.short_of_in_flight(6) == {}, "three frames for each of the two members"
+    assert pooled.short_of_in_flight(7) == {"edge-2": 3}
 
 
 def test_in_memory_config_without_a_file() -> None:

@@ -4,11 +4,13 @@ reference model digest. The RIB lives in memory."""
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Iterator
 
 import pytest
 
 from common import keys
+from common.wire import WireError
 from common.wire.registry import (
     CAP_CTL,
     CAP_INFER,
@@ -157,6 +159,19 @@ def test_robot_registration_keeps_its_digest_and_refusals_name_the_robot(rib: Ri
     assert registrar.robot_digest("robot-2") is None
 
 
+def test_a_robot_announces_its_frames_in_flight_at_registration(rib: Rib) -> None:
+    registrar = Registrar("f", rib, SERVICE, DIGEST)
+    request = robot_request("robot-1")
+    assert registrar.register(request) is None
+    assert registrar.robot_in_flight("robot-1") is None, "an older robot announces nothing"
+    piped = RegisterRequest.from_wire(dataclasses.replace(request, max_in_flight=3).to_wire())
+    assert piped.max_in_flight == 3
+    assert registrar.register(piped) is None
+    assert registrar.robot_in_flight("robot-1") == 3
+    with pytest.raises(WireError, match="max_in_flight: must be at least 1"):
+        dataclasses.replace(request, max_in_flight=0)
+
+
 def robot_request(robot: str) -> RegisterRequest:
     return RegisterRequest(
         role="robot",
@@ -226,3 +241,20 @@ def test_a_robot_is_not_refused_while_one_deployment_that_can_serve_it_has_room(
 def test_with_no_deployment_at_all_the_robot_is_not_told_capacity(rib: Rib) -> None:
     registrar = Registrar("f", rib, SERVICE, DIGEST)
     assert registrar.reply_to(robot_request("robot-1")).route is None
+
+
+def test_a_deployment_on_fewer_providers_than_asked_is_accepted_with_a_warning(
+    rib: Rib, caplog: pytest.LogCaptureFixture
+) -> None:
+    # Its machine allows it (`providers_fallback: allow`); the registry says so, once.
+    registrar = Registrar("f", rib, SERVICE, DIGEST)
+    registrar.token_came("gpu-1")
+    fell_back = reply("gpu-1", providers=("CPUExecutionProvider",), providers_fallback=True)
+    with caplog.at_level("INFO", logger="registry.registration"):
+        assert registrar.admit("gpu-1", fell_back, "")
+    assert "capacity 4, on CPUExecutionProvider)" in caplog.text
+    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert warnings == [
+        "deployment gpu-1 serves on CPUExecutionProvider, without an accelerator its machine "
+        "asks for"
+    ]

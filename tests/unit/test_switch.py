@@ -436,3 +436,24 @@ def test_fence_puts_a_stray_server_in_standby(rib: Rib) -> None:
     Switcher(rib, transport).fence(ROBOT, "b")
     assert deps["b"].states[ROBOT] is DeploymentState.STANDBY
     assert transport.log[-1][:4] == ("ctl", "b", "standby", 1)
+
+
+def test_service_and_standby_carry_the_frames_in_flight_the_robot_announced(rib: Rib) -> None:
+    transport, _deps = _fleet(rib)
+    sent: list[CtlRequest] = []
+    send = transport.send_ctl
+
+    def record(deployment: str, request: CtlRequest, timeout_s: float) -> CtlReply | None:
+        sent.append(request)
+        return send(deployment, request, timeout_s)
+
+    transport.send_ctl = record  # type: ignore[method-assign]
+    announced = {ROBOT: 3}
+    switcher = Switcher(rib, transport, in_flight=announced.get)
+    switcher.switch(ROBOT, ["a"], reason="initial")
+    switcher.switch(ROBOT, ["b"], reason="bound_violation")
+    assert [(r.op.value, r.max_in_flight) for r in sent] == [
+        ("service", 3),
+        ("service", 3),
+        ("standby", 3),
+    ]
