@@ -32,14 +32,9 @@ from deploy.experiments.fleet import FleetSpec
 from deploy.experiments.runner import TestbedFleet
 from deploy.procs import DaemonProc, StopResult
 from tests.e2e.conftest import TEST_INPUT_SHAPE, TEST_MODEL, processes_under, remains_of_testbed
+from tests.helpers.gates import root_only
 
-pytestmark = [
-    pytest.mark.e2e,
-    pytest.mark.netns,
-    pytest.mark.skipif(
-        os.geteuid() != 0, reason="needs root: creates network namespaces, tc qdiscs and cgroups"
-    ),
-]
+pytestmark = [pytest.mark.e2e, pytest.mark.netns, root_only]
 
 HOSTS = ("registry", "robot", "edge-1", "edge-2", "bench")
 WAIT_S = 30.0
