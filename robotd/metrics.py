@@ -5,7 +5,7 @@ beside the run summary, so the two count the same frames): frames by action and 
 served them, fallbacks by reason, the end-to-end latency histogram, bytes sent, stale results
 dropped and frames answered per deployment. The route (epoch and deployment) is read at scrape
 time from the registry link, and the source's own counts (frames it dropped unread because a
-newer one arrived, `dropped_stale`, and frames it refused, by error code) from the frame source:
+newer one arrived, `dropped_stale`, and frames it refused, `rejected_frames`) from the frame source:
 the same counters the run summary takes at the end, so the two agree, and the loop pays nothing.
 
 Per frame: a dict lookup of the label set's child (made once per label set: prometheus_client's
@@ -160,15 +160,16 @@ class RobotMetrics:
         )
         dropped.add_metric([self.robot], source.dropped_stale if source is not None else 0)
         yield dropped
+        # Summed: served at 0 from the start like the other counters, without a series for each
+        # of the wire's error codes; the summary and the refusal's log line name the code.
         rejected = CounterMetricFamily(
             f"{NAMESPACE}_robot_rejected_frames",
-            "Frames the source received but refused, by error code, as the run summary's "
-            "rejected_frames.",
-            labels=["robot", "code"],
+            "Frames the source received but refused (undecodable, too large), as the run "
+            "summary's rejected_frames summed over their error codes.",
+            labels=["robot"],
         )
         counts = source.rejected_frames() if source is not None else {}
-        for code, n in sorted(counts.items()):
-            rejected.add_metric([self.robot, code], n)
+        rejected.add_metric([self.robot], sum(counts.values()))
         yield rejected
 
 
