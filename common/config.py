@@ -35,6 +35,7 @@ from pydantic import (
     model_validator,
 )
 
+from common import rmw_zenoh
 from common.defaults import (
     DEFAULT_CALIBRATION_FRAMES,
     DEFAULT_MAX_REQUEST_BYTES,
@@ -294,19 +295,9 @@ class CloudLimitsConfig(_Model):
     )
 
 
-# A ROS 2 topic name (design.ros2.org "Topic and Service name mapping"): tokens of letters,
-# digits and underscores, not starting with a digit, joined by single slashes, optionally
-# absolute (/) or private (~/); no trailing slash, no repeated underscores.
-_ROS_TOPIC = re.compile(r"^(~/|/)?[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*$")
-
-
 def _check_ros_topic(value: str | None) -> str | None:
-    if value is not None and (not _ROS_TOPIC.match(value) or "__" in value):
-        raise ValueError(
-            f"{value!r} is not a ROS 2 topic name: letters, digits and underscores in tokens "
-            "that do not start with a digit, joined by single '/', e.g. /robot1/results"
-        )
-    return value
+    """A results prefix as a fully qualified ROS 2 topic name (`common.rmw_zenoh.topic_name`)."""
+    return None if value is None else rmw_zenoh.topic_name(value)
 
 
 def _check_result_codec(value: str) -> str:
@@ -330,14 +321,31 @@ class ResultsConfig(_Model):
     )
     ros2: Annotated[str | None, AfterValidator(_check_ros_topic)] = Field(
         default=None,
-        description="ROS 2 topic prefix: each output also published on <prefix>/<output> "
-        "(std_msgs/Float32MultiArray); null: no ROS 2 publication.",
+        description="ROS 2 topic prefix: each output also published on <prefix>/<output name> "
+        "as std_msgs/msg/Float32MultiArray (and an H×W or 1×1×H×W output also as a 32FC1 "
+        "sensor_msgs/msg/Image on <prefix>/<output name>/image), over rmw_zenoh; null: none.",
     )
 
 
 # Fields that only mean something for one role: setting them on the other is an error.
 _CLOUD_ONLY = frozenset({"workers", "queue", "fault", "batching", "limits"})
 _ROBOT_ONLY = frozenset({"source", "fps", "uplink_mbit", "max_in_flight", "results"})
+
+
+class Ros2Config(_Model):
+    """How the fleet's daemons take part in ROS 2 (rmw_zenoh's key space, docs/ros2.md)."""
+
+    domain_id: int | None = Field(
+        default=None,
+        ge=0,
+        le=rmw_zenoh.MAX_DOMAIN_ID,
+        description="ROS 2 domain id of the ros2: sources and results topics; null: the "
+        "ROS_DOMAIN_ID environment variable, else 0.",
+    )
+
+    def domain(self) -> int:
+        """The domain id in force (the config's, else ROS_DOMAIN_ID's, else 0)."""
+        return rmw_zenoh.domain_id(self.domain_id)
 
 
 class MachineConfig(_Model):
@@ -400,8 +408,9 @@ class MachineConfig(_Model):
         default="synthetic",
         description=(
             "Robot: frame source, a spec of robotd.source_names: synthetic[:OPTIONS], "
-            "photo[:NAME], video:PATH, camera:INDEX, stereo:world|motorcycle|LEFT,RIGHT"
-            "[,OPTIONS] or zenoh (frames an application publishes on ef/<fleet>/in/<robot>)."
+            "photo[:NAME], video:PATH[,loop=false], bag:PATH[:TOPIC] (a rosbag2 recording), "
+            "camera:INDEX, stereo:world|motorcycle|LEFT,RIGHT[,OPTIONS] or zenoh (frames an "
+            "application publishes on ef/<fleet>/in/<robot>)."
         ),
     )
     fps: float | None = Field(
@@ -420,7 +429,6 @@ class MachineConfig(_Model):
         description="Robot: offloaded frames in flight at once (pipelining); 1: each frame's "
         "result is awaited before the next frame starts.",
     )
-
     results: ResultsConfig = Field(
         default_factory=ResultsConfig,
         description="Robot: how each applied frame's result is published.",
@@ -709,6 +717,9 @@ class FleetConfig(_Model):
         description="Which lossy codecs may carry a crossing (measured on calibration frames).",
     )
     zenoh: ZenohConfig = Field(default_factory=ZenohConfig, description="Zenoh settings.")
+    ros2: Ros2Config = Field(
+        default_factory=Ros2Config, description="ROS 2 (rmw_zenoh) domain of ros2: topics."
+    )
     cli: CliConfig = Field(
         default_factory=CliConfig, description="How the views CLI connects (its certificate)."
     )

@@ -59,6 +59,21 @@ class InputAdapter:
             array = image.astype(self.dtype)
         return np.ascontiguousarray(array.reshape(self.spec.shape))
 
+    def image(self, array: np.ndarray) -> np.ndarray:
+        """The BGR uint8 H×W×3 image a model input made by this adapter holds: its inverse at
+        the model's size (what the model saw; a recording of a run's input shows that)."""
+        image = np.asarray(array).reshape(self.spec.shape)
+        if image.ndim == 4:
+            image = image[0]
+        if self.channels_first:
+            image = image.transpose(1, 2, 0)
+        if self.dtype.kind == "f":
+            image = np.clip(np.rint(image.astype(np.float32) * 255.0), 0, 255)
+        image = np.ascontiguousarray(image, dtype=np.uint8)
+        if self.channels == 1:
+            return cv2.cvtColor(image[:, :, 0], cv2.COLOR_GRAY2BGR)
+        return cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
+
 
 def _layout(shape: tuple[int, ...]) -> tuple[bool, int, int, int] | None:
     """(channels_first, C, H, W) of an image shape, or None."""

@@ -66,3 +66,65 @@ def disparity_cmd(
         f"wrote {out}: float32 {width}x{height} disparity (0..{max_disparity - 1} px), "
         f"{100 * result.valid_share:.1f}% valid, {result.seconds:.2f} s"
     )
+
+
+@nav_app.command("assist")
+def assist_cmd(
+    config: Path = typer.Option(..., "--config", help="The fleet file (fleet.yaml)."),
+    robot: str = typer.Option(..., "--robot", help="The robot whose d_coll filters commands."),
+    cmd_in: str = typer.Option(
+        "/cmd_vel_teleop", "--cmd-in", help="ROS 2 topic of the operator's Twist commands."
+    ),
+    cmd_out: str = typer.Option(
+        "/cmd_vel", "--cmd-out", help="ROS 2 topic the safe Twist commands are published on."
+    ),
+    results: str | None = typer.Option(
+        None,
+        "--results",
+        metavar="PREFIX",
+        help="The robot's ROS 2 results prefix (its d_coll is PREFIX/d_coll); default: the "
+        "robot's results.ros2 in the fleet file.",
+    ),
+    deadline_s: float = typer.Option(
+        1.0, "--deadline-s", help="d_coll older than this (s) no longer counts: slow to a stop."
+    ),
+    deadline_decel: float = typer.Option(
+        1.0, "--deadline-decel", help="How fast speed ramps down past the deadline, m/s²."
+    ),
+    stop_margin: float = typer.Option(
+        0.0, "--stop-margin", help="Free distance kept in front of the axle, m."
+    ),
+) -> None:
+    """Filter the operator's cmd_vel with the fleet's d_coll (a ROS 2 safety filter); runs until
+    Ctrl-C."""
+    import signal
+    import threading
+
+    from common.logs import logging_to_stderr
+    from nav.assist import run_assist
+    from nav.shared_control import AssistantParams
+
+    stop = threading.Event()
+    previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        with logging_to_stderr("info"):
+            params = AssistantParams(
+                deadline_s=deadline_s,
+                deadline_decel_mps2=deadline_decel,
+                stop_margin_m=stop_margin,
+            )
+            run_assist(
+                str(config),
+                robot,
+                cmd_in,
+                cmd_out,
+                results_prefix=results,
+                params=params,
+                stop=stop,
+            )
+    except UserError as exc:
+        Console(stderr=True).print(f"[red]error:[/red] {exc}", highlight=False, soft_wrap=True)
+        raise typer.Exit(exc.exit_code) from None
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)

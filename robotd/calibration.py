@@ -4,7 +4,9 @@ A codec's bytes and a lossy codec's effect on the answers depend on what the cam
 robot measures them (`common.codec_profile`) on `fidelity.calibration_frames` frames read from a
 second instance of its source, opened and closed before the run's source (a camera is not held
 twice; a file or synthetic source starts again from its first frame). Frames are spread over the
-source's first frames (every `CALIBRATION_STRIDE`-th), so a moving camera shows some variety.
+source's first frames (every `CALIBRATION_STRIDE`-th), so a moving camera shows some variety; a
+recording shorter than that (a bag, a video that does not loop) gives its first frames, one
+after the other.
 
 The measurement is cached in the user cache directory, keyed by the model digest, the source, the
 fidelity bound, the codecs the policy needs by name and the threads: a second start of the same
@@ -29,8 +31,9 @@ from common.models import cache_dir, read_cached_json, write_cached_json
 from common.partition.runtime import SplitModel
 from robotd.policies import RAW_CODEC, fixed_action
 from robotd.policies.nav_options import nav_option
-from robotd.source_names import CameraSpec, SourceSpec, calibration_source
+from robotd.source_names import CameraSpec, SourceError, SourceSpec, calibration_source
 from robotd.source_open import open_source_for
+from robotd.sources import EndOfStream
 from robotd.stereo_frame import StereoFrame
 
 log = logging.getLogger(__name__)
@@ -63,10 +66,25 @@ def calibration_frames(
     views feed the model's inputs of their names."""
     source = calibration_source(source)
     stride = 1 if isinstance(source, CameraSpec) else CALIBRATION_STRIDE
+    frames = _read_feeds(source, inputs, count, stride, seed)
+    if len(frames) < count and stride > 1:
+        frames = _read_feeds(source, inputs, count, 1, seed)
+    if not frames:
+        raise SourceError(f"source {source}: no frame to measure the codecs on")
+    return frames
+
+
+def _read_feeds(
+    source: SourceSpec, inputs: ImageInputs, count: int, stride: int, seed: int
+) -> list[dict[str, np.ndarray]]:
+    """Up to `count` feeds, every `stride`-th frame, fewer where the source ends first."""
     frames = []
     with open_source_for(source, inputs, seed=seed) as src:
         for i in range(count * stride):
-            frame = src.read()
+            try:
+                frame = src.read()
+            except EndOfStream:
+                break
             if i % stride == 0:
                 frames.append(
                     inputs.feeds(frame.views if isinstance(frame, StereoFrame) else frame)

@@ -51,7 +51,7 @@ from pathlib import Path
 
 import numpy as np
 
-from common import keys
+from common import keys, rmw_zenoh
 from common.config import FleetConfig
 from common.daemon import Daemon
 from common.errors import UserError
@@ -71,7 +71,7 @@ from robotd.frame import FrameResult
 from robotd.frame_loop import FrameLoop
 from robotd.model_runs import ModelRuns
 from robotd.offload import LocalRunner
-from robotd.pacing import TokenBucket
+from robotd.pacing import FramePacer, TimelinePacer, TokenBucket
 from robotd.policies import Objective, Policy
 from robotd.probes import PROBE_INTERVAL_S, CloudTime, Prober, probe_padding_bytes
 from robotd.registry_link import REGISTRY_RETRY_INITIAL_S, RegistryLink
@@ -80,7 +80,7 @@ from robotd.result_sinks import ResultSink, open_result_sinks
 from robotd.robot_model import RobotModel, open_split_model
 from robotd.robot_profile import build_policy, robot_profile, warm_up
 from robotd.service_match import ServiceMatch
-from robotd.source_names import SourceSpec, parse_source
+from robotd.source_names import SourceSpec, check_results_topics, parse_source
 from robotd.sources import FrameSource, SourceSession
 from robotd.telemetry import RunSummary, TelemetryFile
 from robotd.telemetry_sink import TelemetrySink
@@ -114,6 +114,10 @@ class RobotOptions:
     robot_slowdown: float = 1.0
     phases: tuple[Phase, ...] = ()
     max_in_flight: int | None = None
+    # ROS 2 topic prefix of the results (`results: {ros2: ...}`); None: the machine's.
+    results_ros2: str | None = None
+    # `--record`: each applied frame's input and result written to this MCAP file (or folder).
+    record: Path | None = None
 
     @property
     def initial_slowdown(self) -> float:
@@ -135,6 +139,10 @@ class RobotOptions:
         if self.max_in_flight is not None and self.max_in_flight < 1:
             raise UserError(f"--max-in-flight must be at least 1, got {self.max_in_flight}")
         check_slowdown(self.robot_slowdown)
+        if self.record is not None:
+            from robotd.recorder import check_record_path
+
+            check_record_path(self.record)
 
 
 @dataclass(frozen=True)
@@ -175,6 +183,9 @@ class RobotDaemon(Daemon):
         uplink = self.options.uplink_mbit
         self.uplink_mbit = uplink if uplink is not None else self.machine.uplink_mbit
         self.policy_spec = self.options.policy or config.policy.kind
+        results_ros2 = self.options.results_ros2 or self.machine.results.ros2
+        self.results_ros2 = None if results_ros2 is None else rmw_zenoh.topic_name(results_ros2)
+        check_results_topics(self.source_spec, self.results_ros2, config.ros2.domain())
         self.name = f"robot {robot_id}"
         self.summary = RunSummary(robot_id)
         self._policy_override = policy
@@ -345,6 +356,21 @@ class RobotDaemon(Daemon):
         session = self.hold(open_session(cfg, machine=self.robot), "zenoh session")
         for sink, what in open_result_sinks(cfg, self.robot, session):
             self.add_result_sink(sink, what)
+        if self.results_ros2 is not None:
+            from robotd.ros2_results import Ros2ResultSink  # rosbags only where it is used
+
+            ros2_sink = Ros2ResultSink(session, cfg.ros2.domain(), self.robot, self.results_ros2)
+            self.add_result_sink(ros2_sink, f"ROS 2 results {self.results_ros2}")
+        if self.options.record is not None:
+            from robotd.recorder import McapRecorder  # rosbags only where it is used
+
+            recorder = McapRecorder(
+                self.options.record,
+                self.robot,
+                robot_model.inputs,
+                results_ros2=self.results_ros2,
+            )
+            self.add_result_sink(recorder, f"recording {self.options.record}")
         # Opened on the session (a source fed over Zenoh needs it), so released before it.
         source = self.hold(
             robot_model.open_source(
@@ -451,4 +477,12 @@ class RobotDaemon(Daemon):
 
     # -- the frame loop (`robotd.frame_loop`) ---------------------------------------------
     def main_loop(self) -> None:
-        self.loop.run(frames=self.options.frames, fps=self.fps)
+        self.loop.run(frames=self.options.frames, fps=self.fps, pacer=self._pacer())
+
+    def _pacer(self) -> FramePacer | TimelinePacer | None:
+        """The source's own timeline (a bag's, a video file's) unless --fps is given; None: the
+        fps (the machine's, none: as fast as frames complete)."""
+        if self.options.fps is None and self.loop.source.next_offset_s() is not None:
+            log.info("%s: frames at the source's own pace", self.robot)
+            return TimelinePacer(self.loop.source.next_offset_s)
+        return None

@@ -40,7 +40,7 @@ from robotd.failure_runs import FailureRuns
 from robotd.frame import Frame, FrameResult
 from robotd.model_runs import ModelRuns
 from robotd.offload import FINISH_GRACE_S, STOP_POLL_S, LocalRunner
-from robotd.pacing import FramePacer
+from robotd.pacing import FramePacer, TimelinePacer
 from robotd.pipeline import FramePipeline, InFlight, ResultOrder
 from robotd.policies import PURE_ROBOT, FrameContext, Objective, Policy
 from robotd.pool_turns import PoolTurns
@@ -55,6 +55,9 @@ from robotd.telemetry import SERVED_BY_CLOUD, RemoteTimes, RunSummary
 from robotd.telemetry_sink import TelemetrySink
 
 log = logging.getLogger("robotd")
+
+# While a source waits for its sender, frames in flight are looked at this often.
+FRAME_POLL_S = 0.005
 
 # What finishing an offloaded frame in flight needs: the frame, its cut position, the tensors sent.
 Offload = tuple[Frame, int, dict[str, np.ndarray]]
@@ -104,17 +107,24 @@ class FrameLoop:
             pending.call.cancel()
         self._pipeline.cancel()
 
-    def run(self, *, frames: int | None, fps: float | None) -> None:
-        """Frames until `frames` (None: no limit), the source's end or the stop flag, paced at
-        `fps` (None: as fast as frames complete); then the frames in flight are finished."""
-        pacer = FramePacer(fps)
+    def run(
+        self,
+        *,
+        frames: int | None,
+        fps: float | None,
+        pacer: FramePacer | TimelinePacer | None = None,
+    ) -> None:
+        """Frames until `frames` (None: no limit), the source's end or the stop flag, paced by
+        `pacer` (a recording's timeline), else at `fps` (None: as fast as frames complete); then
+        the frames in flight are finished."""
+        pacer = pacer if pacer is not None else FramePacer(fps)
         limit = frames
         self.summary.started_at = time.perf_counter()
         n = dropped_seen = 0
         # Bounded by --frames, or by the stop flag (signals) otherwise.
         while limit is None or n < limit:
             # The wait for the next frame's start also finishes frames in flight that settle.
-            if not self._pipeline.idle(pacer.delay()):
+            if not self._pipeline.idle(pacer.delay()) or not self._await_frame():
                 break
             self._settle_pending(block=False)
             self.emulation.enter(n)
@@ -141,6 +151,16 @@ class FrameLoop:
         self.summary.rejected_frames = self.source.rejected_frames()
         if self.stop.is_set() and limit is not None and n < limit:
             log.info("%s: stopped after %d of %d frames", self.robot, n, limit)
+
+    def _await_frame(self) -> bool:
+        """Until the source has a frame to read (one fed by others waits for its sender),
+        finishing the frames in flight that settle meanwhile, so their results are not held
+        back by a quiet sender; False when the robot is stopping."""
+        while not self.source.wait_ready(FRAME_POLL_S):  # bounded by the stop flag
+            if not self._pipeline.idle(0.0):
+                return False
+            self._settle_pending(block=False)
+        return True
 
     def run_frame(
         self, n: int, frame: CameraFrame, *, stamp_ns: int = 0, dropped_stale: int = 0

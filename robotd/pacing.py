@@ -12,6 +12,8 @@ it off and let the network do the shaping. `set_rate` changes the rate while the
 
 `FramePacer` starts frames on a fixed schedule (`--fps`) without drift, and does not try to catch
 up in a burst when a slow frame made it late.
+`TimelinePacer` starts frames at a recording's own times (a bag's record times, a video file's
+frame rate: `FrameSource.next_offset_s`), with the same rule for late frames.
 
 Both take an injectable clock so their arithmetic is tested without waiting.
 """
@@ -130,3 +132,31 @@ class FramePacer:
         if delay > 0:
             return not stop.wait(delay)
         return not stop.is_set()
+
+
+class TimelinePacer:
+    """Frame start times on a source's own timeline: the frame at offset t (seconds from the
+    first frame, `offset()` asked once per frame) starts t after the first one did. A frame more
+    than its gap to the previous one late (a slow frame) moves the timeline to now instead of
+    bursting to catch up, as `FramePacer` restarts its grid."""
+
+    def __init__(
+        self, offset: Callable[[], float | None], *, clock: Clock = time.monotonic
+    ) -> None:
+        self._offset = offset
+        self._clock = clock
+        self._origin: float | None = None  # when, on the clock, offset 0 is
+        self._last: float | None = None
+
+    def delay(self) -> float:
+        """Seconds to wait before the next frame starts (0 where the source has no next
+        frame: its read says so); call once per frame."""
+        offset = self._offset()
+        now = self._clock()
+        if offset is None or not math.isfinite(offset):
+            return 0.0
+        gap = 0.0 if self._last is None else max(0.0, offset - self._last)
+        self._last = offset
+        if self._origin is None or now - (self._origin + offset) > gap:
+            self._origin = now - offset  # first frame, or late by more than a gap: move
+        return max(0.0, self._origin + offset - now)

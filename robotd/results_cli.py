@@ -16,6 +16,7 @@ import json
 import signal
 import sys
 import threading
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from datetime import datetime, timezone
@@ -30,7 +31,7 @@ from common.logs import DEFAULT_LOG_LEVEL, LOG_LEVEL_ENV, LOG_LEVEL_HELP, loggin
 if TYPE_CHECKING:
     import numpy as np
 
-    from robotd.client import Result
+    from robotd.client import Result, RobotClient
 
 TOP_K = 5
 # How often the wait for a result looks at the stop flag.
@@ -79,10 +80,8 @@ def results_command(
     raise typer.Exit(0)
 
 
-def _follow(client: Any, stop: threading.Event, timeout: float | None) -> Iterator[Result]:
+def _follow(client: RobotClient, stop: threading.Event, timeout: float | None) -> Iterator[Result]:
     """Results until `stop` is set or none came within `timeout` seconds."""
-    import time
-
     quiet_since = time.monotonic()
     while not stop.is_set():  # bounded by the stop flag (signals) or the timeout
         got = False

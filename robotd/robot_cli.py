@@ -18,6 +18,7 @@ from pathlib import Path
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 
 from common.errors import UserError
 from common.logs import DEFAULT_LOG_LEVEL, LOG_LEVEL_ENV, LOG_LEVEL_HELP, logging_to_stderr
@@ -40,15 +41,20 @@ def robot_command(
         None,
         "--source",
         help="synthetic[:key=F,every=N], photo[:NAME][,motion=M] (real photographs through a "
-        "moving camera), video:PATH, camera:N, a stereo pair for a two-image model: "
-        "stereo:world, stereo:motorcycle, stereo:LEFT,RIGHT, or zenoh (frames an application "
-        "publishes on ef/<fleet>/in/<robot>); default: the machine's.",
+        "moving camera), video:PATH[,loop=false], bag:PATH[:TOPIC] (a rosbag2 recording), "
+        "camera:N, a stereo pair for a two-image model: stereo:world, stereo:motorcycle, "
+        "stereo:LEFT,RIGHT, zenoh (frames an application publishes on ef/<fleet>/in/<robot>) "
+        "or a ROS 2 image topic ros2:TOPIC[,type=image|compressed][,domain=ID]; default: the "
+        "machine's.",
     ),
     frames: int | None = typer.Option(
         None, "--frames", help="Stop after this many frames (default: run until Ctrl-C)."
     ),
     fps: float | None = typer.Option(
-        None, "--fps", help="Frames per second; default: the machine's (none: as fast as done)."
+        None,
+        "--fps",
+        help="Frames per second; default: a video's or a bag's own pace, else the machine's "
+        "(none: as fast as done).",
     ),
     policy: str | None = typer.Option(
         None,
@@ -83,6 +89,22 @@ def robot_command(
         "--max-in-flight",
         metavar="N",
         help="Offloaded frames in flight at once (pipelining); default: the machine's (1).",
+    ),
+    results_ros2: str | None = typer.Option(
+        None,
+        "--results-ros2",
+        metavar="PREFIX",
+        help="Publish each frame's outputs on ROS 2 topics PREFIX/<output> (Float32MultiArray; "
+        "H×W outputs also as a 32FC1 Image on PREFIX/<output>/image); default: the machine's "
+        "results.ros2.",
+    ),
+    record: Path | None = typer.Option(
+        None,
+        "--record",
+        metavar="OUT.mcap",
+        help="Record each applied frame's input (CompressedImage) and outputs (Float32MultiArray, "
+        "32FC1 Image) to this MCAP file (any other name: a rosbag2 folder), for ros2 bag play, "
+        "Foxglove and MCAP readers.",
     ),
     seed: int = typer.Option(0, "--seed", help="Seed of the synthetic and photo frame sources."),
     json_out: bool = typer.Option(False, "--json", help="Print the summary as JSON on stdout."),
@@ -125,11 +147,17 @@ def robot_command(
                 robot_slowdown=robot_slowdown,
                 phases=loaded,
                 max_in_flight=max_in_flight,
+                results_ros2=results_ros2,
+                record=record,
             )
             daemon = RobotDaemon(cfg, robot_id, options)
             code = daemon.run()
     except UserError as exc:
-        Console(stderr=True).print(f"[red]error:[/red] {exc}", highlight=False, soft_wrap=True)
+        # The message as written: a spec like `bag:run:front` holds what Rich would take for an
+        # emoji code (`:run:`) or markup (`[...]`).
+        Console(stderr=True).print(
+            f"[red]error:[/red] {escape(str(exc))}", highlight=False, soft_wrap=True, emoji=False
+        )
         raise typer.Exit(exc.exit_code) from None
     if json_out:
         typer.echo(json.dumps(daemon.summary.to_json()))

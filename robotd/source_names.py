@@ -21,10 +21,12 @@ from __future__ import annotations
 
 import enum
 import math
+import re
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 
+from common import rmw_zenoh
 from common.errors import UserError
 
 SYNTHETIC = "synthetic"
@@ -33,6 +35,8 @@ PHOTO = "photo"
 # keep `synthetic` (their defaults do not change), whose entropy they control.
 DEFAULT_CAMERA_SOURCE = PHOTO
 VIDEO_PREFIX = "video:"
+BAG_PREFIX = "bag:"
+VIDEO_OPTIONS = ("loop",)
 CAMERA_PREFIX = "camera:"
 STEREO_PREFIX = "stereo:"
 # `stereo:world`: pairs rendered in nav's world; `stereo:motorcycle`: Middlebury's real pair.
@@ -42,6 +46,9 @@ STEREO_MOTORCYCLE = "motorcycle"
 STEREO_MANEUVER = "maneuver"
 # `zenoh`: frames an application publishes on `ef/<fleet>/in/<robot>` (`robotd.zenoh_source`).
 ZENOH = "zenoh"
+# `ros2:<topic>[,OPTIONS]`: a ROS 2 image topic over rmw_zenoh's key space (`robotd.ros2_source`).
+ROS2 = "ros2"
+ROS2_FORM = "ros2:TOPIC[,type=image|compressed][,domain=ID]"
 MANEUVER_FORM = "stereo:maneuver:N[:lap=L][:assist=on|off][:t_dead=S][:out=PATH]"
 MANEUVER_OPTIONS = ("lap", "assist", "out", "t_dead")
 
@@ -106,13 +113,30 @@ class PhotoSpec(SourceSpec):
 
 @dataclass(frozen=True)
 class VideoSpec(SourceSpec):
-    """`video:PATH`."""
+    """`video:PATH[,loop=true|false]`: loop (the default) starts the file again at its end;
+    without, the run ends there."""
 
     path: Path = Path()
+    loop: bool = True
 
     def resolved(self, resolve: Callable[[str], str]) -> VideoSpec:
         path = resolve(str(self.path))
-        return replace(self, text=f"{VIDEO_PREFIX}{path}", path=Path(path))
+        options = "" if self.loop else ",loop=false"
+        return replace(self, text=f"{VIDEO_PREFIX}{path}{options}", path=Path(path))
+
+
+@dataclass(frozen=True)
+class BagSpec(SourceSpec):
+    """`bag:PATH[:TOPIC]`: a rosbag2 folder or file; TOPIC (made absolute) None: the bag's one
+    image topic."""
+
+    path: Path = Path()
+    topic: str | None = None
+
+    def resolved(self, resolve: Callable[[str], str]) -> BagSpec:
+        path = resolve(str(self.path))
+        topic = "" if self.topic is None else f":{self.topic}"
+        return replace(self, text=f"{BAG_PREFIX}{path}{topic}", path=Path(path))
 
 
 @dataclass(frozen=True)
@@ -153,6 +177,28 @@ class StereoManeuverSpec(SourceSpec):
 @dataclass(frozen=True)
 class ZenohSpec(SourceSpec):
     """`zenoh`: frames from `ef/<fleet>/in/<robot>`."""
+
+    @property
+    def needs_session(self) -> bool:
+        return True
+
+
+class Ros2FrameType(str, enum.Enum):
+    """The message a `ros2:` source reads: `type=image` (sensor_msgs/msg/Image, the default) or
+    `type=compressed` (sensor_msgs/msg/CompressedImage)."""
+
+    IMAGE = "image"
+    COMPRESSED = "compressed"
+
+
+@dataclass(frozen=True)
+class Ros2Spec(SourceSpec):
+    """`ros2:<topic>[,type=image|compressed][,domain=<id>]`; `topic` fully qualified, `domain`
+    None: the fleet's `ros2.domain_id`."""
+
+    topic: str = "/"
+    type: Ros2FrameType = Ros2FrameType.IMAGE
+    domain: int | None = None
 
     @property
     def needs_session(self) -> bool:
@@ -249,9 +295,41 @@ def _parse_photo(spec: str, args: str) -> PhotoSpec:
 
 
 def _parse_video(spec: str, args: str) -> VideoSpec:
-    if not args.strip():
+    path, loop = args, True
+    # Options follow the path after commas; a comma not followed by a known option is the path's.
+    while True:
+        head, comma, tail = path.rpartition(",")
+        name, eq, value = (part.strip() for part in tail.partition("="))
+        if not comma or not eq or name not in VIDEO_OPTIONS:
+            break
+        if value not in ("true", "false"):
+            raise SourceError(f"source {spec!r}: loop={value!r}; expected true or false")
+        loop, path = value == "true", head
+    if not path.strip():
         raise SourceError(f"source {spec!r}: video needs a file, e.g. video:run.mp4")
-    return VideoSpec(spec, path=Path(args.strip()).expanduser())
+    return VideoSpec(spec, path=Path(path.strip()).expanduser(), loop=loop)
+
+
+# A ROS 2 topic name (after its leading `/`): tokens of letters, digits and `_` between `/`s, none
+# starting with a digit (ROS 2's rules; `~` and substitutions are for launch files, not bags).
+_TOPIC = re.compile(r"[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*")
+
+
+def _parse_bag(spec: str, args: str) -> BagSpec:
+    """`PATH[:TOPIC]`: a topic holds no `:`, so the last `:` ends the path when a topic name
+    follows it (a path with a `:` in it then needs the topic named)."""
+    path, topic = args.strip(), None
+    head, colon, tail = path.rpartition(":")
+    if colon and _TOPIC.fullmatch(tail.strip().lstrip("/")):
+        path, topic = head.strip(), "/" + tail.strip().lstrip("/")
+    elif colon and tail.strip().startswith("/"):
+        raise SourceError(
+            f"source {spec!r}: {tail.strip()!r} is not a ROS 2 topic name (letters, digits and _ "
+            "between /s)"
+        )
+    if not path:
+        raise SourceError(f"source {spec!r}: bag needs a path, e.g. bag:run_0 or bag:run.mcap")
+    return BagSpec(spec, path=Path(path).expanduser(), topic=topic)
 
 
 def _parse_camera(spec: str, args: str) -> CameraSpec:
@@ -336,6 +414,31 @@ def _parse_zenoh(spec: str, args: str) -> ZenohSpec:
     return ZenohSpec(spec)
 
 
+def _parse_ros2(spec: str, args: str) -> Ros2Spec:
+    topic, *options = (part.strip() for part in args.split(","))
+    try:
+        parsed = Ros2Spec(spec, topic=rmw_zenoh.topic_name(topic))
+    except UserError as exc:
+        raise SourceError(f"source {spec!r}: {exc}") from None
+    for name, value in _items(spec, ",".join(options)) if options else []:
+        if name == "type":
+            try:
+                parsed = replace(parsed, type=Ros2FrameType(value))
+            except ValueError:
+                known = ", ".join(t.value for t in Ros2FrameType)
+                raise SourceError(
+                    f"source {spec!r}: type={value!r} is not one of {known}"
+                ) from None
+        elif name == "domain":
+            try:
+                parsed = replace(parsed, domain=rmw_zenoh.domain_id(value))
+            except UserError as exc:
+                raise SourceError(f"source {spec!r}: {exc}") from None
+        else:
+            raise _unknown(spec, name, ("type", "domain"))
+    return parsed
+
+
 # The kinds, by name. A new kind is one entry here (and its opener in robotd.source_open).
 KINDS: dict[str, SourceKind] = {
     kind.name: kind
@@ -344,10 +447,12 @@ KINDS: dict[str, SourceKind] = {
         SourceKind(
             PHOTO, "photo[:NAME][,motion=pan|zoom|shake|mixed][,speed=F]", _parse_photo, ":,"
         ),
-        SourceKind("video", "video:PATH", _parse_video),
+        SourceKind("video", "video:PATH[,loop=false]", _parse_video),
+        SourceKind("bag", "bag:PATH[:TOPIC]", _parse_bag),
         SourceKind("camera", "camera:INDEX", _parse_camera),
         SourceKind("stereo", STEREO_FORMS, _parse_stereo),
         SourceKind(ZENOH, ZENOH, _parse_zenoh),
+        SourceKind(ROS2, ROS2_FORM, _parse_ros2),
     )
 }
 
@@ -385,3 +490,26 @@ def calibration_source(spec: str | SourceSpec) -> SourceSpec:
     measurement would be lost to the run), measured on the camera-like photographs instead."""
     parsed = parse_source(spec)
     return parse_source(DEFAULT_CAMERA_SOURCE) if parsed.needs_session else parsed
+
+
+def parse_ros2_source(spec: str | SourceSpec) -> Ros2Spec:
+    """The typed value of a `ros2:` spec; a SourceError for any other."""
+    parsed = parse_source(spec)
+    if not isinstance(parsed, Ros2Spec):
+        raise SourceError(f"source {str(spec)!r} is not a {ROS2_FORM} source")
+    return parsed
+
+
+def check_results_topics(source: str | SourceSpec, results_prefix: str | None, domain: int) -> None:
+    """A UserError when the robot would publish its results on its own input: a `ros2:` source
+    whose topic is the results prefix or below it, in the same domain (`domain`: the fleet's)."""
+    parsed = parse_source(source)
+    if results_prefix is None or not isinstance(parsed, Ros2Spec):
+        return
+    same_domain = (parsed.domain if parsed.domain is not None else domain) == domain
+    if same_domain and rmw_zenoh.is_within(parsed.topic, results_prefix):
+        raise UserError(
+            f"results topic prefix {results_prefix} collides with the input topic "
+            f"{parsed.topic} of source {parsed.text!r}: the robot would read its own results; "
+            "choose another prefix"
+        )

@@ -15,8 +15,10 @@ from typing import Any
 from common.errors import UserError
 from common.image_input import ImageInputs
 from robotd.source_names import (
+    BagSpec,
     CameraSpec,
     PhotoSpec,
+    Ros2Spec,
     SourceError,
     SourceSpec,
     StereoManeuverSpec,
@@ -57,6 +59,12 @@ def open_source(
             "daemon, on its session"
         )
     match parsed:
+        case Ros2Spec():
+            assert session is not None
+            # Imported here: rosbags' type store is built only for a ROS 2 source.
+            from robotd.ros2_source import Ros2Source
+
+            return Ros2Source(parsed, session, session.stop, height=height, width=width)
         case SyntheticSpec():
             return SyntheticSource(
                 height,
@@ -72,7 +80,12 @@ def open_source(
                 **_given(name=parsed.name, motion=parsed.motion, speed=parsed.speed),
             )
         case VideoSpec():
-            return VideoSource(parsed.path)
+            return VideoSource(parsed.path, loop=parsed.loop)
+        case BagSpec():
+            # Imported here: rosbags is loaded only by a robot that reads a bag.
+            from robotd.bag_source import BagSource
+
+            return BagSource(parsed.path, parsed.topic)
         case CameraSpec():
             return CameraSource(parsed.index)
         case StereoWorldSpec() | StereoPairSpec() | StereoManeuverSpec():

@@ -15,8 +15,12 @@ A source yields uint8 BGR frames (H×W×3, OpenCV's layout) one at a time, or st
   JPEG size, varies like a camera's; with NAME the camera stays on that photograph. `motion`
   picks which movements are made (default `mixed`: all three) and `speed=F` scales their pace
   (default 1; 0 is a still camera). The same seed gives the same frames.
-- `video:PATH`: a video file read with OpenCV, looped at its end (a file stands in for a camera,
-  so `--frames N` is honoured whatever the file's length).
+- `video:PATH[,loop=false]`: a video file read with OpenCV, played at the file's own frame rate
+  (its timeline, `next_offset_s`, unless `--fps` is given) and looped at its end (a file stands
+  in for a camera, so `--frames N` is honoured whatever the file's length); with `loop=false` the
+  run ends at the end of the file.
+- `bag:PATH[:TOPIC]`: a rosbag2 recording's image topic, at its recorded rate
+  (`robotd.bag_source`).
 - `camera:N`: the camera with index N through OpenCV.
 - `zenoh`: frames an application publishes on `ef/<fleet>/in/<robot>` (`robotd.zenoh_source`),
   the newest first (older waiting frames are dropped and counted), fitted to the model's size
@@ -28,8 +32,9 @@ A source yields uint8 BGR frames (H×W×3, OpenCV's layout) one at a time, or st
 The specs' grammar is `robotd.source_names` (parsed once into a typed value); `robotd.source_open`
 opens a parsed spec. A source that cannot be opened is a `SourceError` (a `UserError`) naming it.
 A source may end (`EndOfStream`) and may take each served frame's result (`on_result`, after the
-daemon's own). A source fed over Zenoh (`zenoh`: `SourceSpec.needs_session`) is opened with the
-daemon's session (`SourceSession`), once that is open; opened without one it is a `SourceError`.
+daemon's own). A source fed over Zenoh (`zenoh`, `ros2:`: `SourceSpec.needs_session`) is opened
+with the daemon's session (`SourceSession`), once that is open; opened without one it is a
+`SourceError`.
 `common.image_input.InputAdapter` turns a frame into the model's input; the photographs
 themselves are `common.photos`.
 """
@@ -84,6 +89,11 @@ PHOTO_SHAKE_ROT_PERIOD_FRAMES = 7.1
 PHOTO_PERIOD_JITTER = 0.2
 MAX_PHOTO_SPEED = 20.0
 MAX_SOURCE_SIDE_PX = 8192
+# `fit_frame` shrinks with area interpolation from this ratio on, linearly below it.
+AREA_SHRINK = 2.0
+# A video container claiming more frames per second than this has no real frame rate (some give
+# their clock's tick rate, e.g. 90000).
+MAX_VIDEO_FPS = 1000.0
 
 
 class EndOfStream(Exception):
@@ -124,8 +134,21 @@ class FrameSource(abc.ABC):
     def read(self) -> CameraFrame:
         """The next frame; SourceError when none can be read."""
 
+    def wait_ready(self, timeout_s: float) -> bool:
+        """Whether `read()` has a frame without waiting, after waiting up to `timeout_s` for
+        one (a source fed by others at their pace); True for sources that make their frames."""
+        return True
+
+    def next_offset_s(self) -> float | None:
+        """Seconds from the source's first frame to the one `read()` returns next, on the
+        source's own timeline (a video's frame times, a bag's record times), or None: the source
+        has no timeline (or no next frame) and the robot paces it at the configured fps. The
+        robot plays a source with a timeline at that pace unless `--fps` is given."""
+        return None
+
     def rejected_frames(self) -> dict[str, int]:
-        """Frames received but not decodable, by error code (a source fed by others)."""
+        """Frames received but not decodable, by error code (a source fed by others, a
+        recording's damaged records)."""
         return {}
 
     def on_result(self, result: FrameResult) -> None:  # noqa: B027 - most sources ignore it
@@ -380,8 +403,10 @@ class CameraPath:
 def fit_frame(image: np.ndarray, height: int, width: int) -> np.ndarray:
     """`image` at `height`×`width` as the photo source frames a photograph: the largest centred
     rectangle of the frame's aspect is kept (nothing is stretched), then scaled with area
-    interpolation when it shrinks, linear when it grows. An image of that size is returned as
-    it is."""
+    interpolation when it shrinks by `AREA_SHRINK` or more (what anti-aliasing needs), linear
+    otherwise (as the photo source's warp: a JPEG decoded at a reduced DCT scale is within 2x
+    of the model's size, and area interpolation at a ratio such as 240 -> 224 costs ten times
+    a linear one). An image of that size is returned as it is."""
     h, w = image.shape[:2]
     if (h, w) == (height, width):
         return image
@@ -389,8 +414,8 @@ def fit_frame(image: np.ndarray, height: int, width: int) -> np.ndarray:
     crop_h, crop_w = max(1, round(rect_h)), max(1, round(rect_w))
     top, left = (h - crop_h) // 2, (w - crop_w) // 2
     view = image[top : top + crop_h, left : left + crop_w]
-    shrink = crop_h > height or crop_w > width
-    interpolation = cv2.INTER_AREA if shrink else cv2.INTER_LINEAR
+    shrink = min(crop_h / height, crop_w / width)
+    interpolation = cv2.INTER_AREA if shrink >= AREA_SHRINK else cv2.INTER_LINEAR
     return cv2.resize(view, (width, height), interpolation=interpolation)
 
 
@@ -403,12 +428,12 @@ def fit_rect(photo_h: int, photo_w: int, height: int, width: int) -> tuple[float
 
 
 class VideoSource(FrameSource):
-    """A video file through OpenCV, looped at its end."""
+    """A video file through OpenCV at the file's frame rate, looped at its end unless `loop` is
+    False (then the end of the file is the end of the stream)."""
 
     def __init__(self, path: str | Path, *, loop: bool = True) -> None:
         self.path = Path(path)
         self.loop = loop
-        self.description = f"video {self.path}"
         if not self.path.is_file():
             raise SourceError(f"video file not found: {self.path}")
         self._cap = cv2.VideoCapture(str(self.path))
@@ -421,6 +446,18 @@ class VideoSource(FrameSource):
             raise SourceError(f"video file {self.path} has no readable frame")
         self._pending: np.ndarray | None = first
         self.frames_read = 0
+        self._ended = False
+        rate = float(self._cap.get(cv2.CAP_PROP_FPS))
+        # Containers without a rate give 0 (or a clock's tick rate): such a file has no timeline.
+        self.file_fps = rate if 0 < rate <= MAX_VIDEO_FPS else None
+        shown = f"{self.file_fps:g} fps" if self.file_fps else "no frame rate"
+        self.description = f"video {self.path} ({shown}{', looped' if loop else ''})"
+
+    def next_offset_s(self) -> float | None:
+        if self.file_fps is None or self._ended:
+            return None
+        # Continues across loops: the file stands for a camera that keeps its pace.
+        return self.frames_read / self.file_fps
 
     def read(self) -> np.ndarray:
         if self._pending is not None:
@@ -430,6 +467,9 @@ class VideoSource(FrameSource):
             if (not ok or frame is None) and self.loop:
                 self._cap.set(cv2.CAP_PROP_POS_FRAMES, 0)
                 ok, frame = self._cap.read()
+            if (not ok or frame is None) and not self.loop:
+                self._ended = True
+                raise EndOfStream(f"video file {self.path}: end of the file")
             if not ok or frame is None:
                 raise SourceError(f"video file {self.path}: no more frames")
         self.frames_read += 1

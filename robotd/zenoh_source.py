@@ -31,7 +31,7 @@ from common import keys
 from common.throttled_log import ThrottledLog
 from common.wire import WireError
 from common.wire.app_to_robot import FrameIn, ImageIn, decode_image
-from common.wire.errors import InvalidValue
+from common.wire.errors import ErrorCode, InvalidValue
 from robotd.sources import MAX_SOURCE_SIDE_PX, EndOfStream, FrameSource, fit_frame
 from robotd.stereo_frame import CameraFrame, StereoFrame
 
@@ -72,7 +72,22 @@ class ZenohSource(FrameSource):
         self._subscriber = where.session.declare_subscriber(self.key, self._on_sample)
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
-        """Keep the newest frame's bytes; one still waiting is dropped and counted."""
+        """Keep the newest frame's bytes; one still waiting is dropped and counted. A payload
+        over the limit is refused here, before it is copied."""
+        size = len(sample.payload)
+        if size > self.max_bytes:
+            with self._ready:
+                self.received += 1
+                self.rejected[ErrorCode.TOO_LARGE.value] += 1
+            self._throttled.warning(
+                "%s: frame on %s rejected (%s): %d bytes exceed the limit of %d",
+                self.robot,
+                self.key,
+                ErrorCode.TOO_LARGE.value,
+                size,
+                self.max_bytes,
+            )
+            return
         data = sample.payload.to_bytes()
         with self._ready:
             self.received += 1
@@ -87,7 +102,8 @@ class ZenohSource(FrameSource):
             try:
                 return self._decode(data)
             except WireError as exc:
-                self.rejected[exc.code.value] += 1
+                with self._ready:
+                    self.rejected[exc.code.value] += 1
                 self._throttled.warning(
                     "%s: frame on %s rejected (%s): %s",
                     self.robot,
@@ -95,6 +111,13 @@ class ZenohSource(FrameSource):
                     exc.code.value,
                     exc.reason,
                 )
+
+    def wait_ready(self, timeout_s: float) -> bool:
+        with self._ready:
+            if self._waiting is None and not self._closed and not self._stop.is_set():
+                self._ready.wait(timeout_s)
+            # Stopping: read() ends the stream at once.
+            return self._waiting is not None or self._closed or self._stop.is_set()
 
     def _next(self) -> bytes:
         with self._ready:
@@ -134,12 +157,14 @@ class ZenohSource(FrameSource):
             image,
             max_side_px=MAX_SOURCE_SIDE_PX,
             max_bytes=self.max_bytes,
+            fit=(self.height, self.width),
             where=f"frame_in.images.{name}",
         )
         return fit_frame(bgr, self.height, self.width)
 
     def rejected_frames(self) -> dict[str, int]:
-        return dict(self.rejected)
+        with self._ready:
+            return dict(self.rejected)
 
     def close(self) -> None:
         with self._ready:

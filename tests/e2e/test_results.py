@@ -4,10 +4,10 @@ process feeds frames from a real photograph; `elasticfog results --json` runs as
 beside it.
 
 What must hold: frames are served by the cloud, then (both deployments killed) by the robot,
-and every result says so; each result's stamp is the one the client sent; its outputs equal
-onnxruntime's output of the whole model on the same decoded, fitted image; `elasticfog results
---json` prints one parseable object per frame with those stamps and paths, and ends cleanly on
-SIGINT.
+and every result says so; each result's stamp is the one the client sent; its outputs (in the
+robot's result codec, fp16) equal onnxruntime's output of the whole model on the same decoded,
+fitted image within fp16's rounding; `elasticfog results --json` prints one parseable object
+per frame with those stamps and paths, and ends cleanly on SIGINT.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from common.partition import load_partition
 from common.partition.runtime import SplitModel
 from common.photos import photo_bgr
 from common.wire.app_to_robot import FrameIn, ImageIn, decode_image, image_in
-from common.wire.robot_to_app import ServedBy
+from common.wire.robot_to_app import FP16_RELATIVE_ERROR, ServedBy
 from deploy.readiness import wait_until
 from robotd.client import Result, RobotClient
 from robotd.results_cli import top_k
@@ -81,7 +81,7 @@ def served_until(
 def test_results_from_the_cloud_then_the_robot_with_the_senders_stamps(
     make_fleet: Any, local_fleet: Any
 ) -> None:
-    fleet = make_fleet(machines={ROBOT: {"source": "zenoh"}})
+    fleet = make_fleet(machines={ROBOT: {"source": "zenoh", "results": {"codec": "fp16"}}})
     lf = local_fleet(fleet)
     lf.start_registry()
     lf.start_clouds(["edge-1", "edge-2"])
@@ -105,10 +105,15 @@ def test_results_from_the_cloud_then_the_robot_with_the_senders_stamps(
         lf.kill("edge-2")
         by_robot = served_until(client, ServedBy.ROBOT, sent, FRAMES_PER_PATH)
     for result in by_cloud + by_robot:
-        bgr = decode_image(sent[result.stamp_ns], max_side_px=MAX_SOURCE_SIDE_PX)
+        fit = (inputs.height, inputs.width)
+        bgr = decode_image(sent[result.stamp_ns], max_side_px=MAX_SOURCE_SIDE_PX, fit=fit)
         want = model.run_full(inputs.feeds(fit_frame(bgr, inputs.height, inputs.width)))
         for name, value in want.items():
-            np.testing.assert_allclose(result.outputs[name], value, atol=TOLERANCE)
+            # The results travel in fp16: within its rounding, on top of the model's tolerance.
+            assert result.message.outputs[name].codec == "fp16"
+            np.testing.assert_allclose(
+                result.outputs[name], value, rtol=FP16_RELATIVE_ERROR, atol=TOLERANCE
+            )
     assert all(r.message.deployment in ("edge-1", "edge-2") for r in by_cloud)
     assert all(r.message.deployment is None for r in by_robot)
 

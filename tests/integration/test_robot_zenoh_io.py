@@ -32,13 +32,20 @@ from robotd.daemon import RobotDaemon, RobotOptions
 from robotd.sources import MAX_SOURCE_SIDE_PX, fit_frame
 from tests.helpers.onnx_graphs import save
 from tests.integration.conftest import Router
-from tests.integration.test_robotd import FLEET, ROBOT, fleet_config, tiny_conv_model
+from tests.integration.test_robotd import (
+    FLEET,
+    ROBOT,
+    FakeDeployment,
+    fleet_config,
+    tiny_conv_model,
+)
 
 WAIT_S = 10.0
 TOLERANCE = 1e-4
 FRAMES = 4
 BURST = 30
 POLL_S = 0.01
+SMALL_LIMIT_BYTES = 1 << 20
 
 
 @pytest.fixture(scope="module")
@@ -75,9 +82,8 @@ class RunningRobot:
     def __init__(self, cfg: FleetConfig, **options: object) -> None:
         options.setdefault("registry_wait_s", WAIT_S)
         options.setdefault("route_wait_s", 0.1)
-        self.daemon = RobotDaemon(
-            cfg, ROBOT, RobotOptions(source="zenoh", policy="robot", **options)
-        )  # type: ignore[arg-type]
+        options.setdefault("policy", "robot")
+        self.daemon = RobotDaemon(cfg, ROBOT, RobotOptions(source="zenoh", **options))  # type: ignore[arg-type]
         self.code: int | None = None
         self.thread = threading.Thread(target=self._run, name="robot", daemon=True)
         self.thread.start()
@@ -110,7 +116,8 @@ def robot_and_client(
 def reference(model: SplitModel, image: ImageIn) -> dict[str, np.ndarray]:
     """The whole model on the image as the robot decodes and fits it."""
     inputs = ImageInputs(model.input_specs())
-    bgr = decode_image(image, max_side_px=MAX_SOURCE_SIDE_PX)
+    fit = (inputs.height, inputs.width)
+    bgr = decode_image(image, max_side_px=MAX_SOURCE_SIDE_PX, fit=fit)
     return model.run_full(inputs.feeds(fit_frame(bgr, inputs.height, inputs.width)))
 
 
@@ -199,3 +206,45 @@ def test_a_frame_that_cannot_be_decoded_is_counted_and_the_robot_keeps_serving(
         "corrupt_payload": 1,
         "bad_value": 1,
     }
+
+
+def test_a_pipelined_frames_result_comes_without_waiting_for_the_next_frame(
+    zenoh_router: Router,
+    model_file: Path,
+    fake_registry: zenoh.Session,
+    open_peer: Callable[..., zenoh.Session],
+) -> None:
+    """Regression guard: with frames in flight (max_in_flight > 1) the loop waits for the
+    sender's next frame; the result of the frame in flight must still come when it settles."""
+    split = SplitModel(load_partition(str(model_file)))
+    dep = FakeDeployment(open_peer(), split)
+    cfg = fleet_config(zenoh_router.endpoint, model_file)
+    robot = RunningRobot(cfg, policy="cloud", max_in_flight=2, route_wait_s=WAIT_S)
+    try:
+        with RobotClient(cfg, ROBOT) as client:
+            assert client.wait_for_robot(WAIT_S)
+            for _ in range(3):
+                result = client.infer(photograph(), timeout=WAIT_S)
+                assert result.served_by is ServedBy.CLOUD
+    finally:
+        robot.stop()
+        dep.close()
+
+
+def test_a_frame_over_the_payload_limit_is_refused_before_it_is_copied(
+    zenoh_router: Router, model_file: Path, fake_registry: zenoh.Session
+) -> None:
+    cfg = fleet_config(zenoh_router.endpoint, model_file, max_payload_bytes=SMALL_LIMIT_BYTES)
+    robot = RunningRobot(cfg)
+    try:
+        with RobotClient(cfg, ROBOT, encoding=ImageEncoding.BGR8) as client:
+            assert client.wait_for_robot(WAIT_S)
+            client.send(np.zeros((600, 800, 3), np.uint8))  # 1.4 MB raw
+            source = robot.daemon._source
+            assert wait_until(lambda: source.rejected_frames() == {"too_large": 1})
+            small = image_in(photograph(), "jpeg")
+            result = client.infer(decode_image(small, max_side_px=MAX_SOURCE_SIDE_PX), WAIT_S)
+            assert result.served_by is ServedBy.ROBOT
+    finally:
+        robot.stop()
+    assert robot.daemon.summary.rejected_frames == {"too_large": 1}

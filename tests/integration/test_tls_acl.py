@@ -242,6 +242,32 @@ def test_the_cli_certificate_reads_views_not_ctl(tls: TlsFleet) -> None:
     assert tls.ctl_calls == []
 
 
+def test_the_cli_follows_a_robots_results_and_another_robot_cannot_forge_them(
+    tls: TlsFleet,
+) -> None:
+    """`elasticfog results` (the CLI's certificate) receives robot-1's results on out/robot-1;
+    robot-2 may not publish there."""
+    got: list[bytes] = []
+    own = threading.Event()
+
+    def on_sample(sample: zenoh.Sample) -> None:
+        got.append(sample.payload.to_bytes())
+        if got[-1] == b"robot-1's":
+            own.set()
+
+    with open_session(tls.cfg, identity="cli", mode="client", listen=[]) as cli:
+        cli.declare_subscriber(keys.results_out(tls.fleet, "robot-1"), on_sample)
+        _barrier_token(tls, tls.router)
+
+        def publish() -> bool:
+            tls.robot2.put(keys.results_out(tls.fleet, "robot-1"), b"forged")
+            tls.robot1.put(keys.results_out(tls.fleet, "robot-1"), b"robot-1's")
+            return own.wait(0.5)
+
+        _wait(publish, "robot-1's result at the CLI")
+    assert b"forged" not in got
+
+
 # -- who cannot connect at all ---------------------------------------------------------------------
 def _raw_client(tls: TlsFleet, ca: Path, cert: Path | None, key: Path | None) -> zenoh.Config:
     """A client config straight to the router, without the preflight (what an attacker runs)."""

@@ -1,5 +1,6 @@
 """Pacing arithmetic with an injected clock: the uplink token bucket (burst, rate, debt queueing,
-refill capped at the burst) and the frame pacer (fixed grid, no catch-up burst)."""
+refill capped at the burst), the frame pacer (fixed grid, no catch-up burst) and the timeline
+pacer (a recording's own times, the same rule for late frames)."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ import threading
 
 import pytest
 
-from robotd.pacing import BITS_PER_BYTE, FramePacer, TokenBucket
+from robotd.pacing import BITS_PER_BYTE, FramePacer, TimelinePacer, TokenBucket
 
 
 class FakeClock:
@@ -105,3 +106,33 @@ def test_frame_pacer_wait_gives_up_when_stopped() -> None:
     stop.set()
     assert FramePacer(None).wait(stop) is False
     assert FramePacer(1e-3).wait(threading.Event()) is True
+
+
+def test_the_timeline_pacer_starts_frames_at_the_recorded_offsets() -> None:
+    clock = FakeClock()
+    offsets = iter([0.0, 0.05, 0.15, 0.16, None])
+    pacer = TimelinePacer(lambda: next(offsets), clock=clock)
+    assert pacer.delay() == 0.0  # the first frame starts at once
+    clock.advance(0.01)  # the frame took 10 ms
+    assert pacer.delay() == pytest.approx(0.04)
+    clock.advance(0.04 + 0.02)
+    assert pacer.delay() == pytest.approx(0.08)  # a gap of 100 ms in the recording
+    clock.advance(0.08)
+    assert pacer.delay() == pytest.approx(0.01)
+    clock.advance(0.01)
+    assert pacer.delay() == 0.0  # the source has ended: its read says so
+
+
+def test_the_timeline_pacer_moves_on_after_a_slow_frame_instead_of_bursting() -> None:
+    clock = FakeClock()
+    offsets = iter([0.0, 0.1, 0.2, 0.3, 0.4])
+    pacer = TimelinePacer(lambda: next(offsets), clock=clock)
+    pacer.delay()
+    clock.advance(0.5)  # a frame took 5 gaps: the next starts now, not in a burst of four
+    assert pacer.delay() == 0.0
+    clock.advance(0.01)
+    assert pacer.delay() == pytest.approx(0.09)
+    clock.advance(0.09 + 0.15)  # 50 ms late, less than a gap: the timeline holds
+    assert pacer.delay() == 0.0
+    clock.advance(0.01)
+    assert pacer.delay() == pytest.approx(0.04)  # offset 0.4 is due at 0.8 s on the old line

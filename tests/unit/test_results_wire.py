@@ -118,6 +118,16 @@ def test_mono8_and_jpeg_frames_decode_to_bgr() -> None:
     assert np.abs(jpeg.astype(int) - image.astype(int)).mean() < 4
 
 
+def test_a_jpeg_decodes_at_the_smallest_scale_that_covers_the_fit() -> None:
+    jpeg = image_in(photo(480, 640), "jpeg")
+    assert decode_image(jpeg, max_side_px=MAX_SIDE_PX, fit=(224, 224)).shape == (240, 320, 3)
+    assert decode_image(jpeg, max_side_px=MAX_SIDE_PX, fit=(112, 112)).shape == (120, 160, 3)
+    assert decode_image(jpeg, max_side_px=MAX_SIDE_PX, fit=(300, 300)).shape == (300, 400, 3)  # 5/8
+    # A wide fit of a tall image: the rectangle is the image's width, which must stay >= 200.
+    tall = image_in(photo(640, 480), "jpeg")
+    assert decode_image(tall, max_side_px=MAX_SIDE_PX, fit=(100, 200)).shape == (320, 240, 3)
+
+
 def test_bad_frames_are_named_errors() -> None:
     good = image_in(photo(), "jpeg")
     data = bytes(good.data)
@@ -167,3 +177,27 @@ def test_top5_of_a_vector_and_of_each_row() -> None:
     assert top_k(row) == [[(1, 5.0), (3, 4.0), (2, 3.0), (5, 2.0), (6, 1.0)]]
     assert top_k(np.stack([row, -row]))[1][0] == (4, 1.0)  # type: ignore[index]
     assert top_k(np.zeros((1, 1, 4, 4), np.float32)) is None
+
+
+def test_a_result_line_names_the_frame_its_path_and_each_outputs_top5() -> None:
+    from robotd.client import Result
+    from robotd.results_cli import result_json, result_line
+
+    logits = np.array([[0.1, 5.0, 3.0, 4.0, -1.0, 2.0, 1.0]], dtype=np.float32)
+    disparity = np.zeros((1, 1, 4, 6), np.float32)
+    message = result_message({"logits": logits, "disparity": disparity}, "raw")
+    result = Result(message, {"logits": logits, "disparity": disparity}, received_ns=1)
+    line = result_line(result)
+    assert line.startswith("frame 3  stamp 1700000000000000001 (")
+    assert "served_by robot  action P  latency 10.0 ms" in line
+    assert "logits [1, 7] top5 1:5 3:4 2:3 5:2 6:1" in line
+    assert line.endswith("disparity [1, 1, 4, 6]")
+    obj = result_json(result)
+    assert obj["stamp_ns"] == message.stamp_ns and obj["served_by"] == "robot"
+    assert obj["outputs"]["logits"]["top5"] == [[(1, 5.0), (3, 4.0), (2, 3.0), (5, 2.0), (6, 1.0)]]
+    assert obj["outputs"]["disparity"] == {
+        "dtype": "float32",
+        "shape": [1, 1, 4, 6],
+        "codec": "raw",
+        "top5": None,
+    }

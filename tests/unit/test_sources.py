@@ -32,6 +32,7 @@ from robotd.source_open import open_source
 from robotd.sources import (
     PHOTO_SCENE_FRAMES,
     CameraSource,
+    EndOfStream,
     PhotoSource,
     SyntheticSource,
     VideoSource,
@@ -238,6 +239,45 @@ def test_video_file_is_read_frame_by_frame_and_looped(tmp_path: Path) -> None:
     assert abs(means[VIDEO_FRAMES + 1] - means[1]) < 5
 
 
+def test_a_video_plays_on_its_own_timeline_and_without_loop_ends_at_its_end(
+    tmp_path: Path,
+) -> None:
+    """Regression: a 60-frame 15 fps file ran 1,184 frames at the config's 10 fps until killed.
+    The file's frame rate is its timeline (continuing across loops), and `loop=false` ends it."""
+    path = tmp_path / "clip.avi"
+    write_video(path)
+    with open_source(f"video:{path},loop=false", height=1, width=1) as source:
+        assert isinstance(source, VideoSource) and not source.loop
+        assert source.file_fps == pytest.approx(VIDEO_FPS)
+        offsets = []
+        for _ in range(VIDEO_FRAMES):
+            offsets.append(source.next_offset_s())
+            source.read()
+        with pytest.raises(EndOfStream):
+            source.read()
+        assert source.next_offset_s() is None
+    assert offsets == pytest.approx([i / VIDEO_FPS for i in range(VIDEO_FRAMES)])
+    with open_source(f"video:{path}", height=1, width=1) as looped:
+        for _ in range(VIDEO_FRAMES + 2):
+            looped.read()
+        assert looped.next_offset_s() == pytest.approx((VIDEO_FRAMES + 2) / VIDEO_FPS)
+
+
+def test_video_specs_take_a_loop_option_after_the_path() -> None:
+    assert parse_source("video:a.mp4,loop=false") == VideoSpec(
+        "video:a.mp4,loop=false", path=Path("a.mp4"), loop=False
+    )
+    assert parse_source("video:a.mp4, loop=true").loop  # type: ignore[attr-defined]
+    # A comma that no option follows belongs to the path.
+    assert parse_source("video:take 1,2.mp4").path == Path("take 1,2.mp4")  # type: ignore[attr-defined]
+    moved = parse_source("video:a.mp4,loop=false").resolved(lambda p: f"/fleet/{p}")
+    assert str(moved) == "video:/fleet/a.mp4,loop=false"
+    with pytest.raises(SourceError, match="loop='no'; expected true or false"):
+        parse_source("video:a.mp4,loop=no")
+    with pytest.raises(SourceError, match="video needs a file"):
+        parse_source("video:,loop=false")
+
+
 def test_missing_or_unreadable_video_is_a_clear_error(tmp_path: Path) -> None:
     with pytest.raises(UserError, match=r"video file not found: .*nope\.avi"):
         open_source(f"video:{tmp_path / 'nope.avi'}", height=H, width=W)
@@ -257,7 +297,8 @@ def test_camera_that_cannot_be_opened_is_a_clear_error() -> None:
 def test_unknown_source_names_the_accepted_forms() -> None:
     with pytest.raises(
         UserError,
-        match=r"expected synthetic.*photo\[:NAME\].*video:PATH, camera:INDEX, stereo:world.*"
+        match=r"expected synthetic.*photo\[:NAME\].*video:PATH\[,loop=false\], bag:PATH\[:TOPIC\], "
+        r"camera:INDEX, stereo:world.*"
         r"stereo:LEFT,RIGHT",
     ):
         open_source("rtsp://robot/stream", height=H, width=W)
@@ -307,3 +348,28 @@ def test_input_adapter_resizes_and_scales_to_the_model_input() -> None:
 def test_input_adapter_refuses_inputs_that_are_not_images(spec: TensorSpec) -> None:
     with pytest.raises(UserError, match=r"model input 'x' .* is not an image"):
         InputAdapter(spec)
+
+
+@pytest.mark.parametrize(
+    ("dtype", "shape"),
+    [
+        ("float32", (1, 3, 24, 32)),
+        ("float32", (1, 24, 32, 3)),
+        ("uint8", (3, 24, 32)),
+        ("float32", (1, 1, 24, 32)),
+    ],
+)
+def test_input_adapter_image_gives_back_the_frame_the_model_saw(
+    dtype: str, shape: tuple[int, ...]
+) -> None:
+    """What a recording of a run's input shows (`--record`): the adapter's inverse."""
+    frame = PhotoSource(24, 32, seed=0).read()
+    adapter = InputAdapter(TensorSpec("image", dtype, shape))
+    image = adapter.image(adapter(frame))
+    assert image.shape == (24, 32, 3) and image.dtype == np.uint8
+    expected = (
+        frame
+        if adapter.channels == 3
+        else cv2.cvtColor(cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY), cv2.COLOR_GRAY2BGR)
+    )
+    np.testing.assert_array_equal(image, expected)  # float32 holds every level exactly
