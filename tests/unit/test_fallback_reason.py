@@ -40,6 +40,7 @@ def fields(**overrides: Any) -> dict[str, Any]:
         "epoch": 2,
         "at": 5.0,
         "stale": False,
+        "dropped_stale": 0,
     }
     return {**base, **overrides}
 
