@@ -240,7 +240,8 @@ def test_a_frame_over_the_payload_limit_is_refused_before_it_is_copied(
         with RobotClient(cfg, ROBOT, encoding=ImageEncoding.BGR8) as client:
             assert client.wait_for_robot(WAIT_S)
             client.send(np.zeros((600, 800, 3), np.uint8))  # 1.4 MB raw
-            source = robot.daemon._source
+            assert robot.daemon.ready.wait(WAIT_S), "the robot did not start"
+            source = robot.daemon.loop.source
             assert wait_until(lambda: source.rejected_frames() == {"too_large": 1})
             small = image_in(photograph(), "jpeg")
             result = client.infer(decode_image(small, max_side_px=MAX_SOURCE_SIDE_PX), WAIT_S)
