@@ -3,7 +3,7 @@ export the model zoo.
 
 Each command parses its options and calls one function of common.partition, common.profiler,
 common.prep or common.zoo, imported inside the command so that other commands do not pay for
-onnx/torch imports. ``--json`` prints plain JSON on stdout (the contract other tools read);
+onnx imports. ``--json`` prints plain JSON on stdout (the contract other tools read);
 otherwise a rich table. Bad input is one line on stderr and exit code 2, never a traceback.
 """
 
@@ -490,7 +490,7 @@ def zoo_list_cmd(
         format_shape,
     )
 
-    # The torch networks, then the graph models other packages register (zoo:stereo).
+    # The zoo's own networks, then the graph models other packages register (zoo:stereo).
     rows = [
         {"name": m.name, "description": m.description, "default": m.name == DEFAULT_ZOO_MODEL}
         for m in all_models().values()
@@ -531,7 +531,7 @@ def zoo_export_cmd(
     from common.models import file_digest, zoo_shape
 
     name = name.removeprefix("zoo:")
-    zoo.get(name)  # unknown names fail before torch is imported
+    zoo.get(name)  # unknown names fail before the graph builder is imported
     shape = zoo_shape(zoo.parse_shape(input_shape))
     if out.is_dir():
         raise UserError(f"--out {out} is a directory; give a file name such as {name}.onnx")

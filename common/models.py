@@ -93,7 +93,7 @@ def resolve_model(spec: str | Path, input_shape: tuple[int, ...] | None = None) 
 
 
 def _resolve_zoo(spec: str, name: str, input_shape: tuple[int, ...] | None) -> ModelRef:
-    from common import zoo  # the zoo module imports torch only when it exports
+    from common import zoo  # light: the graph builder (numpy, onnx) loads when a model is built
 
     entry = zoo.get(name)
     shape = zoo_shape(input_shape)

@@ -38,7 +38,7 @@ def test_zoo_list_json() -> None:
     rows = json.loads(result.stdout)
     names = [r["name"] for r in rows]
     assert names[:5] == ["vgg", "resnet", "mobilenet", "resnet18", "mobilenet_v2"]
-    assert "stereo" in names[5:]  # graph models follow the torch networks
+    assert "stereo" in names[5:]  # graph models from entry points follow the zoo's own networks
     assert sum(r["default"] for r in rows) == 1
 
 

@@ -1,13 +1,17 @@
-"""The model zoo: every model exports, splits and verifies; exports are reproducible and cached;
-every model takes the uint8 camera image that the robot feeds."""
+"""The model zoo: every model builds, splits and verifies; builds are reproducible (bytes pinned)
+and cached; every model takes the uint8 camera image that the robot feeds; no torch anywhere."""
 
 from __future__ import annotations
 
+import json
+import subprocess
+import sys
 from pathlib import Path
 
 import cv2
 import numpy as np
 import onnx
+import onnxruntime as ort
 import pytest
 from skimage import data
 
@@ -17,6 +21,9 @@ from common.image_input import InputAdapter
 from common.models import file_digest, resolve_model
 from common.partition import load_partition
 from common.partition.runtime import SplitModel
+from common.zoo_nets import build_network, front_end_model
+
+ROOT = Path(__file__).resolve().parents[2]
 
 # Small inputs keep export + split + verify to about a second per model on two cores.
 SMALL_SHAPE = (3, 64, 64)
@@ -66,17 +73,18 @@ def test_the_front_end_is_in_the_graph(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize(("channels", "order"), [(3, "rgb"), (3, "bgr"), (1, "rgb")])
 def test_front_end_normalizes_a_photograph(channels: int, order: str) -> None:
-    """The torch front end against (x/255 − mean)/std done by hand, on a real photograph."""
-    import torch
-
+    """The graph's front end against (x/255 − mean)/std done by hand, on a real photograph."""
     rgb = cv2.resize(data.astronaut(), (64, 48), interpolation=cv2.INTER_AREA)
     if channels == 1:
         rgb = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)[:, :, None]
     camera = rgb[:, :, ::-1] if order == "bgr" else rgb
     mean, std = zoo.zoo_normalization(channels)
-    want = (rgb.astype(np.float32) / 255 - np.float32(mean)) / np.float32(std)
-    front = zoo._camera_input(channels, order)
-    got = front(torch.from_numpy(np.ascontiguousarray(camera[None]))).numpy()
+    want = (rgb.astype(np.float32) / 255 - np.asarray(mean, np.float32)) / np.asarray(
+        std, np.float32
+    )
+    front = front_end_model(channels, 48, 64, order)
+    session = ort.InferenceSession(front.SerializeToString(), providers=["CPUExecutionProvider"])
+    (got,) = session.run(None, {"input": np.ascontiguousarray(camera[None])})
     np.testing.assert_allclose(got, want.transpose(2, 0, 1)[None], rtol=1e-5, atol=1e-5)
 
 
@@ -93,18 +101,53 @@ def test_zoo_takes_what_the_robot_feeds() -> None:
 
 
 def test_full_width_models_have_the_standard_layout() -> None:
-    """Parameter counts of torchvision's resnet18 and mobilenet_v2 (batch-norm included)."""
-    for name, params in (("resnet18", 11_689_512), ("mobilenet_v2", 3_504_872)):
-        module = zoo.get(name).build(3)
-        assert sum(p.numel() for p in module.parameters()) == params, name
+    """Parameter counts of torchvision's resnet18 and mobilenet_v2 (batch-norm included), and the
+    graphs as the torch exporter wrote them: batch norms folded into the convolutions, ReLU6 as
+    Clip, the head GlobalAveragePool, Flatten, Gemm."""
+    for name, params, convs in (("resnet18", 11_689_512, 20), ("mobilenet_v2", 3_504_872, 52)):
+        model, layers = build_network(name, (3, 224, 224))
+        assert sum(layer.parameter_count for layer in layers) == params, name
+        ops = [n.op_type for n in model.graph.node]
+        assert ops.count("Conv") == convs and "BatchNormalization" not in ops, name
+        assert ops[-3:] == ["GlobalAveragePool", "Flatten", "Gemm"], name
+        assert ("Clip" in ops) == (name == "mobilenet_v2"), name
 
 
-def test_export_is_reproducible(tmp_path: Path) -> None:
-    a = zoo.export("vgg", tmp_path / "a.onnx", (3, 32, 32))
-    b = zoo.export("vgg", tmp_path / "b.onnx", (3, 32, 32))
-    assert file_digest(a) == file_digest(b)
-    c = zoo.export("vgg", tmp_path / "c.onnx", (3, 32, 48))
+# sha256 of the built files. A change here means every robot and cloud builds a different file
+# for the same name: bump zoo.ZOO_FORMAT (the cache key) with it. Pinned, so that a change of
+# platform, NumPy or onnx that changed the bytes (and the digest the fleet matches models by)
+# shows here first.
+PINNED_DIGESTS = {
+    ("vgg", (3, 32, 32)): "4afe7f81a4a498a0c4286d14e375e017b82c6c01cb7e96c395ab5ac28b2842e6",
+    ("mobilenet", (1, 32, 48)): "1677252c7ece76f95ea051cf2f2400cb5cc0eef71927bd314000f7a3994ec46a",
+}
+
+
+@pytest.mark.parametrize(("name", "shape"), sorted(PINNED_DIGESTS))
+def test_build_is_reproducible(tmp_path: Path, name: str, shape: tuple[int, int, int]) -> None:
+    a = zoo.export(name, tmp_path / "a.onnx", shape)
+    b = zoo.export(name, tmp_path / "b.onnx", shape)
+    assert file_digest(a) == file_digest(b) == PINNED_DIGESTS[name, shape]
+    c = zoo.export(name, tmp_path / "c.onnx", (shape[0], 64, 64))
     assert file_digest(c) != file_digest(a)
+
+
+def test_building_every_model_imports_no_torch() -> None:
+    """The zoo, the partitioner and the profiler run without torch (the runtime has none)."""
+    code = (
+        "import json, sys\n"
+        "from common import zoo\n"
+        "from common.profiler import profile_model\n"
+        "for name in zoo.ZOO_MODELS:\n"
+        "    zoo.get(name).build((3, 32, 32))\n"
+        "profile_model('zoo:resnet', runs=1, input_shape=(3, 32, 32))\n"
+        "print(json.dumps(sorted(m for m in sys.modules if m.split('.')[0] == 'torch')))\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=120
+    )
+    assert done.returncode == 0, done.stderr
+    assert json.loads(done.stdout.strip().splitlines()[-1]) == []
 
 
 def test_zoo_model_is_exported_once_then_read_from_the_cache(
