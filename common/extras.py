@@ -21,6 +21,11 @@ class Extra(str, Enum):
     DATA = "data"  # scikit-image: the photographs and the stereo pair it ships
 
 
+# The distribution each extra brings (pip's name; the message avoids `elasticfog[...]` because
+# the CLI prints errors through rich, which reads square brackets as markup).
+DISTRIBUTION = {Extra.PLOTS: "matplotlib", Extra.DATA: "scikit-image"}
+
+
 class MissingExtraError(UserError):
     """A feature needs a package of an extra that is not installed."""
 
@@ -34,6 +39,6 @@ def require(module: str, extra: Extra, feature: str) -> ModuleType:
         if exc.name is None or exc.name.split(".", 1)[0] != top:
             raise  # the package is there but something it imports is not: not ours to reword
         raise MissingExtraError(
-            f"{feature} needs {top}, which is not installed: install the {extra.value!r} extra "
-            f"(pip install 'elasticfog[{extra.value}]', or requirements/dev.lock)"
+            f"{feature}: {top} is not installed; it comes with elasticfog's {extra.value!r} "
+            f"extra (requirements/dev.lock has it, or pip install {DISTRIBUTION[extra]})"
         ) from None

@@ -505,7 +505,7 @@ def plot_results(results: Sequence[SimResult], path: Path, title: str) -> None:
     segment boundaries marked."""
     from common.extras import Extra, require
 
-    matplotlib = require("matplotlib", Extra.PLOTS, "a plot")
+    matplotlib = require("matplotlib", Extra.PLOTS, "--plot")
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 

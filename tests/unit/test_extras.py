@@ -28,7 +28,8 @@ def test_missing_module_names_the_extra() -> None:
         require("elasticfog_no_such_package.data", Extra.DATA, "the photographs")
     message = str(caught.value)
     assert isinstance(caught.value, UserError) and "\n" not in message
-    assert "the photographs" in message and "elasticfog[data]" in message
+    assert message.startswith("the photographs: ") and "'data' extra" in message
+    assert "pip install scikit-image" in message and "[" not in message  # rich markup
 
 
 def test_a_missing_dependency_of_an_installed_package_is_not_reworded(tmp_path: Path) -> None:
