@@ -20,7 +20,15 @@ once), with this script's own router session standing in for the registry's:
 default way (each `InferenceSession` reads its own copy of the weights): what sharing saves.
 `--breakdown` shows, in one process, the RSS each step of loading a 16-cut model adds.
 
+`--robot FLEET.yaml` measures the robot daemon's start-up steps instead, in one process, as the
+daemon takes them (imports, the split model's sessions, the warm-up that runs every prefix and
+suffix once, the profile and codec calibration, the source, frames run on the robot), for the
+fleet's first robot (`--robot-id`). With zoo:stereo at 640x480 (the navigation benchmark) most of
+the resident memory is freed activation buffers that glibc's allocator keeps: run it again with
+`MALLOC_MMAP_THRESHOLD_=131072` in the environment to see the difference.
+
     python benchmarks/memory_bench.py [--naive] [--breakdown] [--repeat 3] [--json]
+    python benchmarks/memory_bench.py --robot fleet.yaml [--robot-id robot-1] [--frames 20]
 
 Splits go to the model cache (`ELASTICFOG_CACHE_DIR`, else the user cache directory).
 """
@@ -315,6 +323,46 @@ def print_table(result: dict[str, Any]) -> None:
             print(f"| {model} | " + " | ".join(deltas) + " |")
 
 
+def robot_breakdown(config: Path, robot_id: str | None, frames: int) -> dict[str, float]:
+    """RSS (MiB) after each start-up step of the robot daemon, in this process."""
+    import gc
+
+    process = psutil.Process()
+    steps: dict[str, float] = {}
+
+    def mark(step: str) -> None:
+        gc.collect()
+        steps[step] = round(process.memory_info().rss / MiB, 1)
+
+    mark("python and this script")
+    from common.config import load_fleet
+    from common.keys import Role
+    from robotd.daemon import RobotDaemon  # noqa: F401 - what the daemon imports
+    from robotd.robot_model import RobotModel, open_split_model
+    from robotd.robot_profile import warm_up
+
+    mark("imports (robotd.daemon)")
+    cfg = load_fleet(config)
+    robot = robot_id or cfg.robot_ids[0]
+    machine = cfg.machine(robot, role=Role.ROBOT)
+    model = open_split_model(cfg, machine)
+    mark(f"split model loaded ({model.num_cuts} cuts)")
+    robot_model = RobotModel(model, cfg.model)
+    warm_up(model, robot_model.sample_feeds)
+    mark("warm-up (every prefix and suffix run once)")
+    robot_model.profile(
+        cfg, source_spec=machine.source, seed=0, threads=machine.threads, policy_spec="robot"
+    )
+    mark("profile and codec calibration")
+    source = robot_model.open_source(machine.source, seed=0)
+    mark(f"source {machine.source} opened")
+    for _ in range(frames):
+        model.run_full(robot_model.feeds(source.read()))
+    mark(f"{frames} frames run on the robot")
+    source.close()
+    return steps
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--naive", action="store_true", help="also measure unshared sessions")
@@ -323,6 +371,11 @@ def main() -> None:
     parser.add_argument(
         "--breakdown", action="store_true", help="also show where the memory goes, step by step"
     )
+    parser.add_argument(
+        "--robot", metavar="FLEET", type=Path, help="the robot daemon's start-up steps instead"
+    )
+    parser.add_argument("--robot-id", help="which robot of the fleet (default: the first)")
+    parser.add_argument("--frames", type=int, default=20, help="frames run after start-up")
     parser.add_argument("--naive-child", metavar="SPLIT_DIR", help=argparse.SUPPRESS)
     parser.add_argument("--breakdown-child", metavar="SPLIT_DIR", help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -331,6 +384,14 @@ def main() -> None:
         return
     if args.breakdown_child:
         breakdown_child(args.breakdown_child)
+        return
+    if args.robot:
+        steps = robot_breakdown(args.robot, args.robot_id, max(0, args.frames))
+        if args.json:
+            print(json.dumps(steps, indent=2))
+        else:
+            for step, mib in steps.items():
+                print(f"{step:45s} {mib:8.1f} MiB")
         return
     with tempfile.TemporaryDirectory(prefix="memory-bench-") as tmp:
         result = run(args.naive, args.breakdown, max(1, args.repeat), Path(tmp))

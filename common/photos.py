@@ -29,11 +29,12 @@ VIEW_SHARE = 0.8
 @functools.cache
 def photo_bgr(name: str) -> np.ndarray:
     """A photograph of PHOTOS as uint8 BGR, loaded once per process (read-only)."""
-    # skimage is slow to import and only the photographs need it.
-    import skimage.data
+    # skimage is slow to import, only the photographs need it, and a robot may not have it.
+    from common.extras import Extra, require
 
+    skimage_data = require("skimage.data", Extra.DATA, "the photographs")
     function, item = PHOTOS[name]
-    loaded = getattr(skimage.data, function)()
+    loaded = getattr(skimage_data, function)()
     rgb = loaded[item] if item is not None else loaded
     bgr = np.ascontiguousarray(cv2.cvtColor(np.asarray(rgb, dtype=np.uint8), cv2.COLOR_RGB2BGR))
     bgr.setflags(write=False)

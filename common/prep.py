@@ -453,8 +453,10 @@ def _compare(name: str, ref: np.ndarray, got: np.ndarray) -> tuple[float, float]
 def _photograph(size: tuple[int, int]) -> np.ndarray:
     """scikit-image's astronaut (RGB, 512×512, shipped with the package) resized to H×W."""
     import cv2
-    from skimage import data
 
+    from common.extras import Extra, require
+
+    data = require("skimage.data", Extra.DATA, "the verification photograph")
     photo = data.astronaut()
     h, w = size
     shrink = h < photo.shape[0] or w < photo.shape[1]

@@ -530,6 +530,10 @@ def demo(
             raise UserError(f"--plot {plot}: expected a .png file")
         if plot is not None and not plot.resolve().parent.is_dir():
             raise UserError(f"--plot {plot}: no folder {plot.resolve().parent}")
+        if plot is not None:  # before the run, not after it
+            from common.extras import Extra, require
+
+            require("matplotlib", Extra.PLOTS, "--plot")
         resolved = options.resolve()
         err.print(emulation_note(resolved), highlight=False, soft_wrap=True)
         if compare:

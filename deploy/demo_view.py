@@ -248,8 +248,9 @@ def save_plot(
 ) -> None:
     """Per-frame latency coloured by action, one panel per run (policy, records, summary),
     phase boundaries and the kill marked. matplotlib with the Agg backend (no display)."""
-    import matplotlib
+    from common.extras import Extra, require
 
+    matplotlib = require("matplotlib", Extra.PLOTS, "--plot")
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 

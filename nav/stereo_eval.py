@@ -41,9 +41,10 @@ def bad_pixels(disparity: np.ndarray, truth: np.ndarray, threshold_px: float = 2
 
 def stereo_motorcycle() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(left RGB, right RGB, ground-truth disparity with NaN where unknown)."""
-    # skimage is slow to import and only this pair needs it.
-    from skimage import data
+    # skimage is slow to import, only this pair needs it, and a robot may not have it.
+    from common.extras import Extra, require
 
+    data = require("skimage.data", Extra.DATA, "the stereo pair")
     left, right, truth = data.stereo_motorcycle()
     truth = np.where(np.isfinite(truth), truth, np.nan).astype(np.float32)
     return np.ascontiguousarray(left), np.ascontiguousarray(right), truth

@@ -503,8 +503,9 @@ LOG_SCALE_RATIO = 4.0
 def plot_results(results: Sequence[SimResult], path: Path, title: str) -> None:
     """One PNG: latency over time (20-frame trailing mean) per policy, the oracle dashed,
     segment boundaries marked."""
-    import matplotlib
+    from common.extras import Extra, require
 
+    matplotlib = require("matplotlib", Extra.PLOTS, "--plot")
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 

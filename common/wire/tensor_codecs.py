@@ -94,7 +94,10 @@ QUANT_LEVELS = 255  # uint8 codes 0..255
 FLOAT16_MAX = float(np.finfo(np.float16).max)
 _FLOAT16_EXPONENT = 0x7C00  # exponent bits of an IEEE half
 _FLOAT32_TINY = float(np.finfo(np.float32).tiny)  # smallest normal float32: the smallest scale
-_INTP_LIMIT = 2**63  # numpy cannot hold an array with this many elements (nor a dim this long)
+# numpy cannot hold an array of this many bytes, counting every dimension as at least 1 (it
+# refuses [0, 2**62] for a 2-byte dtype although the array holds nothing).
+_INTP_LIMIT = 2**63
+
 
 _FP16_SOURCES = frozenset({"float32", "float64"})
 _INT8_SOURCES = frozenset({"float16", "float32", "float64"})
@@ -584,15 +587,16 @@ def _check(enc: EncodedTensor, codec: Codec, where: str) -> tuple[np.dtype[Any],
     dtype = DTYPES.get(enc.dtype) if isinstance(enc.dtype, str) else None
     if dtype is None:
         raise BadDtype(f"{where}.dtype: {enc.dtype!r} is not allowed; allowed: {', '.join(DTYPES)}")
-    count = _element_count(enc.shape, where)
+    count = _element_count(enc.shape, where, dtype.itemsize)
     if not codec.applies_to(dtype, enc.shape):
         raise CodecMismatch(_mismatch(where, codec.name, dtype, enc.shape))
     codec.check(enc, dtype, count, where)
     return dtype, count
 
 
-def _element_count(shape: Sequence[int], where: str) -> int:
-    """Elements of a declared shape, refusing shapes numpy could not hold."""
+def _element_count(shape: Sequence[int], where: str, itemsize: int = 1) -> int:
+    """Elements of a declared shape, refusing shapes numpy could not hold in `itemsize`-byte
+    elements."""
     if len(shape) > MAX_TENSOR_NDIM:
         raise ShapeMismatch(f"{where}.shape: expected at most {MAX_TENSOR_NDIM} sizes")
     count = 1
@@ -602,7 +606,7 @@ def _element_count(shape: Sequence[int], where: str) -> int:
             raise ShapeMismatch(f"{where}.shape: sizes must be non-negative integers, got {shape}")
         count *= size
         nonzero *= max(size, 1)
-    if nonzero >= _INTP_LIMIT:
+    if nonzero * itemsize >= _INTP_LIMIT:
         raise ShapeMismatch(f"{where}.shape: {shape} is too large for an array")
     return count
 

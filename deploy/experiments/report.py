@@ -37,6 +37,7 @@ def save_plot(fig: Any, path: Path) -> Path:
 
 def use_agg() -> None:
     """No display here: render off-screen (before pyplot is imported)."""
-    import matplotlib
+    from common.extras import Extra, require
 
+    matplotlib = require("matplotlib", Extra.PLOTS, "the experiment plots")
     matplotlib.use("Agg")

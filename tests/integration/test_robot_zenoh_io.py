@@ -253,7 +253,6 @@ def test_a_frame_over_the_payload_limit_is_refused_before_it_is_copied(
         with RobotClient(cfg, ROBOT, encoding=ImageEncoding.BGR8) as client:
             assert client.wait_for_robot(WAIT_S)
             client.send(np.zeros((600, 800, 3), np.uint8))  # 1.4 MB raw
-            # The source subscribes before startup is done: the frame loop holds it once ready.
             assert robot.daemon.ready.wait(WAIT_S), "the robot did not start"
             source = robot.daemon.loop.source
             assert wait_until(lambda: source.rejected_frames() == {"too_large": 1})

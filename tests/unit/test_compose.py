@@ -11,9 +11,17 @@ the daemon expects, and the hosts must be the namespace testbed's, so one topolo
 
 from __future__ import annotations
 
+import posixpath
+import re
 import shlex
+import sys
 from pathlib import Path
 from typing import Any
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - Python 3.10
+    import tomli as tomllib
 
 import pytest
 import typer
@@ -34,6 +42,16 @@ METRICS_DOC = DEPLOY_DIR.parent / "docs" / "metrics.md"
 SHELL_TOOLS = {"tc", "ip"}
 # The daemon each `elasticfog` subcommand runs, and the role its --id must have in the fleet.
 DAEMON_ROLE = {"cloud": "cloud", "robot": "robot"}
+
+
+def _copied_sources(dockerfile: Path) -> list[str]:
+    """The build-context paths the Dockerfile's COPY lines take (not those from another stage)."""
+    sources: list[str] = []
+    for line in dockerfile.read_text().splitlines():
+        words = line.split()
+        if words[:1] == ["COPY"] and not any(w.startswith("--from=") for w in words):
+            sources += [w for w in words[1:-1] if not w.startswith("--")]
+    return sources
 
 
 def _compose() -> dict[str, Any]:
@@ -135,11 +153,8 @@ def test_service_builds_from_files_that_exist(name: str) -> None:
     dockerfile = context / build["dockerfile"]
     assert context.is_dir(), f"{name}: build context {context} is missing"
     assert dockerfile.is_file(), f"{name}: Dockerfile {dockerfile} is missing"
-    for line in dockerfile.read_text().splitlines():
-        words = line.split()
-        if words[:1] == ["COPY"]:
-            for source in words[1:-1]:
-                assert (context / source).exists(), f"Dockerfile copies missing {source}"
+    for source in _copied_sources(dockerfile):
+        assert (context / source).exists(), f"Dockerfile copies missing {source}"
     for target, source in _bind_mounts(service).items():
         assert source.exists(), f"{name}: {source} (mounted at {target}) is missing"
     named = {str(v).split(":")[0] for v in service.get("volumes", [])} - {
@@ -225,7 +240,6 @@ def test_dashboard_queries_only_documented_metrics() -> None:
     """Every metric the dashboard draws is one docs/metrics.md documents (a renamed metric
     would leave a panel empty), and the panels the operators need are there."""
     import json
-    import re
 
     dashboard = json.loads(DASHBOARD_FILE.read_text())
     exprs = [t["expr"] for p in dashboard["panels"] for t in p["targets"]]
@@ -244,3 +258,114 @@ def test_dashboard_queries_only_documented_metrics() -> None:
         assert needed in titles, f"no panel for {needed}"
     mounts = _bind_mounts(_service("grafana"))
     assert DASHBOARD_FILE.resolve() in mounts.values()
+
+
+# --- The image's build context (deploy/Dockerfile.dockerignore) and what the Dockerfile installs.
+
+REPO = DEPLOY_DIR.parent
+DOCKERFILE = DEPLOY_DIR / "Dockerfile"
+DOCKERIGNORE = DEPLOY_DIR / "Dockerfile.dockerignore"
+RUNTIME_LOCK = "requirements/runtime.lock"
+
+
+def _pattern_regex(pattern: str) -> re.Pattern[str]:
+    """A .dockerignore pattern as a regex over slash-separated context paths (Docker's rules:
+    `**` any number of folders, `*` and `?` within one name)."""
+    out, i = "", 0
+    while i < len(pattern):
+        if pattern.startswith("**/", i):
+            out, i = out + "(?:.*/)?", i + 3
+        elif pattern.startswith("**", i):
+            out, i = out + ".*", i + 2
+        elif pattern[i] == "*":
+            out, i = out + "[^/]*", i + 1
+        elif pattern[i] == "?":
+            out, i = out + "[^/]", i + 1
+        else:
+            out, i = out + re.escape(pattern[i]), i + 1
+    return re.compile(out + "$")
+
+
+def _dockerignore() -> list[tuple[bool, re.Pattern[str]]]:
+    """(is an exception `!`, pattern) in file order."""
+    rules = []
+    for raw in DOCKERIGNORE.read_text().splitlines():
+        line = raw.strip()
+        if not line or line.startswith("#"):
+            continue
+        negate = line.startswith("!")
+        cleaned = posixpath.normpath(line.lstrip("!").strip()).lstrip("/")
+        rules.append((negate, _pattern_regex(cleaned)))
+    return rules
+
+
+def _admitted(path: str, rules: list[tuple[bool, re.Pattern[str]]]) -> bool:
+    """Whether the build context holds `path`: the last pattern matching it or one of its
+    folders decides, as Docker does."""
+    parts = path.split("/")
+    prefixes = ["/".join(parts[: n + 1]) for n in range(len(parts))]
+    excluded = False
+    for negate, regex in rules:
+        if any(regex.match(p) for p in prefixes):
+            excluded = not negate
+    return not excluded
+
+
+def _top_level_packages() -> list[str]:
+    """The top-level packages pyproject ships (its setuptools `include` patterns)."""
+    pyproject = tomllib.loads((REPO / "pyproject.toml").read_text())
+    include = pyproject["tool"]["setuptools"]["packages"]["find"]["include"]
+    return sorted({pattern.rstrip("*").rstrip(".") for pattern in include})
+
+
+def _package_files(package: str) -> list[str]:
+    return [
+        p.relative_to(REPO).as_posix()
+        for p in (REPO / package).rglob("*")
+        if p.is_file() and "__pycache__" not in p.parts
+    ]
+
+
+@pytest.mark.parametrize("package", _top_level_packages())
+def test_build_context_admits_every_package(package: str) -> None:
+    assert (REPO / package / "__init__.py").is_file(), f"pyproject lists {package}, not a package"
+    rules = _dockerignore()
+    left_out = [f for f in _package_files(package) if not _admitted(f, rules)]
+    assert not left_out, f"{DOCKERIGNORE.name} leaves {package} files out of the image: {left_out}"
+    assert package in _copied_sources(DOCKERFILE), f"deploy/Dockerfile does not COPY {package}"
+
+
+def test_build_context_admits_what_the_dockerfile_copies_and_no_more() -> None:
+    rules = _dockerignore()
+    for source in _copied_sources(DOCKERFILE):
+        assert _admitted(source, rules), f"Dockerfile copies {source}; {DOCKERIGNORE.name} drops it"
+    for outside in ("tests/unit/test_compose.py", ".git/HEAD", ".venv/bin/python", "docs/x.md"):
+        assert not _admitted(outside, rules), f"{outside} would be sent to the builder"
+    for cache in ("common/__pycache__/zoo.cpython-311.pyc", "elasticfog.egg-info/PKG-INFO"):
+        assert not _admitted(cache, rules)
+
+
+def test_dockerignore_rules_follow_docker() -> None:
+    rules = [(False, _pattern_regex("**")), (True, _pattern_regex("nav"))]
+    assert _admitted("nav/stereo.py", rules) and not _admitted("navx/a.py", rules)
+    rules.append((False, _pattern_regex("**/__pycache__")))
+    assert not _admitted("nav/__pycache__/a.pyc", rules)
+    assert not _admitted("__pycache__/a.pyc", rules)
+
+
+def test_image_installs_the_runtime_lock_hash_checked_and_fetches_nothing_else() -> None:
+    text = DOCKERFILE.read_text()
+    steps = " ".join(text.replace("\\\n", " ").split())
+    assert f"COPY {RUNTIME_LOCK} " in steps
+    assert "--require-hashes" in steps and "-r /tmp/runtime.lock" in steps
+    assert re.search(r"pip install --no-deps( --no-compile)? \.", steps), "the lock alone decides"
+    # The base image is a build argument; no other index, no downloads, no torch.
+    assert re.search(r"^ARG BASE_IMAGE=python:3\.11-slim$", text, re.M)
+    assert re.search(r"^FROM \$\{BASE_IMAGE\} AS runtime$", text, re.M)
+    for fetch in ("--index-url", "--extra-index-url", "--find-links", "curl ", "wget ", "ADD "):
+        assert fetch not in steps, f"deploy/Dockerfile fetches with {fetch.strip()}"
+    runtime = text[text.index("AS runtime") :]
+    assert "torch" not in runtime.replace('"import torch"', "").replace("torch in", "")
+    assert "--mount=type=secret,id=ca" in steps, "a proxy's CA is a build secret"
+    lock = (REPO / RUNTIME_LOCK).read_text()
+    assert "torch" not in lock and "matplotlib" not in lock and "scikit-image" not in lock

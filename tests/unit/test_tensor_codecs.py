@@ -408,6 +408,14 @@ BAD_TENSORS = [
     _bad("fp16 length", _enc(codec="fp16", data=b"\0" * 16), ShapeMismatch, "needs 8 bytes"),
     _bad("int8 length", _with("int8", _FMAP, data=b"\0" * 10), ShapeMismatch, "needs 192 bytes"),
     _bad("huge empty shape", _enc(shape=[0, 2**62, 2**62], data=b""), ShapeMismatch, "too large"),
+    # Regression (found by the fuzz test): numpy counts the dtype's bytes, so [0, 2**62] of a
+    # 2-byte dtype is too large although 2**62 elements alone would not be.
+    _bad(
+        "huge empty fp16 shape",
+        _with("raw", np.zeros(0, np.float16), shape=[0, 2**62]),
+        ShapeMismatch,
+        "too large",
+    ),
     _bad("bool not 0/1", _enc(dtype="bool", shape=[4], data=b"\0\1\2\0"), InvalidValue, "bool"),
     # int8 parameters
     _bad("scale missing", _with("int8", _FMAP, scale=None), BadQuantization, "needs scale"),
