@@ -234,6 +234,10 @@ def test_prometheus_scrapes_every_daemon_on_its_metrics_port() -> None:
     assert targets == {f"{host}:{port}" for host, port in ports.items()}
     mounts = _bind_mounts(_service("prometheus"))
     assert mounts["/etc/prometheus/prometheus.yml"] == PROMETHEUS_FILE.resolve()
+    # Opt-in: their images come from a registry, the fleet must come up where none answers.
+    for name in ("prometheus", "grafana"):
+        assert _service(name)["profiles"] == ["metrics"], name
+    assert "profiles" not in _service("registry") and "profiles" not in _service("robot")
 
 
 def test_dashboard_queries_only_documented_metrics() -> None:
