@@ -77,7 +77,13 @@ def test_quick_json_contract_and_nothing_lost(tmp_path: Path) -> None:
     )
     assert done.returncode == 0, done.stderr[-3000:]
     out = json.loads(done.stdout)
-    assert set(out) == {"results"}
+    # The contract: the option rows, and what each image codec does to zoo:stereo's answers.
+    assert set(out) == {"results", "fidelity"}
+    assert out["fidelity"], "bench nav --json has no codec fidelity rows"
+    for fid in out["fidelity"]:
+        assert fid["size"] == "160x120"
+        assert 0 <= fid["disparity_bad1_share"] <= 1
+        assert isinstance(fid["passes"], bool)
     rows = {row["option"]: row for row in out["results"]}
     assert sorted(rows, key=str) == [1, 4, "off"]
     for option, row in rows.items():
