@@ -152,17 +152,22 @@ class LocalFleet:
     def session(self) -> Any:
         """The observer's Zenoh peer session (opened on first use)."""
         if self._session is None:
-            from common.session import open_session
-
-            session = open_session(
-                self.cfg,
-                identity=observer_identity(self.cfg),
-                listen=[f"{link_protocol(self.cfg)}/127.0.0.1:0"],
-            )
+            session = self._open_observer_session()
             self._watching.callback(_close_quietly, session)
             self._tokens = self._watching.enter_context(TokenWatch(session, self.fleet))
             self._session = session
         return self._session
+
+    def _open_observer_session(self) -> Any:
+        """How the observer's session is opened (a fleet of other identities overrides it); the
+        fleet owns what this returns."""
+        from common.session import open_session
+
+        return open_session(
+            self.cfg,
+            identity=observer_identity(self.cfg),
+            listen=[f"{link_protocol(self.cfg)}/127.0.0.1:0"],
+        )
 
     @property
     def tokens(self) -> TokenWatch:

@@ -35,7 +35,6 @@ from common.wire.registry import CtlOp, CtlRequest
 from deploy.demo import answered_by, read_telemetry
 from deploy.local_fleet import LocalFleet
 from deploy.procs import DaemonProc, elasticfog_argv, free_tcp_port
-from deploy.readiness import TokenWatch
 from tests.e2e.conftest import (
     TEST_DEADLINE_S,
     TEST_FPS,
@@ -57,14 +56,10 @@ HANDSHAKE_TIMEOUT_S = 5.0
 class TlsLocalFleet(LocalFleet):
     """LocalFleet whose observer shows the registry's certificate and listens on TLS only."""
 
-    @property
-    def session(self) -> Any:
-        if self._session is None:
-            self._session = open_session(
-                self.cfg, identity=self.cfg.registry.id, listen=["tls/127.0.0.1:0"]
-            )
-            self._tokens = TokenWatch(self._session, self.fleet)
-        return self._session
+    def _open_observer_session(self) -> Any:
+        # Regression: overriding `session` itself left this session out of the fleet's
+        # ExitStack, and its callback thread held the whole test run at exit.
+        return open_session(self.cfg, identity=self.cfg.registry.id, listen=["tls/127.0.0.1:0"])
 
 
 def _init_tls_fleet(directory: Path) -> Path:
