@@ -119,6 +119,7 @@ class CpuSampler:
             row["others"] = max(0.0, host - sum(row.values()))
             row["steal"] = (now[3] - last[3]) / dt
             row["at"] = time.time()
+            row["dt"] = dt
             self.samples.append(row)
             last = now
 
@@ -194,9 +195,13 @@ def analyse(
         keys = ("robots", "clouds", "registry", "others", "steal")
         return {k: median([s[k] for s in rows]) for k in keys}
 
+    steady_s = sum(s["dt"] for s in steady_samples)
     return {
         "frames": n,
         "fallback_rate": len(fallbacks) / n if n else None,
+        "steady_s": steady_s,
+        "steady_frames_per_s": len(steady) / steady_s if steady_s else None,
+        "cpu_s": {g: sum(s[g] * s["dt"] for s in samples) for g in ("robots", "clouds")},
         "fallbacks": dict(Counter(str(r.get("reason")) for r in fallbacks)),
         "startup_s": all_started - min(first.values()) if first else None,
         "startup_frames": n - len(steady),
@@ -244,6 +249,11 @@ def run(args: argparse.Namespace, directory: Path) -> dict[str, Any]:
     result["robots"] = args.robots
     result["started_at_unix"] = started
     result["clouds"] = cloud_metrics
+    ok = sum(c["outcomes"].get("ok", 0) for c in cloud_metrics.values())
+    # What a frame costs each side: the clouds' CPU per request they computed, the robots' per
+    # frame (its own part, and the whole model for a frame that fell back).
+    result["cloud_cpu_s_per_computed"] = result["cpu_s"]["clouds"] / ok if ok else None
+    result["robot_cpu_s_per_frame"] = result["cpu_s"]["robots"] / len(records) if records else None
     return result
 
 
