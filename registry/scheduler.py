@@ -24,7 +24,7 @@ robots would pile onto the same deployment before its load shows them). The depl
 `busy` is not a target of a move by choice (`busy`, `bound_violation`, `better`) for
 `flap_window_s`, so robots that found room do not drift back and forth. A move for `better`
 needs the same room to spare (a gain in latency is not worth crowding a deployment, which the
-`busy` trigger or placement by load would then undo).
+`busy` trigger or placement by load would then undo), and so does one for `timeouts`.
 
 Choice: among live, non-draining deployments of the robot's service, those whose recent probe
 profile (load-adjusted) meets the bound rank first, lowest predicted latency first; then the others
@@ -453,6 +453,10 @@ class Scheduler:
         self, robot: RobotView, reason: Reason, ranked: list[_Candidate], st: _RobotState
     ) -> RouteDecision | None:
         targets = [c for c in ranked if c.deployment.id != robot.route]
+        if reason is Reason.TIMEOUTS:
+            # Its deployment is alive, only late: a target without room would be late too, and
+            # robots went back and forth between two overloaded ones (docs/scale.md).
+            targets = [c for c in targets if c.deployment.has_room(self.params.busy_headroom)]
         if (
             reason in (Reason.INITIAL, Reason.DEPLOYMENT_LOST)
             and targets
