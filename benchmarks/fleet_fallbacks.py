@@ -91,6 +91,7 @@ class CpuSampler:
     def __init__(self, groups: dict[str, list[int]]) -> None:
         self._procs = {g: [psutil.Process(p) for p in pids] for g, pids in groups.items()}
         self.samples: list[dict[str, float]] = []
+        self._last: dict[int, float] = {}  # pid -> CPU seconds at its last reading
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._loop, name="cpu-sampler", daemon=True)
 
@@ -101,9 +102,10 @@ class CpuSampler:
             for proc in procs:
                 try:
                     t = proc.cpu_times()
-                    total += t.user + t.system + t.children_user + t.children_system
+                    self._last[proc.pid] = t.user + t.system + t.children_user + t.children_system
                 except psutil.NoSuchProcess:
-                    pass  # a robot that finished: its share ends with it
+                    pass  # a robot that finished: what it used up to its last reading stays
+                total += self._last.get(proc.pid, 0.0)
             spent[group] = total
         cpu = psutil.cpu_times()
         busy = cpu.user + cpu.nice + cpu.system + cpu.irq + cpu.softirq
