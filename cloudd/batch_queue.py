@@ -25,7 +25,8 @@ queues, the turn and the limits stay.
 
 Deadlines: a request carries its budget from arrival (`InferRequest.deadline_s`). One whose
 deadline has passed when a worker looks, or that would miss it even if it ran alone now (by
-the runs measured so far), is handed back as expired instead of being computed: the robot has
+the fastest of the last runs, while a run is recent: `BatchCosts.fastest_alone`), is handed
+back as expired instead of being computed: the robot has
 finished that frame itself, or will sooner for the early refusal. A batch is cut short to the
 requests whose deadlines its estimated run keeps; the others wait for the next one.
 
@@ -60,10 +61,17 @@ ACTIVE_WINDOW_S = 1.0
 delay), not for robots that went quiet."""
 
 COST_EWMA_WEIGHT = 0.2
+"""Weight of the newest run in a batch size's running cost."""
+
+COST_RECENT_RUNS = 8
+"""Runs of a group whose fastest decides whether a request is doomed (`BatchCosts`)."""
+
+COST_FRESH_S = 1.0
+"""A group's costs may refuse a request as doomed only this long (seconds) after its last run."""
+
 # A robot with N frames in flight is admitted N + this many requests: one it stopped waiting for
 # (its deadline passed, it finished the frame itself) may still be queued or running here.
 IN_FLIGHT_SLACK = 1
-"""Weight of the newest run in a batch size's running cost."""
 
 
 @dataclass(eq=False)
@@ -142,17 +150,31 @@ class BatchCosts:
 
     An unseen size is estimated from the nearest smaller one measured (per request), so the
     first batch of a new size is not held longer than the runs so far justify; nothing measured
-    yet: 0 (then only the queue delay bounds the wait)."""
+    yet: 0 (then only the queue delay bounds the wait).
 
-    def __init__(self) -> None:
+    `fastest_alone` is what refuses a request as doomed, so it must not lock a group out: it is
+    the fastest of a single request's last COST_RECENT_RUNS runs (a few slow runs, e.g. while the
+    host was busy starting robots, do not condemn every later request), and only while a run of
+    the group was recorded within COST_FRESH_S (`clock`): a group whose requests were all
+    refused would otherwise never run again, and its cost never be measured again."""
+
+    def __init__(self, clock: Callable[[], float] = time.monotonic) -> None:
         self._lock = threading.Lock()
+        self._clock = clock
         self._seconds: dict[int, dict[int, float]] = {}
+        self._alone: dict[int, deque[float]] = {}
+        self._last_run_at: dict[int, float] = {}
 
     def record(self, group: int, n: int, seconds: float) -> None:
         with self._lock:
             sizes = self._seconds.setdefault(group, {})
             old = sizes.get(n)
             sizes[n] = seconds if old is None else old + COST_EWMA_WEIGHT * (seconds - old)
+            # A batch's run per request is at most one request's own run: doomed errs towards
+            # computing.
+            per_request = seconds / n
+            self._alone.setdefault(group, deque(maxlen=COST_RECENT_RUNS)).append(per_request)
+            self._last_run_at[group] = self._clock()
 
     def estimate(self, group: int, n: int) -> float:
         with self._lock:
@@ -164,6 +186,15 @@ class BatchCosts:
             below = [m for m in sizes if m < n]
             m = max(below) if below else min(sizes)
             return sizes[m] / m * n
+
+    def fastest_alone(self, group: int, now: float) -> float:
+        """The shortest run of one request of `group` lately; 0 (nothing can be called doomed)
+        when no run of it was recorded within COST_FRESH_S of `now`."""
+        with self._lock:
+            last = self._last_run_at.get(group)
+            if last is None or now - last > COST_FRESH_S:
+                return 0.0
+            return min(self._alone[group])
 
 
 class FairQueue(Generic[T]):
@@ -188,7 +219,7 @@ class FairQueue(Generic[T]):
             raise ValueError(f"slots must be >= 1, got {slots}")
         self.policy = policy
         self.capacity = slots
-        self.costs = costs if costs is not None else BatchCosts()
+        self.costs = costs if costs is not None else BatchCosts(clock)
         self._batchable = batchable
         self._clock = clock
         self._active_window_s = active_window_s
@@ -341,7 +372,7 @@ class FairQueue(Generic[T]):
         """Requests that would miss their deadline even run alone now (by the runs measured so
         far): computing them helps nobody, and refusing them at once lets the robot finish the
         frame itself sooner."""
-        alone_s = self.costs.estimate(items[0].group, 1)
+        alone_s = self.costs.fastest_alone(items[0].group, now)
         if alone_s <= 0:
             return []
         return [item for item in items if now + alone_s > item.deadline_at]

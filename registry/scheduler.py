@@ -24,7 +24,8 @@ robots would pile onto the same deployment before its load shows them). The depl
 `busy` is not a target of a move by choice (`busy`, `bound_violation`, `better`) for
 `flap_window_s`, so robots that found room do not drift back and forth. A move for `better`
 needs the same room to spare (a gain in latency is not worth crowding a deployment, which the
-`busy` trigger or placement by load would then undo).
+`busy` trigger or placement by load would then undo), and so does one for `timeouts` once the
+deployment has answered the robot on its route (late then, not out of reach).
 
 Choice: among live, non-draining deployments of the robot's service, those whose recent probe
 profile (load-adjusted) meets the bound rank first, lowest predicted latency first; then the others
@@ -410,6 +411,11 @@ class Scheduler:
         self, robot: RobotView, reason: Reason, ranked: list[_Candidate], st: RobotState
     ) -> RouteDecision | None:
         targets = [c for c in ranked if c.deployment.id != robot.route]
+        if reason is Reason.TIMEOUTS and robot.offloaded:
+            # Its deployment is alive and has answered it on this route, so it is late, not out
+            # of reach: a target without room would be late too, and robots went back and forth
+            # between two overloaded ones (docs/scale.md).
+            targets = [c for c in targets if c.deployment.has_room(self.params.busy_headroom)]
         if (
             reason in (Reason.INITIAL, Reason.DEPLOYMENT_LOST)
             and targets

@@ -34,6 +34,7 @@ from __future__ import annotations
 import contextlib
 import math
 import os
+import statistics
 import threading
 import time
 import uuid
@@ -52,6 +53,7 @@ from deploy.local_fleet import LocalFleet, write_local_fleet
 from deploy.procs import DaemonProc
 
 from . import scale_defaults as defaults
+from .cpu_share import CpuMeter
 from .options import bench_workdir, model_path, option_dir
 from .report import fmt, md_table, save_plot, use_agg
 
@@ -284,6 +286,9 @@ def run_cell(
 ) -> dict[str, Any]:
     """One cell: `robots` emulated robots against the running deployments."""
     pause = threading.Event()  # a timed measurement window, not a wait for readiness
+    # Who used the host's CPUs in the window: the deployments, this process (the load
+    # generator's robots) and everything else (the registry is among "others").
+    meter = CpuMeter({**{c.name: c.pid for c in clouds}, "load_generator": os.getpid()})
     with LoadGenerator(
         cfg,
         robot_ids(robots),
@@ -295,11 +300,12 @@ def run_cell(
         started = gen.started_at
         gen.wait_served(ROUTED_TIMEOUT_S)
         pause.wait(options.warmup_s)
-        t0, cpu0 = time.monotonic(), cpu_seconds(clouds)
+        t0, cpu0, host0 = time.monotonic(), cpu_seconds(clouds), meter.read()
         pause.wait(options.duration_s)
-        t1, cpu1 = time.monotonic(), cpu_seconds(clouds)
+        t1, cpu1, host1 = time.monotonic(), cpu_seconds(clouds), meter.read()
     # Read after the robots stopped: frames sent in the window and answered after it count.
-    figures = summarize(gen.records(t0, t1), t1 - t0)
+    window = gen.records(t0, t1)
+    figures = summarize(window, t1 - t0)
     early = timeline(gen.records(started, t1), started, t1)
     cpu_s = {name: cpu1[name] - cpu0[name] for name in cpu1}
     total_cpu_s = sum(cpu_s.values())
@@ -325,10 +331,36 @@ def run_cell(
         "served_fps_per_core": served / total_cpu_s if total_cpu_s > 0 else None,
         "p95_within_bound": p95 is not None and p95 <= options.bound_s,
         "fallback_rate": 1.0 - served / figures["frames"] if figures["frames"] else None,
+        "fallbacks": fallback_reasons(window),
+        "host_cores": {k.removesuffix("_cores"): v for k, v in meter.usage(host0, host1).items()},
         **early,
     }
     cell["spread_within_s"] = {"seconds": SPREAD_WITHIN_S, "met": spread(cell)}
     return cell
+
+
+def fallback_reasons(records: Sequence[FrameRecord]) -> dict[str, Any]:
+    """The frames not served, by outcome (an error reply by its code: `error:deadline_expired`
+    is a request whose deadline passed in the deployment's queue), each with how long the robot
+    waited (median, seconds) and when they came (seconds into the window, first and last)."""
+    start = records[0].sent_at if records else 0.0
+    kinds: dict[str, list[FrameRecord]] = {}
+    for r in records:
+        if r.outcome is FrameOutcome.SERVED:
+            continue
+        kind = r.outcome.value
+        if r.outcome is FrameOutcome.ERROR:
+            kind += ":" + (r.detail.split(":", 1)[0] or "?")
+        kinds.setdefault(kind, []).append(r)
+    return {
+        kind: {
+            "frames": len(rs),
+            "median_wait_s": round(statistics.median(r.latency_s for r in rs), 4),
+            "first_at_s": round(rs[0].sent_at - start, 2),
+            "last_at_s": round(rs[-1].sent_at - start, 2),
+        }
+        for kind, rs in sorted(kinds.items())
+    }
 
 
 def timeline(records: Sequence[FrameRecord], start: float, end: float) -> dict[str, Any]:

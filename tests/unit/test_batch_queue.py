@@ -331,6 +331,29 @@ def test_a_request_that_would_miss_its_deadline_is_refused_and_a_batch_cut_to_fi
     assert names(take(queue, clock)) == ["c0"]
 
 
+def test_slow_runs_while_the_host_was_busy_do_not_refuse_every_later_request() -> None:
+    """A few slow runs (a host busy starting robots) must not make every later request doomed:
+    the fastest recent run decides, and with no run for a while a request runs again and its
+    cost is measured anew (else nothing would ever run again)."""
+    clock = Clock()
+    queue = make_queue(clock)
+    queue.costs.record(0, 1, 0.900)  # the first runs, on a host busy starting robot daemons
+    for n in range(2):
+        offer(queue, clock, "a", n, budget_s=0.500)
+        refused = take(queue, clock)
+        assert [i.payload for i in refused.expired] == [f"a{n}"], "0.9 s runs miss 0.5 s"
+        queue.done(refused)
+        clock.now += 0.5  # the second is refused too: the slow run is recent
+    clock.now += 0.5  # no run for more than a second: the cost is measured again
+    offer(queue, clock, "a", 2, budget_s=0.500)
+    batch = take(queue, clock)
+    assert names(batch) == ["a2"]
+    queue.done(batch)
+    queue.costs.record(0, 1, 0.030)  # the host is quiet again
+    offer(queue, clock, "a", 3, budget_s=0.500)
+    assert names(take(queue, clock)) == ["a3"], "the fastest recent run decides"
+
+
 def test_a_robot_is_admitted_the_frames_it_keeps_in_flight_up_to_the_cap() -> None:
     clock = Clock()
     queue = make_queue(clock, per_robot=8)

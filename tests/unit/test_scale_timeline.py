@@ -12,6 +12,7 @@ from deploy.experiments.scale import (
     SPREAD_WITHIN_S,
     TIMELINE_BIN_S,
     ScaleOptions,
+    fallback_reasons,
     fleet_changes,
     spread,
     timeline,
@@ -59,3 +60,23 @@ def test_the_bench_fleet_puts_every_robot_on_the_first_deployment() -> None:
     changes = fleet_changes(ScaleOptions(robots=(4,)), deployments=2, batching=False)
     assert changes["initial_policy"]["edge-1"] == "service"
     assert changes["initial_policy"]["edge-2"] == "standby"
+
+
+def test_fallbacks_are_told_apart_by_outcome_and_error_code() -> None:
+    """Where a cell's fallbacks come from: an error reply by its code (a deadline that passed in
+    the deployment's queue is not a timeout), with the robot's wait and when they came."""
+    late = FrameRecord("robot-2", 1, START_S + 1.0, 0.501, FrameOutcome.TIMEOUT)
+    expired = FrameRecord(
+        "robot-3", 1, START_S + 2.0, 0.02, FrameOutcome.ERROR, detail="deadline_expired"
+    )
+    records = [rec(0.0, "edge-1"), late, expired, rec(3.0, "edge-2")]
+    assert fallback_reasons(records) == {
+        "error:deadline_expired": {
+            "frames": 1,
+            "median_wait_s": 0.02,
+            "first_at_s": 2.0,
+            "last_at_s": 2.0,
+        },
+        "timeout": {"frames": 1, "median_wait_s": 0.501, "first_at_s": 1.0, "last_at_s": 1.0},
+    }
+    assert fallback_reasons([rec(0.0, "edge-1")]) == {}

@@ -263,6 +263,25 @@ def test_consecutive_timeouts_reroute_at_once(sched: Scheduler, clock: FakeClock
     assert sched.evaluate(robot("b", timeouts=n), [dep("b")], {}) is None
 
 
+def test_timeouts_move_only_to_a_deployment_with_room(sched: Scheduler, clock: FakeClock) -> None:
+    """A robot timing out on a live deployment that has answered it, whose peers are as loaded,
+    stays: its deployment is late, not out of reach, and moving would only carry the timeouts
+    there and back (16 robots on two overloaded deployments made 50-150 such moves a run). One
+    its deployment never answered on this route (its queries find nobody) still moves."""
+    n = SchedulerParams().timeout_count
+    profiles = {"a": window(0.01, clock), "b": window(0.05, clock)}
+    loaded = [dep("a", load=6, capacity=6), dep("b", load=6, capacity=6)]
+    answered = robot("a", timeouts=n, timeouts_on="a", offloaded=10, busy=4)
+    assert sched.evaluate(answered, loaded, profiles) is None
+    roomy = [dep("a", load=6, capacity=6), dep("b", load=1, capacity=6)]
+    for r, deps in ((answered, roomy), (robot("a", timeouts=n, timeouts_on="a"), loaded)):
+        decision = sched.evaluate(r, deps, profiles)
+        assert decision is not None and (decision.to_deployment, decision.reason) == (
+            "b",
+            Reason.TIMEOUTS,
+        )
+
+
 def test_a_failed_switch_backs_off_before_deciding_again(
     sched: Scheduler, clock: FakeClock
 ) -> None:
