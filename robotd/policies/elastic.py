@@ -179,7 +179,7 @@ class ElasticPolicy(Policy):
         self._best_seen: dict[int, float] = {}
         self._next_hint = 0  # no hint before this frame
         # When to time the robot on a frame whose action runs nothing measurable there.
-        self._probes = RobotProbes(params, self._robot, self._untimed)
+        self._probes = RobotProbes(params, self._robot, self._untimed, objective.robot_rate)
         # Score parts, cut order: base = E^c + bytes cost + α̂ᵀv (inf where restricted away in
         # `_allowed_base`), width = sqrt(vᵀQ⁻¹v); score = base − sqrt(1−σ)·β·E_P·width, with
         # `_bonus_scale` = β·E_P; `_pred` = α̂ᵀv.
@@ -232,7 +232,7 @@ class ElasticPolicy(Policy):
             self._probes.tried()  # a hedged frame times the robot when its local run wins
             if not probe:
                 after_s = self._hedge_after_s(j, greedy)
-        return self.cuts.decision_at(
+        decision = self.cuts.decision_at(
             j,
             hedge=hedge,
             forced=forced,
@@ -241,6 +241,9 @@ class ElasticPolicy(Policy):
             hedge_after_s=after_s,
             local_expected=hedge and greedy < 0,
         )
+        if probe:
+            self._probes.hedged(decision)
+        return decision
 
     def _hedge_after_s(self, j: int, greedy: int) -> float:
         """When a hedged frame of cut j starts its local run, in seconds after the request left.
@@ -280,6 +283,14 @@ class ElasticPolicy(Policy):
         self._probes.timed(robot.observe(outcome.prefix_s, self._prefix_s[j]))
         if outcome.local_s is not None:
             self._probes.timed(robot.observe(outcome.local_s, self._suffix_s[j]))
+        if decision.hedge:
+            self._probes.raced(
+                decision,
+                timed=outcome.local_s is not None,
+                busy_s=(outcome.cloud_s or 0.0) - decision.hedge_after_s,
+                cpu_known=outcome.cpu_s is not None,
+                frame_cost=self._current()[0],
+            )
         if outcome.cloud_s is not None:
             target = cloud_cost(
                 self._wait_rate, self._radio_rate, outcome.cloud_s, outcome.cloud_compute_s
@@ -591,6 +602,8 @@ class ElasticPolicy(Policy):
             "direction": self._direction,
             "robot_speed_ratio": self._robot.ratio,
             "robot_probes": self._probes.count,
+            "robot_probes_lost": self._probes.lost,
+            "robot_probe_interval": self._probes.interval,
         }
 
 
