@@ -244,10 +244,14 @@ class ElasticPolicy(Policy):
         if outcome.local_s is not None:
             self._probes.timed(robot.observe(outcome.local_s, self._suffix_s[j]))
         if decision.hedge:
+            busy_s = (outcome.cloud_s or 0.0) - decision.hedge_after_s
+            if outcome.local_s is None and outcome.cpu_s is not None:
+                # The local run was stopped unfinished: the robot needs longer than that.
+                self._probes.timed(robot.observe_slower_than(busy_s, self._suffix_s[j]))
             self._probes.raced(
                 decision,
                 timed=outcome.local_s is not None,
-                busy_s=(outcome.cloud_s or 0.0) - decision.hedge_after_s,
+                busy_s=busy_s,
                 cpu_known=outcome.cpu_s is not None,
                 frame_cost=self._current()[0],
             )
