@@ -136,6 +136,7 @@ class ElasticPolicy(Policy):
         self._take_up = TakeUp(params, self._detector, self._schedule)
         # When to time the robot on a frame whose action runs nothing measurable there.
         self._probes = RobotProbes(params, self._robot, self._untimed, objective.robot_rate)
+        self._cpu_counted = False  # the robot reports its CPU (Outcome.cpu_s)
         # Score parts, cut order: base = E^c + bytes cost + α̂ᵀv (inf where restricted away in
         # `_allowed_base`), width = sqrt(vᵀQ⁻¹v); score = base − sqrt(1−σ)·β·E_P·width, with
         # `_bonus_scale` = β·E_P; `_pred` = α̂ᵀv.
@@ -174,11 +175,12 @@ class ElasticPolicy(Policy):
         if regular_p and not forced:
             return Decision(PURE_ROBOT, updating=updating, predicted_cost=p_cost)
         probe = self._probes.due(j)
+        if probe and p_allowed and not forced and (not params.hedge or self._probes.wants_p):
+            # Without hedging, or when stopped local runs only bounded the robot's time, the
+            # robot is timed by serving the frame on it.
+            self._probes.tried(on_p=True)
+            return Decision(PURE_ROBOT, updating=updating, predicted_cost=p_cost)
         if not params.hedge:
-            if probe and p_allowed and not forced:
-                # Without hedging the robot is timed by serving the frame on it.
-                self._probes.tried(on_p=True)
-                return Decision(PURE_ROBOT, updating=updating, predicted_cost=p_cost)
             return self.cuts.decision_at(
                 j, forced=forced, updating=updating, predicted_cost=self._base[j]
             )
@@ -228,7 +230,12 @@ class ElasticPolicy(Policy):
         reply_s = max(self._pred[j], 0.0) / rate
         if reply_s >= local_s:
             return max(slack_s, 0.0)
-        return max(slack_s, (1.0 + self.params.change_tolerance) * reply_s)
+        overdue_s = (1.0 + self.params.change_tolerance) * reply_s
+        if self._cpu_counted:
+            # Its robot time is a cost there (robot_probes): the run starts once the wait has
+            # cost what the run would (rent or buy: at most twice the better of the two).
+            overdue_s = max(overdue_s, local_s)
+        return max(slack_s, overdue_s)
 
     # -- learning --------------------------------------------------------------------------
 
@@ -239,6 +246,8 @@ class ElasticPolicy(Policy):
             self._refresh(learned=False)
             return
         j = self._position[(int(decision.action), decision.codec)]
+        if outcome.cpu_s is not None:
+            self._cpu_counted = True  # a robot that reports its CPU: hedges' robot time counts
         self._learn_bytes(j, outcome.bytes_up)
         self._probes.timed(robot.observe(outcome.prefix_s, self._prefix_s[j]))
         if outcome.local_s is not None:
@@ -247,7 +256,7 @@ class ElasticPolicy(Policy):
             busy_s = (outcome.cloud_s or 0.0) - decision.hedge_after_s
             if outcome.local_s is None and outcome.cpu_s is not None:
                 # The local run was stopped unfinished: the robot needs longer than that.
-                self._probes.timed(robot.observe_slower_than(busy_s, self._suffix_s[j]))
+                self._probes.bounded(robot.observe_slower_than(busy_s, self._suffix_s[j]))
             self._probes.raced(
                 decision,
                 timed=outcome.local_s is not None,

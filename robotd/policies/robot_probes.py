@@ -58,6 +58,7 @@ class RobotProbes:
         # The decision of the last probe made by hedging, whose race is awaited (by identity:
         # a hedged frame served by the robot is observed after later frames were decided).
         self._awaited: object | None = None
+        self._bounded = False  # the robot's time is only bounded from below: time it on P
         self._rate = rate  # objective units per second of robot compute
         self.count = 0
         """Frames served on the robot (P) to time it."""
@@ -85,6 +86,18 @@ class RobotProbes:
             self._suspect_probed = True
         if on_p:
             self._on_p = True
+
+    @property
+    def wants_p(self) -> bool:
+        """A stopped local run showed the robot slower than estimated (`bounded`): the next
+        probe serves the frame on the robot, as a bound alone never tells how much slower."""
+        return self._bounded
+
+    def bounded(self, miss: int | None) -> None:
+        """After a stopped local run (`RobotCostModel.observe_slower_than`'s answer)."""
+        self.timed(miss)
+        if miss is not None and miss > 0:
+            self._bounded = True
 
     def hedged(self, decision: object) -> None:
         """`decision` is a probe made by hedging: its race is priced when it is observed."""
@@ -131,6 +144,7 @@ class RobotProbes:
             self._on_p = False
         if miss is None:
             return
+        self._bounded = False  # timed (a stopped run's bound sets it again in `bounded`)
         self._since = 0
         self._suspect_probed = False
         if p_probe:
