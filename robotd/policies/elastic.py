@@ -59,6 +59,7 @@ from robotd.policies.base import (
     Policy,
 )
 from robotd.policies.change_detector import MIN_PREDICTION, ChangeDetector, miss_tolerance
+from robotd.policies.insurance import Insurance
 from robotd.policies.objective import Objective, cloud_cost
 from robotd.policies.params import AnsParams, ElasticParams
 from robotd.policies.ridge import RidgeEstimator, quadratic_features
@@ -137,6 +138,7 @@ class ElasticPolicy(Policy):
         # When to time the robot on a frame whose action runs nothing measurable there.
         self._probes = RobotProbes(params, self._robot, self._untimed, objective.robot_rate)
         self._cpu_counted = False  # the robot reports its CPU (Outcome.cpu_s)
+        self._insurance = Insurance(objective.wait_rate, objective.robot_rate)
         # Score parts, cut order: base = E^c + bytes cost + α̂ᵀv (inf where restricted away in
         # `_allowed_base`), width = sqrt(vᵀQ⁻¹v); score = base − sqrt(1−σ)·β·E_P·width, with
         # `_bonus_scale` = β·E_P; `_pred` = α̂ᵀv.
@@ -194,6 +196,8 @@ class ElasticPolicy(Policy):
             self._probes.tried()  # a hedged frame times the robot when its local run wins
             if not probe:
                 after_s = self._hedge_after_s(j, greedy)
+                if after_s == math.inf:  # insurance not worth its robot time: no local run
+                    hedge, after_s = False, 0.0
         decision = self.cuts.decision_at(
             j,
             hedge=hedge,
@@ -232,8 +236,11 @@ class ElasticPolicy(Policy):
             return max(slack_s, 0.0)
         overdue_s = (1.0 + self.params.change_tolerance) * reply_s
         if self._cpu_counted:
-            # Its robot time is a cost there (robot_probes): the run starts once the wait has
-            # cost what the run would (rent or buy: at most twice the better of the two).
+            # Its robot time is a cost there (robot_probes): not started where overdue replies
+            # come too soon after for it to pay (`insurance`; inf: no local run), else once the
+            # wait has cost what the run would (rent or buy: at most twice the better of two).
+            if not self._insurance.worth(local_s):
+                return math.inf
             overdue_s = max(overdue_s, local_s)
         return max(slack_s, overdue_s)
 
@@ -248,6 +255,11 @@ class ElasticPolicy(Policy):
         j = self._position[(int(decision.action), decision.codec)]
         if outcome.cpu_s is not None:
             self._cpu_counted = True  # a robot that reports its CPU: hedges' robot time counts
+            waited_s = outcome.cloud_s if outcome.cloud_s is not None else outcome.waited_s
+            rate = self._wait_rate + self._radio_rate
+            if waited_s is not None and rate > 0:
+                overdue_s = (1.0 + self.params.change_tolerance) * max(self._pred[j], 0.0) / rate
+                self._insurance.observe(waited_s, overdue_s)
         self._learn_bytes(j, outcome.bytes_up)
         self._probes.timed(robot.observe(outcome.prefix_s, self._prefix_s[j]))
         if outcome.local_s is not None:

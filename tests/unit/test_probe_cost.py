@@ -1,5 +1,5 @@
 """Exploration's robot CPU in elastic's objective: lost robot probes are priced and spaced, a
-stopped local run bounds the robot's time, and an insurance run waits as long as it would take.
+stopped local run bounds the robot's time, and an insurance run is started only where it pays.
 
 The robot here is the testbed's weak one: profiled at full speed (the whole model in 5.8 ms),
 then given a small CPU quota, so the whole model takes 0.4 s while the cloud answers cut 0 in
@@ -15,6 +15,7 @@ from collections.abc import Callable
 
 from robotd.policies import PURE_ROBOT, FrameContext, Outcome, make_policy
 from robotd.policies.elastic import ElasticPolicy
+from robotd.policies.insurance import Insurance
 
 FULL_MS = 5.776
 PROFILE = {
@@ -97,16 +98,33 @@ def test_a_stopped_run_bounds_the_robot_and_the_next_probe_times_it_on_p() -> No
     assert not [t for t in p_frames if t > first + 3], p_frames
 
 
-def test_an_insurance_run_waits_as_long_as_it_would_take_on_a_robot_that_reports_its_cpu() -> None:
+def test_insurance_is_left_out_where_overdue_replies_come_soon_after() -> None:
     # The link slows from 0.15 to 0.2 s at frame 60: an update period hedges its cut-0 frames.
-    # The local run (0.4 s; estimated 0.275 s after the first timing, which averages it with
-    # the stopped run's bound) cannot beat the reply: as insurance it starts once the wait has
-    # cost what the run would, not when the reply is 25% late (0.25 s).
+    # The local run (0.4 s) cannot beat the reply. Without a CPU report it is insurance that
+    # starts when the reply is 25% late (0.25 s); with one, the overdue replies came a few ms
+    # after that, far sooner than the run would take, and it is not started at all.
     def reply(t: int) -> float:
         return REPLY_S if t < 60 else 0.2
 
-    for report_cpu, low, high in ((True, 0.265, 0.45), (False, 0.15, 0.26)):
+    for report_cpu in (False, True):
         frames = run(120, report_cpu=report_cpu, reply_s=reply, robot_probe_frames=0)
-        hedged = [d.hedge_after_s for t, d in frames if t >= 60 and d.hedge and d.action == 0]
-        assert len(hedged) >= 3, "no hedged cut-0 frame in the update period"
-        assert all(low < after <= high for after in hedged), (report_cpu, hedged)
+        updating = [d for t, d in frames if t >= 60 and d.updating and d.action == 0]
+        hedged = [d.hedge_after_s for d in updating if d.hedge]
+        assert len(updating) >= 3, "no update period"
+        if report_cpu:
+            assert not hedged, hedged
+        else:
+            assert len(hedged) == len(updating), hedged
+            assert all(0.15 < after <= 0.26 for after in hedged), hedged
+
+
+def test_insurance_pays_when_overdue_replies_come_much_later() -> None:
+    insurance = Insurance(wait_rate=1.0, robot_rate=1.0)
+    assert insurance.worth(0.4)  # nothing seen yet
+    for _ in range(30):
+        insurance.observe(0.24, 0.19)  # overdue replies 50 ms late: a 0.4 s run never pays
+    assert not insurance.worth(0.4)
+    assert insurance.worth(0.02)  # a run of 20 ms does (under 50 ms x ln 2)
+    for _ in range(30):
+        insurance.observe(2.0, 0.19)  # the link broke: replies at the deadline
+    assert insurance.worth(0.4)
