@@ -32,6 +32,11 @@ update the regression.
   and each probe that finds the estimate right doubles the interval to the next (up to
   `ROBOT_PROBE_MAX_FACTOR` times), as these probes cost latency; one that finds it wrong is
   confirmed by a probe on the next frame.
+- exploration's robot time: on a robot that reports its CPU (`Outcome.cpu_s`), a lost hedged
+  probe is priced at `robot_rate` times the time its local run kept the robot busy and the
+  probes are spaced to cost at most `PROBE_COST_SHARE` of the frames (`robot_probes`), a stopped
+  local run bounds the robot's time from below, and an insurance local run is started only
+  where overdue replies come late enough for it to pay (`robotd.policies.insurance`).
 - take-up and hint (`robotd.policies.take_up`): an offloading action seen to cost less than
   (1 − `takeover_margin`) of the current choice is sampled again on the next frame, and
   `takeover_samples` such observations in a row start an update period on its evidence; while P
