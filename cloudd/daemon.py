@@ -57,6 +57,7 @@ import logging
 import signal
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import zenoh
@@ -74,7 +75,8 @@ from cloudd.probe import ProbeResponder
 from cloudd.refusals import Refusals
 from cloudd.registry_link import DRAIN_TIMEOUT_S, RegistryLink
 from cloudd.replies import Replier
-from cloudd.robot_book import RobotBook, ServiceQueryables
+from cloudd.robot_book import RobotBook
+from cloudd.service_keys import ServiceKeys
 from cloudd.state import RobotState
 from cloudd.suffixes import open_split_model, warm_suffixes
 from cloudd.workers import BatchWorkers
@@ -129,9 +131,10 @@ class CloudDaemon(Daemon):
     `limits` are the machine's limits, `refusals` counts what they (and the rest) refused.
 
     The daemon keeps the lifecycle and wires its parts: `RobotBook` (per-robot state, counters,
-    service keys), `Replier` (replies, delays, held queries), `Controller` (the ctl key),
-    `ProbeResponder` (the probe key), `Admission` (the service keys' callbacks), `BatchRunner`
-    (the workers' runs) and `RegistryLink` (session, membership, drain).
+    service keys), `ServiceKeys` (declaring them), `Replier` (replies, delays, held queries),
+    `Controller` (the ctl key), `ProbeResponder` (the probe key), `Admission` (the service keys'
+    callbacks), `BatchRunner` (the workers' runs) and `RegistryLink` (session, membership,
+    drain).
     """
 
     name = "cloud"
@@ -161,6 +164,7 @@ class CloudDaemon(Daemon):
         self.limits = CloudLimits.of(cfg, self.machine)
         self.refusals = Refusals()
         self._book = RobotBook(cfg.robot_ids, closing=self.closing)
+        self._service_keys = ServiceKeys(cfg.fleet, cfg.service, deployment, self._book)
         self._replies = Replier(deployment, self.faults, self.throttled)
         self._probe = ProbeResponder(
             deployment,
@@ -283,11 +287,9 @@ class CloudDaemon(Daemon):
             (self._probe.key, self._probe.on_query, "probe queryable"),
             (self._controller.key, self._controller.on_query, "ctl queryable"),
         ]:
-            on_error = functools.partial(self._replies.internal_error, key)
-            callback = self.guarded(handler, what=f"a query on {key}", on_error=on_error)
-            self.hold(session.declare_queryable(key, callback), what)
+            self.hold(session.declare_queryable(key, self._guard_query(handler, key)), what)
         # Released before the ctl queryable: a ctl arriving meanwhile is refused (closing).
-        self.on_release(self._undeclare_services, what="service queryables")
+        self.on_release(self._service_keys.undeclare_all, what="service queryables")
         self.hold(
             MembershipView(
                 session, self.cfg.fleet, roles=("registry",), on_change=self._registry.on_change
@@ -454,36 +456,18 @@ class CloudDaemon(Daemon):
         return None if started is None else started.queue.set_in_flight(robot, announced)
 
     def _declare_service(self, robot: str) -> None:
-        """Declare `robot`'s service key and this deployment's pool member key for it (the
-        Controller calls this before acking service). A robot of an anycast fleet queries the
-        first; one in a round-robin pool sends each frame to one member's key."""
-        session, admission = self._parts.session, self._parts.admission
-        fleet, service = self.cfg.fleet, self.cfg.service
-        declared: list[zenoh.Queryable[None]] = []
-        try:
-            for key in (
-                keys.svc_infer(fleet, service, robot),
-                keys.svc_infer_at(fleet, service, robot, self.deployment),
-            ):
-                handler = self.guarded(
-                    functools.partial(admission.on_query, robot, key),
-                    what=f"a query on {key}",
-                    on_error=functools.partial(self._replies.internal_error, key),
-                )
-                declared.append(session.declare_queryable(key, handler, complete=True))
-        except zenoh.ZError:
-            ServiceQueryables(tuple(declared)).undeclare()
-            raise
-        old = self._book.put_service(robot, ServiceQueryables(tuple(declared)))
-        if old is not None:
-            old.undeclare()
+        """Declare `robot`'s service keys (`cloudd.service_keys`; the Controller calls this
+        before acking service)."""
+        self._service_keys.declare(
+            robot, self._parts.session, self._parts.admission, self._guard_query
+        )
 
-    def _undeclare_services(self) -> None:
-        for queryable in self._book.take_services():
-            try:
-                queryable.undeclare()
-            except zenoh.ZError as exc:  # keep undeclaring the others
-                log.warning("%s: undeclaring a service key failed: %s", self.deployment, exc)
+    def _guard_query(
+        self, handler: Callable[[zenoh.Query], None], key: str
+    ) -> Callable[[zenoh.Query], None]:
+        """A query handler on `key` as a guarded callback, answered INTERNAL on an error."""
+        on_error = functools.partial(self._replies.internal_error, key)
+        return self.guarded(handler, what=f"a query on {key}", on_error=on_error)
 
     # -- shutdown steps --------------------------------------------------------------------
     def _stop_workers(self, workers: BatchWorkers[Job]) -> None:

@@ -20,7 +20,7 @@ import json
 import math
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, NoReturn
+from typing import Any, NoReturn, TypeVar
 
 import typer
 from rich.console import Console
@@ -74,6 +74,9 @@ TLS_OPTION = typer.Option(
     "certificates carry the testbed addresses).",
 )
 TLS_NOTE = "Every link: mutual TLS with access control (`--tls`)."
+
+# An experiment's result: a typed one, or (the experiments not typed yet) its JSON object.
+Result = TypeVar("Result")
 
 # The options every testbed experiment takes (`testbed_command`), in their order in --help:
 # name -> (annotation, typer option). `as_json` is the command's; the others make BenchOptions.
@@ -175,15 +178,15 @@ def testbed_command(
 
 def _run(
     options: Any,
-    experiment: Callable[[], dict[str, Any]],
-    render: Callable[[dict[str, Any]], str],
-    plot: Callable[[dict[str, Any], Path], list[Path]],
+    experiment: Callable[[], Result],
+    render: Callable[[Result], str],
+    plot: Callable[[Result, Path], list[Path]],
     as_json: bool,
-    public: Callable[[dict[str, Any]], dict[str, Any]] = lambda r: r,
+    public: Callable[[Result], dict[str, Any]],
     tls_key: bool = True,
 ) -> None:
-    """Run, plot, print. `tls_key`: the JSON says whether TLS was on (False: a contract that
-    allows no key beyond its own)."""
+    """Run, plot, print. `public`: the result's `--json` object; `tls_key`: the JSON says
+    whether TLS was on (False: a contract that allows no key beyond its own)."""
     from deploy.testbed import require_root
 
     err = Console(stderr=True)
@@ -195,16 +198,22 @@ def _run(
     except KeyboardInterrupt:
         err.print("interrupted; the testbed and every daemon are gone", highlight=False)
         raise typer.Exit(INTERRUPTED_EXIT_CODE) from None
-    if options.plots_dir is not None and result.get("results"):
+    data = public(result)
+    if options.plots_dir is not None and data.get("results"):
         for path in plot(result, options.plots_dir):
             err.print(f"plot: {path}", highlight=False)
     if as_json:
         extra = {"tls": options.tls} if tls_key else {}
-        typer.echo(json.dumps({**public(result), **extra}))
+        typer.echo(json.dumps({**data, **extra}))
     else:
         typer.echo(render(result))
         if options.tls:
             typer.echo(f"\n{TLS_NOTE}")
+
+
+def _as_is(result: dict[str, Any]) -> dict[str, Any]:
+    """The `--json` of an experiment whose result is its JSON object."""
+    return result
 
 
 def _fail(exc: UserError) -> NoReturn:
@@ -248,7 +257,14 @@ def table1(
 
     caps = _guard(lambda: parse_floats(uplinks, "--uplinks"))
     names = _policies(policies)
-    _run(options, lambda: t1.run(options, caps, names), t1.markdown, t1.plot, as_json)
+    _run(
+        options,
+        lambda: t1.run(options, caps, names),
+        t1.markdown,
+        t1.plot,
+        as_json,
+        t1.Table1Result.public,
+    )
 
 
 @testbed_command("glitch")
@@ -264,7 +280,6 @@ def glitch(
     """A bandwidth glitch while the robot streams: before / on / after, frames to settle."""
     from deploy.experiments import glitch as gl
     from deploy.experiments.options import parse_floats
-    from deploy.experiments.single_edge import public
 
     a, b = _guard(lambda: parse_floats(f"{from_mbit},{to_mbit}", "--from-mbit/--to-mbit"))
     names = _policies(policies)
@@ -274,7 +289,7 @@ def glitch(
         gl.markdown,
         lambda r, d: gl.plot(r, d, "glitch"),
         as_json,
-        public,
+        gl.GlitchResult.public,
     )
 
 
@@ -288,7 +303,6 @@ def table2(
 ) -> None:
     """ElasticROS Table II: the glitches 10→3, 5→1 and 10→1 Mbit/s."""
     from deploy.experiments import glitch as gl
-    from deploy.experiments.single_edge import public
 
     names = _policies(policies)
     _run(
@@ -297,7 +311,7 @@ def table2(
         gl.markdown,
         lambda r, d: gl.plot(r, d, "table2"),
         as_json,
-        public,
+        gl.GlitchResult.public,
     )
 
 
@@ -311,10 +325,16 @@ def table3(
 ) -> None:
     """ElasticROS Table III: the robot's CPU quota drops to --robot-cpu, then recovers."""
     from deploy.experiments import table3 as t3
-    from deploy.experiments.single_edge import public
 
     names = _policies(policies)
-    _run(options, lambda: t3.run(options, names), t3.markdown, t3.plot, as_json, public)
+    _run(
+        options,
+        lambda: t3.run(options, names),
+        t3.markdown,
+        t3.plot,
+        as_json,
+        t3.Table3Result.public,
+    )
 
 
 @testbed_command("anycast", fixed={"robot_cpu": 1.0})
@@ -325,7 +345,7 @@ def anycast(
     """FogROS2-LS Table I: deadline misses with 1-4 deployments when edge-1 is slowed."""
     from deploy.experiments import anycast as ac
 
-    _run(options, lambda: ac.run(options), ac.markdown, ac.plot, as_json)
+    _run(options, lambda: ac.run(options), ac.markdown, ac.plot, as_json, _as_is)
 
 
 @bench_app.command("nav")
@@ -461,6 +481,7 @@ def pool(
         npl.markdown,
         lambda result, out_dir: [],
         as_json,
+        _as_is,
         tls_key=False,
     )
 

@@ -3,7 +3,7 @@
 Tables: deployments, deployment_states (per deployment and robot: standby, service or draining, with
 the epoch of the last state change), robots, routes (robot → deployment, epoch), profiles
 (latency samples per robot × deployment × source: `registry.rib_profiles`) and events (every
-transition, with its reason).
+transition, with its reason: `registry.rib_events`).
 The file survives restarts: a restarted registry reads routes and epochs back and resumes from
 them, so epochs keep growing and the anycast invariant can be repaired. Liveness flags are not
 trusted after a restart: call `reset_liveness()` and seed membership again from liveliness.
@@ -22,43 +22,19 @@ from __future__ import annotations
 
 import json
 import sqlite3
-import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass
-from enum import Enum
-from pathlib import Path
 from typing import Any
 
 # One definition of a deployment's state per robot: the wire's (re-exported here for the RIB's
 # callers).
 from common.wire.registry import DeploymentState
+from registry.rib_events import EventKind as EventKind  # re-exported
+from registry.rib_events import EventRow as EventRow
+from registry.rib_events import RibEvents
 from registry.rib_profiles import ProfileRow as ProfileRow  # re-exported
-from registry.rib_profiles import RibProfiles
 from registry.rib_store import MEMORY as MEMORY  # re-exported: callers open Rib(MEMORY)
 from registry.rib_store import SCHEMA_VERSION as SCHEMA_VERSION
-
-# Events are kept for inspection, not forever: older rows are pruned past this count.
-EVENTS_KEEP = 10_000
-EVENTS_PRUNE_EVERY = 500
-DEFAULT_EVENTS_LIMIT = 100
-
-
-class EventKind(str, Enum):
-    """What an event row records."""
-
-    DEPLOYMENT_UP = "deployment_up"
-    DEPLOYMENT_DOWN = "deployment_down"
-    DEPLOYMENT_DRAIN = "deployment_drain"
-    ROBOT_UP = "robot_up"
-    ROBOT_DOWN = "robot_down"
-    ROUTE = "route"
-    STATE = "state"
-    ACK_FAILED = "ack_failed"
-    STANDBY_FAILED = "standby_failed"
-    PUBLISH_FAILED = "publish_failed"
-    SWITCH_FAILED = "switch_failed"
-    EPOCH_RAISED = "epoch_raised"
-    REGISTRATION_REFUSED = "registration_refused"
 
 
 @dataclass(frozen=True)
@@ -125,23 +101,6 @@ class DeploymentStateRow:
         return {**asdict(self), "state": self.state.value}
 
 
-@dataclass(frozen=True)
-class EventRow:
-    """One recorded transition."""
-
-    seq: int
-    ts: float
-    kind: str
-    robot: str | None
-    deployment: str | None
-    epoch: int | None
-    reason: str
-
-    def to_dict(self) -> dict[str, Any]:
-        """Plain data for a JSON view."""
-        return asdict(self)
-
-
 def _check_id(what: str, value: str) -> None:
     if not isinstance(value, str) or not value:
         raise ValueError(f"{what} must be a non-empty string, got {value!r}")
@@ -152,81 +111,8 @@ def _check_count(what: str, value: int) -> None:
         raise ValueError(f"{what} must be an integer >= 0, got {value!r}")
 
 
-class Rib(RibProfiles):
+class Rib(RibEvents):
     """The routing information base over one sqlite file (or `":memory:"` for tests)."""
-
-    def __init__(self, path: str | Path, *, clock: Callable[[], float] = time.time) -> None:
-        self._inserts_since_prune = 0
-        super().__init__(path, clock=clock)
-
-    def _event(
-        self,
-        conn: sqlite3.Connection,
-        kind: EventKind | str,
-        robot: str | None,
-        deployment: str | None,
-        epoch: int | None,
-        reason: str,
-    ) -> None:
-        kind_s = kind.value if isinstance(kind, EventKind) else str(kind)
-        conn.execute(
-            "INSERT INTO events (ts, kind, robot, deployment, epoch, reason) VALUES (?,?,?,?,?,?)",
-            (self._clock(), kind_s, robot, deployment, epoch, reason),
-        )
-        self._inserts_since_prune += 1
-        if self._inserts_since_prune >= EVENTS_PRUNE_EVERY:
-            self._inserts_since_prune = 0
-            conn.execute(
-                "DELETE FROM events WHERE seq <= (SELECT MAX(seq) FROM events) - ?", (EVENTS_KEEP,)
-            )
-
-    # -- events --------------------------------------------------------------------------------
-    def record_event(
-        self,
-        kind: EventKind | str,
-        *,
-        robot: str | None = None,
-        deployment: str | None = None,
-        epoch: int | None = None,
-        reason: str = "",
-    ) -> None:
-        """Append one event."""
-        with self._tx() as conn:
-            self._event(conn, kind, robot, deployment, epoch, reason)
-
-    def events(
-        self,
-        limit: int = DEFAULT_EVENTS_LIMIT,
-        *,
-        robot: str | None = None,
-        kind: str | None = None,
-    ) -> list[EventRow]:
-        """The newest `limit` events (optionally of one robot or kind), oldest first."""
-        if isinstance(limit, bool) or not isinstance(limit, int) or limit < 1:
-            raise ValueError(f"events limit must be an integer >= 1, got {limit!r}")
-        where, params = [], []
-        if robot is not None:
-            where.append("robot = ?")
-            params.append(robot)
-        if kind is not None:
-            where.append("kind = ?")
-            params.append(str(getattr(kind, "value", kind)))
-        clause = f"WHERE {' AND '.join(where)}" if where else ""
-        rows = self._query(
-            f"SELECT * FROM events {clause} ORDER BY seq DESC LIMIT ?", [*params, limit]
-        )
-        return [
-            EventRow(
-                seq=r["seq"],
-                ts=r["ts"],
-                kind=r["kind"],
-                robot=r["robot"],
-                deployment=r["deployment"],
-                epoch=r["epoch"],
-                reason=r["reason"],
-            )
-            for r in reversed(rows)
-        ]
 
     # -- deployments -----------------------------------------------------------------------------
     def upsert_deployment(

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import NoReturn
 
 import typer
 from rich.console import Console
@@ -32,6 +33,29 @@ def register(app: typer.Typer) -> None:
         robot_command
     )
     results_cli.register(app)
+
+
+def _fail(exc: UserError) -> NoReturn:
+    """Bad input: one line on stderr, the error's exit code."""
+    # The message as written: a spec like `bag:run:front` holds what Rich would take for an
+    # emoji code (`:run:`) or markup (`[...]`).
+    Console(stderr=True).print(
+        f"[red]error:[/red] {escape(str(exc))}", highlight=False, soft_wrap=True, emoji=False
+    )
+    raise typer.Exit(exc.exit_code) from None
+
+
+def _check_policy(policy: str | None) -> str | None:
+    """`--policy`, checked before every other option (eager): a typo is what the command says
+    first, in one line naming the known policies, also when --config or --id is missing."""
+    if policy is not None:
+        from robotd.policies import check_policy
+
+        try:
+            check_policy(policy, real_time=True)
+        except UserError as exc:
+            _fail(exc)
+    return policy
 
 
 def robot_command(
@@ -59,6 +83,8 @@ def robot_command(
     policy: str | None = typer.Option(
         None,
         "--policy",
+        callback=_check_policy,
+        is_eager=True,
         help="elastic, ans, neurosurgeon, robot, cloud[:CODEC], static:K[:CODEC], or on "
         "zoo:stereo a navigation option option:N[:CODEC] (e.g. option:1:png); default: the "
         "fleet's.",
@@ -123,16 +149,13 @@ def robot_command(
     # Heavy imports (pydantic, zenoh, onnxruntime, cv2) where the command runs: `elasticfog --help`
     # must stay fast.
     from common.config import load_fleet
-    from robotd.policies import check_policy
     from robotd.source_names import parse_source
 
     try:
         with logging_to_stderr(log_level):
-            # The names first, then the fleet file, before the daemon's imports (zenoh,
-            # onnxruntime): a typo fails in well under two seconds.
+            # The names first (--policy: `_check_policy`), then the fleet file, before the
+            # daemon's imports (zenoh, onnxruntime): a typo fails in well under two seconds.
             parsed_source = None if source is None else parse_source(source)
-            if policy is not None:
-                check_policy(policy, real_time=True)
             cfg = load_fleet(config)
             from robotd.daemon import RobotDaemon, RobotOptions
             from robotd.emulation import check_slowdown, load_phases
@@ -161,12 +184,7 @@ def robot_command(
             daemon = RobotDaemon(cfg, robot_id, options)
             code = daemon.run()
     except UserError as exc:
-        # The message as written: a spec like `bag:run:front` holds what Rich would take for an
-        # emoji code (`:run:`) or markup (`[...]`).
-        Console(stderr=True).print(
-            f"[red]error:[/red] {escape(str(exc))}", highlight=False, soft_wrap=True, emoji=False
-        )
-        raise typer.Exit(exc.exit_code) from None
+        _fail(exc)
     if json_out:
         typer.echo(json.dumps(daemon.summary.to_json()))
     else:

@@ -14,6 +14,7 @@ change until the policy settled, `lost` the frames asked for and never reported.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -24,17 +25,73 @@ from .single_edge import (
     CHANGE_WAIT_S,
     DEADLINE_S,
     HOSTS,
+    SingleEdgeResult,
     fleet_spec,
     preset_split,
     run_timeout_s,
 )
-from .stats import by_frame, lost_frames, phases
+from .stats import Phases, Record, by_frame, lost_frames, phases
 
 POLICIES = ("elastic", "elastic-nohedge", "cloud:jpeg80", "cloud", "robot")
 TABLE2_GLITCHES = ((10.0, 3.0), (5.0, 1.0), (10.0, 1.0))
 # Frames of one run: warm-up (left out), before the change, after it.
 FULL_SPLIT = (10, 20, 50)
 QUICK_SPLIT = (4, 10, 24)
+# What a row's trace keeps of each telemetry record (the plot's).
+TRACE_KEYS = ("frame", "action", "latency_s", "bytes_up", "fallback")
+
+
+@dataclass(frozen=True)
+class GlitchSettings:
+    """The runs' settings; the fields, in order, are the keys of its JSON object."""
+
+    model: str
+    input_shape: list[int]
+    robot_cpu: float
+    warmup_frames: int
+    before_frames: int
+    after_frames: int
+    deadline_s: float = DEADLINE_S
+
+    def to_json(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class GlitchRow:
+    """One policy through one glitch: the phases around the change, frames lost, where the
+    change and the measurement began, and the per-frame trace (for the plot, not the JSON)."""
+
+    policy: str
+    from_mbit: float
+    to_mbit: float
+    phases: Phases
+    lost: int
+    change_frame: int
+    measured_from_frame: int
+    trace: list[Record]
+
+    def to_json(self) -> dict[str, Any]:
+        """The row of the `--json` contract (the module docstring), the trace left out."""
+        ph = self.phases
+        return {
+            "policy": self.policy,
+            "from_mbit": self.from_mbit,
+            "to_mbit": self.to_mbit,
+            "before_mean_latency_s": ph.before.mean_latency_s,
+            "on_mean_latency_s": ph.on.mean_latency_s,
+            "after_mean_latency_s": ph.after.mean_latency_s,
+            "settle_frames": ph.settle_frames,
+            "lost": self.lost,
+            "change_frame": self.change_frame,
+            "measured_from_frame": self.measured_from_frame,
+            "before": ph.before.to_json(),
+            "on": ph.on.to_json(),
+            "after": ph.after.to_json(),
+        }
+
+
+GlitchResult = SingleEdgeResult[GlitchSettings, GlitchRow]
 
 
 def frame_split(options: BenchOptions) -> tuple[int, int, int]:
@@ -53,7 +110,7 @@ def run_one(
     policy: str,
     from_mbit: float,
     to_mbit: float,
-) -> dict[str, Any]:
+) -> GlitchRow:
     """One policy through one glitch on a launched fleet; its result row."""
     warmup, before, after = frame_split(options)
     frames = warmup + before + after
@@ -66,27 +123,16 @@ def run_one(
     change_frame = tf.follower.last_frame() + 1
     options.log(f"{policy}: uplink {from_mbit:g} -> {to_mbit:g} Mbit/s at frame {change_frame}")
     records = by_frame(tf.finish_robot(run_timeout_s(frames)))
-    ph = phases(records, start, change_frame)
-    row: dict[str, Any] = {
-        "policy": policy,
-        "from_mbit": from_mbit,
-        "to_mbit": to_mbit,
-        "before_mean_latency_s": ph["before"]["mean_latency_s"],
-        "on_mean_latency_s": ph["on"]["mean_latency_s"],
-        "after_mean_latency_s": ph["after"]["mean_latency_s"],
-        "settle_frames": ph["settle_frames"],
-        "lost": len(lost_frames(records, frames)),
-        "change_frame": change_frame,
-        "measured_from_frame": start,
-        "before": ph["before"],
-        "on": ph["on"],
-        "after": ph["after"],
-        "trace": [
-            {k: r.get(k) for k in ("frame", "action", "latency_s", "bytes_up", "fallback")}
-            for r in records
-        ],
-    }
-    return row
+    return GlitchRow(
+        policy=policy,
+        from_mbit=from_mbit,
+        to_mbit=to_mbit,
+        phases=phases(records, start, change_frame),
+        lost=len(lost_frames(records, frames)),
+        change_frame=change_frame,
+        measured_from_frame=start,
+        trace=[{k: r.get(k) for k in TRACE_KEYS} for r in records],
+    )
 
 
 def run(
@@ -94,7 +140,7 @@ def run(
     from_mbit: float,
     to_mbit: float,
     policies: Sequence[str] = POLICIES,
-) -> dict[str, Any]:
+) -> GlitchResult:
     """`bench glitch`: every policy through one glitch."""
     return run_table2(options, [(from_mbit, to_mbit)], policies)
 
@@ -103,7 +149,7 @@ def run_table2(
     options: BenchOptions,
     glitches: Sequence[tuple[float, float]] = TABLE2_GLITCHES,
     policies: Sequence[str] = POLICIES,
-) -> dict[str, Any]:
+) -> GlitchResult:
     """Every policy through every glitch, on one testbed."""
     options.check()
     warmup, before, after = frame_split(options)
@@ -113,21 +159,18 @@ def run_table2(
         for from_mbit, to_mbit in glitches:
             for policy in policies:
                 results.append(run_one(tf, options, policy, from_mbit, to_mbit))
-    return {
-        "settings": {
-            "model": options.model,
-            "input_shape": list(options.input_shape),
-            "robot_cpu": options.robot_cpu,
-            "warmup_frames": warmup,
-            "before_frames": before,
-            "after_frames": after,
-            "deadline_s": DEADLINE_S,
-        },
-        "results": results,
-    }
+    settings = GlitchSettings(
+        model=options.model,
+        input_shape=list(options.input_shape),
+        robot_cpu=options.robot_cpu,
+        warmup_frames=warmup,
+        before_frames=before,
+        after_frames=after,
+    )
+    return SingleEdgeResult(settings, results)
 
 
-def markdown(result: dict[str, Any]) -> str:
+def markdown(result: GlitchResult) -> str:
     """One row per glitch and policy: latency before / on / after, robot CPU and energy per frame
     before and after, the main action before and after, frames to settle, frames lost."""
     header = [
@@ -141,37 +184,37 @@ def markdown(result: dict[str, Any]) -> str:
         "lost",
     ]
     rows: list[list[str]] = []
-    for r in result["results"]:
-        b, o, a = r["before"], r["on"], r["after"]
+    for r in result.results:
+        b, o, a = r.phases.before, r.phases.on, r.phases.after
         rows.append(
             [
-                f"{r['from_mbit']:g}→{r['to_mbit']:g}",
-                r["policy"],
-                " / ".join(fmt(x["mean_latency_s"], 3) for x in (b, o, a)),
-                " / ".join(fmt(x["robot_cpu_s"], 4) for x in (b, a)),
-                " / ".join(fmt(x["energy_j"], 2) for x in (b, a)),
-                f"{b['main_action']} → {a['main_action']}",
-                fmt(r["settle_frames"]),
-                str(r["lost"]),
+                f"{r.from_mbit:g}→{r.to_mbit:g}",
+                r.policy,
+                " / ".join(fmt(x.mean_latency_s, 3) for x in (b, o, a)),
+                " / ".join(fmt(x.robot_cpu_s, 4) for x in (b, a)),
+                " / ".join(fmt(x.energy_j, 2) for x in (b, a)),
+                f"{b.main_action} → {a.main_action}",
+                fmt(r.phases.settle_frames),
+                str(r.lost),
             ]
         )
     return md_table(header, rows) + "\n"
 
 
-def plot(result: dict[str, Any], out_dir: Path, name: str) -> list[Path]:
+def plot(result: GlitchResult, out_dir: Path, name: str) -> list[Path]:
     """Per glitch: latency of every frame against its index, one line per policy."""
     use_agg()
     import matplotlib.pyplot as plt
 
-    glitches = list(dict.fromkeys((r["from_mbit"], r["to_mbit"]) for r in result["results"]))
+    glitches = list(dict.fromkeys((r.from_mbit, r.to_mbit) for r in result.results))
     fig, axes = plt.subplots(1, len(glitches), figsize=(5 * len(glitches), 4), squeeze=False)
     for ax, (a, b) in zip(axes[0], glitches, strict=True):
-        for r in result["results"]:
-            if (r["from_mbit"], r["to_mbit"]) != (a, b):
+        for r in result.results:
+            if (r.from_mbit, r.to_mbit) != (a, b):
                 continue
-            trace = [t for t in r["trace"] if t["frame"] >= r["measured_from_frame"]]
-            xs = [t["frame"] - r["change_frame"] for t in trace]
-            ax.plot(xs, [t["latency_s"] for t in trace], marker=".", label=r["policy"])
+            trace = [t for t in r.trace if t["frame"] >= r.measured_from_frame]
+            xs = [t["frame"] - r.change_frame for t in trace]
+            ax.plot(xs, [t["latency_s"] for t in trace], marker=".", label=r.policy)
         ax.axvline(0, color="grey", linestyle="--")
         ax.set_yscale("log")
         ax.set_title(f"uplink {a:g} → {b:g} Mbit/s")

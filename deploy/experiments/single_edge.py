@@ -4,12 +4,15 @@ The three experiments (`table1`, `glitch` for Table II, `table3`) run one robot 
 one run per policy, against `edge-1` on the same four hosts, with a deadline far above a full
 offload at the slowest cap (so "cloud" is measured, not cut off), and bound each run by its
 frames. Their frames are split into a warm-up left out and the phases the experiment measures
-(`preset_split`), and their JSON leaves the per-frame traces out (`public`).
+(`preset_split`). Each gives a `SingleEdgeResult`: its settings and one row per run, typed; its
+`--json` (`SingleEdgeResult.public`) is written from them, the per-frame traces the plots use
+left out.
 """
 
 from __future__ import annotations
 
-from typing import Any, TypeVar
+from dataclasses import dataclass
+from typing import Any, Generic, Protocol, TypeVar
 
 from .fleet import FleetSpec
 from .options import BenchOptions
@@ -25,6 +28,31 @@ CHANGE_WAIT_S = 300.0
 """Bound of the wait for the frame at which a condition changes (uplink cap, CPU quota)."""
 
 Split = TypeVar("Split", bound=tuple[int, ...])
+
+
+class JsonObject(Protocol):
+    """A typed part of a result that writes its own JSON object (keys are the contract)."""
+
+    def to_json(self) -> dict[str, Any]: ...
+
+
+Settings = TypeVar("Settings", bound=JsonObject)
+Row = TypeVar("Row", bound=JsonObject)
+
+
+@dataclass(frozen=True)
+class SingleEdgeResult(Generic[Settings, Row]):
+    """What one of the experiments gives: its settings and one row per run."""
+
+    settings: Settings
+    results: list[Row]
+
+    def public(self) -> dict[str, Any]:
+        """The `--json` of the experiment: {"settings": ..., "results": [rows]}."""
+        return {
+            "settings": self.settings.to_json(),
+            "results": [row.to_json() for row in self.results],
+        }
 
 
 def fleet_spec(tf: TestbedFleet, options: BenchOptions, tag: str) -> FleetSpec:
@@ -49,9 +77,3 @@ def preset_split(options: BenchOptions, full: Split, quick: Split) -> Split | No
     if options.frames is not None:
         return None
     return quick if options.quick else full
-
-
-def public(result: dict[str, Any]) -> dict[str, Any]:
-    """The `--json` of an experiment: its settings and rows, the per-frame traces left out."""
-    rows = [{k: v for k, v in r.items() if k != "trace"} for r in result["results"]]
-    return {"settings": result["settings"], "results": rows}

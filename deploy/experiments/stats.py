@@ -11,6 +11,7 @@ from __future__ import annotations
 import statistics
 from collections import Counter
 from collections.abc import Iterable, Sequence
+from dataclasses import asdict, dataclass
 from typing import Any
 
 from common.wire.telemetry import parse_action
@@ -62,24 +63,47 @@ def _mean(values: Sequence[float]) -> float | None:
     return statistics.fmean(values) if values else None
 
 
-def summary(records: Sequence[Record]) -> dict[str, Any]:
+@dataclass(frozen=True)
+class WindowSummary:
+    """Per-frame figures of a window of records (`summary`); None where the window is empty.
+    The fields, in order, are the keys of its JSON object (`to_json`)."""
+
+    frames: int
+    mean_latency_s: float | None
+    median_latency_s: float | None
+    p95_latency_s: float | None
+    robot_cpu_s: float | None
+    energy_j: float | None
+    bytes_up: float | None
+    fallbacks: int
+    actions: dict[str, int]
+    """Frames per action, most frequent first."""
+    main_action: str | None
+    deployments: dict[str, int]
+    """Offloaded frames per deployment that answered, most frequent first."""
+
+    def to_json(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def summary(records: Sequence[Record]) -> WindowSummary:
     """Per-frame figures of a window of records."""
     latency = [float(r["latency_s"]) for r in records]
     actions = Counter(str(r["action"]) for r in records)
     deployments = Counter(str(r["deployment"]) for r in records if r.get("deployment"))
-    return {
-        "frames": len(records),
-        "mean_latency_s": _mean(latency),
-        "median_latency_s": statistics.median(latency) if latency else None,
-        "p95_latency_s": percentile(latency, 95),
-        "robot_cpu_s": _mean([float(r["robot_cpu_s"]) for r in records]),
-        "energy_j": _mean([float(r["energy_j"]) for r in records]),
-        "bytes_up": _mean([float(r["bytes_up"]) for r in records]),
-        "fallbacks": sum(1 for r in records if r.get("fallback")),
-        "actions": dict(actions.most_common()),
-        "main_action": actions.most_common(1)[0][0] if actions else None,
-        "deployments": dict(deployments.most_common()),
-    }
+    return WindowSummary(
+        frames=len(records),
+        mean_latency_s=_mean(latency),
+        median_latency_s=statistics.median(latency) if latency else None,
+        p95_latency_s=percentile(latency, 95),
+        robot_cpu_s=_mean([float(r["robot_cpu_s"]) for r in records]),
+        energy_j=_mean([float(r["energy_j"]) for r in records]),
+        bytes_up=_mean([float(r["bytes_up"]) for r in records]),
+        fallbacks=sum(1 for r in records if r.get("fallback")),
+        actions=dict(actions.most_common()),
+        main_action=actions.most_common(1)[0][0] if actions else None,
+        deployments=dict(deployments.most_common()),
+    )
 
 
 def action_order(label: str) -> int:
@@ -123,9 +147,20 @@ def settle_frames(
     return None
 
 
+@dataclass(frozen=True)
+class Phases:
+    """A run split by a change (`phases`): the frames the policy took to settle (None: it never
+    did), and the windows before, on and after the change."""
+
+    settle_frames: int | None
+    before: WindowSummary
+    on: WindowSummary
+    after: WindowSummary
+
+
 def phases(
     records: Sequence[Record], start: int, change_frame: int, stop: int | None = None
-) -> dict[str, Any]:
+) -> Phases:
     """Before / on / after a change at `change_frame` (frames from `start`, up to `stop`).
 
     "on" runs from the change until the policy settles (at least ON_MIN_FRAMES frames),
@@ -134,9 +169,9 @@ def phases(
     settle = settle_frames(between(window, change_frame), change_frame)
     on_frames = max(ON_MIN_FRAMES, settle if settle is not None else 0)
     settled_at = change_frame + on_frames
-    return {
-        "settle_frames": settle,
-        "before": summary(between(window, start, change_frame)),
-        "on": summary(between(window, change_frame, settled_at)),
-        "after": summary(between(window, settled_at)),
-    }
+    return Phases(
+        settle_frames=settle,
+        before=summary(between(window, start, change_frame)),
+        on=summary(between(window, change_frame, settled_at)),
+        after=summary(between(window, settled_at)),
+    )

@@ -10,13 +10,15 @@ locally, the others choose a cut per frame.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
 from .options import BenchOptions, open_fleet
 from .report import fmt, md_table, save_plot, use_agg
-from .single_edge import DEADLINE_S, HOSTS, fleet_spec, run_timeout_s
-from .stats import between, by_frame, lost_frames, summary
+from .single_edge import DEADLINE_S, HOSTS, SingleEdgeResult, fleet_spec, run_timeout_s
+from .stats import WindowSummary, between, by_frame, lost_frames, summary
 
 UPLINKS_MBIT = (0.5, 1.0, 2.0, 5.0, 20.0)
 POLICIES = ("robot", "cloud", "cloud:jpeg80", "elastic", "elastic-nohedge", "neurosurgeon", "ans")
@@ -24,16 +26,53 @@ FULL_FRAMES, QUICK_FRAMES = 40, 14
 FULL_WARMUP, QUICK_WARMUP = 10, 4
 
 
+@dataclass(frozen=True)
+class Table1Settings:
+    """The grid's settings; the fields, in order, are the keys of its JSON object."""
+
+    model: str
+    input_shape: list[int]
+    robot_cpu: float
+    frames: int
+    warmup_frames: int
+    deadline_s: float = DEADLINE_S
+
+    def to_json(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class Table1Row:
+    """One robot run: its uplink cap and policy, the measured window's figures, frames lost."""
+
+    uplink_mbit: float
+    policy: str
+    window: WindowSummary
+    lost: int
+
+    def to_json(self) -> dict[str, Any]:
+        """{"uplink_mbit", "policy", the window's keys, "lost"}."""
+        return {
+            "uplink_mbit": self.uplink_mbit,
+            "policy": self.policy,
+            **self.window.to_json(),
+            "lost": self.lost,
+        }
+
+
+Table1Result = SingleEdgeResult[Table1Settings, Table1Row]
+
+
 def run(
     options: BenchOptions,
     uplinks: tuple[float, ...] | list[float] = UPLINKS_MBIT,
     policies: tuple[str, ...] | list[str] = POLICIES,
-) -> dict[str, Any]:
-    """Run the grid; {"settings": ..., "results": [one row per (uplink, policy)]}."""
+) -> Table1Result:
+    """Run the grid: one row per (uplink, policy)."""
     options.check()
     frames = options.frames_or(FULL_FRAMES, QUICK_FRAMES)
     warmup = min(FULL_WARMUP if not options.quick else QUICK_WARMUP, max(0, frames - 3))
-    results: list[dict[str, Any]] = []
+    results: list[Table1Row] = []
     with open_fleet(options, hosts=HOSTS) as tf:
         tf.launch(fleet_spec(tf, options, "t1-"))
         for uplink in uplinks:
@@ -43,72 +82,71 @@ def run(
                 tf.start_robot(policy, frames=frames, cpu_fraction=options.robot_cpu)
                 records = by_frame(tf.finish_robot(run_timeout_s(frames)))
                 window = between(records, tf.measure_from + warmup)
-                row = {"uplink_mbit": uplink, "policy": policy, **summary(window)}
-                row["lost"] = len(lost_frames(records, frames))
-                results.append(row)
-    return {
-        "settings": {
-            "model": options.model,
-            "input_shape": list(options.input_shape),
-            "robot_cpu": options.robot_cpu,
-            "frames": frames,
-            "warmup_frames": warmup,
-            "deadline_s": DEADLINE_S,
-        },
-        "results": results,
-    }
+                lost = len(lost_frames(records, frames))
+                results.append(Table1Row(uplink, policy, summary(window), lost))
+    settings = Table1Settings(
+        model=options.model,
+        input_shape=list(options.input_shape),
+        robot_cpu=options.robot_cpu,
+        frames=frames,
+        warmup_frames=warmup,
+    )
+    return SingleEdgeResult(settings, results)
 
 
-def _cell(result: dict[str, Any], uplink: float, policy: str, key: str) -> Any:
-    for row in result["results"]:
-        if row["uplink_mbit"] == uplink and row["policy"] == policy:
-            return row.get(key)
-    return None
+def _row(result: Table1Result, uplink: float, policy: str) -> Table1Row | None:
+    return next((r for r in result.results if r.uplink_mbit == uplink and r.policy == policy), None)
 
 
-def markdown(result: dict[str, Any]) -> str:
+def markdown(result: Table1Result) -> str:
     """Tables (mean and median latency, robot CPU, energy per frame) with uplinks as rows."""
-    rows = result["results"]
-    uplinks = list(dict.fromkeys(r["uplink_mbit"] for r in rows))
-    policies = list(dict.fromkeys(r["policy"] for r in rows))
+    rows = result.results
+    uplinks = list(dict.fromkeys(r.uplink_mbit for r in rows))
+    policies = list(dict.fromkeys(r.policy for r in rows))
     out = []
-    for title, key, digits in (
-        ("mean latency per frame (s)", "mean_latency_s", 3),
-        ("median latency per frame (s)", "median_latency_s", 3),
-        ("robot CPU per frame (s)", "robot_cpu_s", 4),
-        ("robot energy per frame (J)", "energy_j", 3),
-    ):
+    figures: tuple[tuple[str, Callable[[WindowSummary], float | None], int], ...] = (
+        ("mean latency per frame (s)", lambda w: w.mean_latency_s, 3),
+        ("median latency per frame (s)", lambda w: w.median_latency_s, 3),
+        ("robot CPU per frame (s)", lambda w: w.robot_cpu_s, 4),
+        ("robot energy per frame (J)", lambda w: w.energy_j, 3),
+    )
+    for title, figure, digits in figures:
         table = [
-            [f"{u:g}", *(fmt(_cell(result, u, p, key), digits) for p in policies)] for u in uplinks
+            [f"{u:g}", *(fmt(_figure(_row(result, u, p), figure), digits) for p in policies)]
+            for u in uplinks
         ]
         out.append(f"**{title}**\n\n" + md_table(["uplink (Mbit/s)", *policies], table))
-    choices = [
-        [
-            f"{u:g}",
-            *(f"{_cell(result, u, p, 'main_action')} ({_cell(result, u, p, 'lost')} lost)"
-              for p in policies),
-        ]
-        for u in uplinks
-    ]  # fmt: skip
+    choices = [[f"{u:g}", *(_choice(_row(result, u, p)) for p in policies)] for u in uplinks]
     out.append(
         "**most frequent action (frames lost)**\n\n" + md_table(["uplink", *policies], choices)
     )
     return "\n\n".join(out) + "\n"
 
 
-def plot(result: dict[str, Any], out_dir: Path) -> list[Path]:
+def _figure(row: Table1Row | None, figure: Callable[[WindowSummary], float | None]) -> float | None:
+    return None if row is None else figure(row.window)
+
+
+def _choice(row: Table1Row | None) -> str:
+    """The most frequent action and the frames lost, as a table cell."""
+    if row is None:
+        return "n/a"
+    return f"{row.window.main_action} ({row.lost} lost)"
+
+
+def plot(result: Table1Result, out_dir: Path) -> list[Path]:
     """Latency and energy per frame against the uplink cap, one line per policy."""
     use_agg()
     import matplotlib.pyplot as plt
 
-    rows = result["results"]
-    policies = list(dict.fromkeys(r["policy"] for r in rows))
+    rows = result.results
+    policies = list(dict.fromkeys(r.policy for r in rows))
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
     for policy in policies:
-        mine = sorted((r for r in rows if r["policy"] == policy), key=lambda r: r["uplink_mbit"])
-        xs = [r["uplink_mbit"] for r in mine]
-        axes[0].plot(xs, [r["mean_latency_s"] for r in mine], marker="o", label=policy)
-        axes[1].plot(xs, [r["energy_j"] for r in mine], marker="o", label=policy)
+        mine = sorted((r for r in rows if r.policy == policy), key=lambda r: r.uplink_mbit)
+        xs = [r.uplink_mbit for r in mine]
+        axes[0].plot(xs, [r.window.mean_latency_s for r in mine], marker="o", label=policy)
+        axes[1].plot(xs, [r.window.energy_j for r in mine], marker="o", label=policy)
     for ax, label in zip(axes, ("mean latency per frame (s)", "energy per frame (J)"), strict=True):
         ax.set_xscale("log")
         ax.set_yscale("log")
@@ -116,9 +154,9 @@ def plot(result: dict[str, Any], out_dir: Path) -> list[Path]:
         ax.set_ylabel(label)
         ax.grid(True, which="both", alpha=0.3)
     axes[0].legend()
-    s = result["settings"]
+    s = result.settings
     fig.suptitle(
-        f"Table I on the testbed: {s['model']} {'x'.join(map(str, s['input_shape']))}, "
-        f"robot at {s['robot_cpu']:g} core"
+        f"Table I on the testbed: {s.model} {'x'.join(map(str, s.input_shape))}, "
+        f"robot at {s.robot_cpu:g} core"
     )
     return [save_plot(fig, out_dir / "table1.png")]

@@ -170,3 +170,14 @@ def test_bad_input_is_one_line_and_exit_code_2(
     errors = [line for line in result.stderr.splitlines() if line.startswith("error:")]
     assert len(errors) == 1 and message in errors[0], result.stderr
     assert result.exception is None or isinstance(result.exception, SystemExit)
+
+
+def test_a_policy_typo_is_said_first_even_without_config_or_id() -> None:
+    """`elasticfog robot --policy elastik`: the typo, in one line naming the known policies,
+    rather than the missing --config and --id."""
+    result = CliRunner().invoke(app, ["robot", "--policy", "elastik"])
+    assert result.exit_code == EXIT_USAGE, result.output
+    errors = [line for line in result.stderr.splitlines() if line.startswith("error:")]
+    assert len(errors) == 1 and "unknown policy 'elastik'" in errors[0], result.stderr
+    assert "elastic, ans, neurosurgeon" in errors[0]
+    assert "Missing option" not in result.output

@@ -74,19 +74,19 @@ def test_settle_counts_frames_until_the_final_action_holds() -> None:
     records += [_rec(f, "P") for f in range(13, 40)]
     assert settle_frames(records, 10) == 3
     ph = phases(records, 0, 10)
-    assert ph["settle_frames"] == 3
-    assert ph["before"]["frames"] == 10 and ph["before"]["main_action"] == "cut:0"
-    assert ph["on"]["frames"] == 3
-    assert ph["after"]["main_action"] == "P" and ph["after"]["frames"] == 27
+    assert ph.settle_frames == 3
+    assert ph.before.frames == 10 and ph.before.main_action == "cut:0"
+    assert ph.on.frames == 3
+    assert ph.after.main_action == "P" and ph.after.frames == 27
 
 
 def test_a_policy_that_never_changes_settles_at_once_but_on_lasts_three_frames() -> None:
     records = [_rec(f, "cut:0", 0.1 if f < 10 else 1.0) for f in range(30)]
     ph = phases(records, 0, 10)
-    assert ph["settle_frames"] == 0
-    assert ph["on"]["frames"] == 3
-    assert ph["before"]["mean_latency_s"] == pytest.approx(0.1)
-    assert ph["after"]["mean_latency_s"] == pytest.approx(1.0)
+    assert ph.settle_frames == 0
+    assert ph.on.frames == 3
+    assert ph.before.mean_latency_s == pytest.approx(0.1)
+    assert ph.after.mean_latency_s == pytest.approx(1.0)
 
 
 def test_exploration_frames_do_not_undo_settling() -> None:
@@ -100,5 +100,5 @@ def test_lost_frames_and_summary() -> None:
     records = [_rec(f, "P", 0.2) for f in (0, 1, 3)]
     assert lost_frames(records, 5) == [2, 4]
     s = summary(records)
-    assert s["frames"] == 3 and s["fallbacks"] == 0
-    assert s["mean_latency_s"] == pytest.approx(0.2) and s["bytes_up"] == 0
+    assert s.frames == 3 and s.fallbacks == 0
+    assert s.mean_latency_s == pytest.approx(0.2) and s.bytes_up == 0

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from common.errors import UserError
-from registry import rib as rib_module
+from registry import rib_events as rib_module
 from registry.rib import SCHEMA_VERSION, DeploymentState, EventKind, Rib
 
 
