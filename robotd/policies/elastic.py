@@ -258,17 +258,12 @@ class ElasticPolicy(Policy):
             self._refresh(learned=False)
             return
         j = self._position[(int(decision.action), decision.codec)]
-        if outcome.cpu_s is not None:
-            self._cpu_counted = True  # a robot that reports its CPU: hedges' robot time counts
-            waited_s = outcome.cloud_s if outcome.cloud_s is not None else outcome.waited_s
-            rate = self._wait_rate + self._radio_rate
-            if waited_s is not None and rate > 0:
-                overdue_s = (1.0 + self.params.change_tolerance) * max(self._pred[j], 0.0) / rate
-                self._insurance.observe(waited_s, overdue_s)
         self._learn_bytes(j, outcome.bytes_up)
         self._probes.timed(robot.observe(outcome.prefix_s, self._prefix_s[j]))
         if outcome.local_s is not None:
             self._probes.timed(robot.observe(outcome.local_s, self._suffix_s[j]))
+        if outcome.cpu_s is not None:
+            self._count_cpu(j, outcome)
         if decision.hedge:
             busy_s = (outcome.cloud_s or 0.0) - decision.hedge_after_s
             if outcome.local_s is None and outcome.cpu_s is not None:
@@ -296,6 +291,16 @@ class ElasticPolicy(Policy):
         else:
             self._ridge.update(j, target)
         self._refresh(learned=True)
+
+    def _count_cpu(self, j: int, outcome: Outcome) -> None:
+        """The robot reports its CPU: hedges' robot time counts (`robot_probes`, `insurance`);
+        learn how late an overdue reply of column j came."""
+        self._cpu_counted = True
+        waited_s = outcome.cloud_s if outcome.cloud_s is not None else outcome.waited_s
+        rate = self._wait_rate + self._radio_rate
+        if waited_s is not None and rate > 0:
+            overdue_s = (1.0 + self.params.change_tolerance) * max(self._pred[j], 0.0) / rate
+            self._insurance.observe(waited_s, overdue_s)
 
     def _learn_bytes(self, j: int, sent: int) -> None:
         """Follow the bytes action j really sends (EWMA): its context and byte cost move with
