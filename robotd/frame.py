@@ -101,6 +101,7 @@ class Frame:
             local_s=self.local_s,
             latency_s=self.latency_s,
             waited_s=None if answered else deadline_s,
+            cpu_s=self.cpu_s,
         )
 
     def record(self, robot: str, energy_j: float) -> TelemetryRecord:

@@ -129,6 +129,9 @@ class Outcome:
     - `latency_s`: end-to-end latency of the frame as served.
     - `waited_s`: how long the robot waited for the cloud before giving up (the deadline), when it
       did not answer.
+    - `cpu_s`: the robot's CPU seconds for the frame (process time, every thread: a hedged
+      local run included), when measured; the simulator, which models no CPU contention, leaves
+      it None.
     """
 
     prefix_s: float | None = None
@@ -138,6 +141,7 @@ class Outcome:
     local_s: float | None = None
     latency_s: float | None = None
     waited_s: float | None = None
+    cpu_s: float | None = None
 
 
 class _CodecModel(BaseModel):

@@ -32,6 +32,11 @@ update the regression.
   and each probe that finds the estimate right doubles the interval to the next (up to
   `ROBOT_PROBE_MAX_FACTOR` times), as these probes cost latency; one that finds it wrong is
   confirmed by a probe on the next frame.
+- exploration's robot time: on a robot that reports its CPU (`Outcome.cpu_s`), a lost hedged
+  probe is priced at `robot_rate` times the time its local run kept the robot busy and the
+  probes are spaced to cost at most `PROBE_COST_SHARE` of the frames (`robot_probes`), a stopped
+  local run bounds the robot's time from below, and an insurance local run is started only
+  where overdue replies come late enough for it to pay (`robotd.policies.insurance`).
 - take-up and hint (`robotd.policies.take_up`): an offloading action seen to cost less than
   (1 − `takeover_margin`) of the current choice is sampled again on the next frame, and
   `takeover_samples` such observations in a row start an update period on its evidence; while P
@@ -59,6 +64,7 @@ from robotd.policies.base import (
     Policy,
 )
 from robotd.policies.change_detector import MIN_PREDICTION, ChangeDetector, miss_tolerance
+from robotd.policies.insurance import Insurance
 from robotd.policies.objective import Objective, cloud_cost
 from robotd.policies.params import AnsParams, ElasticParams
 from robotd.policies.ridge import RidgeEstimator, quadratic_features
@@ -135,7 +141,9 @@ class ElasticPolicy(Policy):
         self._detector = ChangeDetector(params, self._ridge, self._bytes)
         self._take_up = TakeUp(params, self._detector, self._schedule)
         # When to time the robot on a frame whose action runs nothing measurable there.
-        self._probes = RobotProbes(params, self._robot, self._untimed)
+        self._probes = RobotProbes(params, self._robot, self._untimed, objective.robot_rate)
+        self._cpu_counted = False  # the robot reports its CPU (Outcome.cpu_s)
+        self._insurance = Insurance(objective.wait_rate, objective.robot_rate)
         # Score parts, cut order: base = E^c + bytes cost + α̂ᵀv (inf where restricted away in
         # `_allowed_base`), width = sqrt(vᵀQ⁻¹v); score = base − sqrt(1−σ)·β·E_P·width, with
         # `_bonus_scale` = β·E_P; `_pred` = α̂ᵀv.
@@ -174,11 +182,12 @@ class ElasticPolicy(Policy):
         if regular_p and not forced:
             return Decision(PURE_ROBOT, updating=updating, predicted_cost=p_cost)
         probe = self._probes.due(j)
+        if probe and p_allowed and not forced and (not params.hedge or self._probes.wants_p):
+            # Without hedging, or when stopped local runs only bounded the robot's time, the
+            # robot is timed by serving the frame on it.
+            self._probes.tried(on_p=True)
+            return Decision(PURE_ROBOT, updating=updating, predicted_cost=p_cost)
         if not params.hedge:
-            if probe and p_allowed and not forced:
-                # Without hedging the robot is timed by serving the frame on it.
-                self._probes.tried(on_p=True)
-                return Decision(PURE_ROBOT, updating=updating, predicted_cost=p_cost)
             return self.cuts.decision_at(
                 j, forced=forced, updating=updating, predicted_cost=self._base[j]
             )
@@ -192,7 +201,9 @@ class ElasticPolicy(Policy):
             self._probes.tried()  # a hedged frame times the robot when its local run wins
             if not probe:
                 after_s = self._hedge_after_s(j, greedy)
-        return self.cuts.decision_at(
+                if after_s == math.inf:  # insurance not worth its robot time: no local run
+                    hedge, after_s = False, 0.0
+        decision = self.cuts.decision_at(
             j,
             hedge=hedge,
             forced=forced,
@@ -201,6 +212,9 @@ class ElasticPolicy(Policy):
             hedge_after_s=after_s,
             local_expected=hedge and greedy < 0,
         )
+        if probe:
+            self._probes.hedged(decision)
+        return decision
 
     def _hedge_after_s(self, j: int, greedy: int) -> float:
         """When a hedged frame of cut j starts its local run, in seconds after the request left.
@@ -225,7 +239,15 @@ class ElasticPolicy(Policy):
         reply_s = max(self._pred[j], 0.0) / rate
         if reply_s >= local_s:
             return max(slack_s, 0.0)
-        return max(slack_s, (1.0 + self.params.change_tolerance) * reply_s)
+        overdue_s = (1.0 + self.params.change_tolerance) * reply_s
+        if self._cpu_counted:
+            # Its robot time is a cost there (robot_probes): not started where overdue replies
+            # come too soon after for it to pay (`insurance`; inf: no local run), else once the
+            # wait has cost what the run would (rent or buy: at most twice the better of two).
+            if not self._insurance.worth(local_s):
+                return math.inf
+            overdue_s = max(overdue_s, local_s)
+        return max(slack_s, overdue_s)
 
     # -- learning --------------------------------------------------------------------------
 
@@ -240,6 +262,20 @@ class ElasticPolicy(Policy):
         self._probes.timed(robot.observe(outcome.prefix_s, self._prefix_s[j]))
         if outcome.local_s is not None:
             self._probes.timed(robot.observe(outcome.local_s, self._suffix_s[j]))
+        if outcome.cpu_s is not None:
+            self._count_cpu(j, outcome)
+        if decision.hedge:
+            busy_s = (outcome.cloud_s or 0.0) - decision.hedge_after_s
+            if outcome.local_s is None and outcome.cpu_s is not None:
+                # The local run was stopped unfinished: the robot needs longer than that.
+                self._probes.bounded(robot.observe_slower_than(busy_s, self._suffix_s[j]))
+            self._probes.raced(
+                decision,
+                timed=outcome.local_s is not None,
+                busy_s=busy_s,
+                cpu_known=outcome.cpu_s is not None,
+                frame_cost=self._current()[0],
+            )
         if outcome.cloud_s is not None:
             target = cloud_cost(
                 self._wait_rate, self._radio_rate, outcome.cloud_s, outcome.cloud_compute_s
@@ -255,6 +291,16 @@ class ElasticPolicy(Policy):
         else:
             self._ridge.update(j, target)
         self._refresh(learned=True)
+
+    def _count_cpu(self, j: int, outcome: Outcome) -> None:
+        """The robot reports its CPU: hedges' robot time counts (`robot_probes`, `insurance`);
+        learn how late an overdue reply of column j came."""
+        self._cpu_counted = True
+        waited_s = outcome.cloud_s if outcome.cloud_s is not None else outcome.waited_s
+        rate = self._wait_rate + self._radio_rate
+        if waited_s is not None and rate > 0:
+            overdue_s = (1.0 + self.params.change_tolerance) * max(self._pred[j], 0.0) / rate
+            self._insurance.observe(waited_s, overdue_s)
 
     def _learn_bytes(self, j: int, sent: int) -> None:
         """Follow the bytes action j really sends (EWMA): its context and byte cost move with
@@ -394,6 +440,8 @@ class ElasticPolicy(Policy):
             "direction": self._detector.direction,
             "robot_speed_ratio": self._robot.ratio,
             "robot_probes": self._probes.count,
+            "robot_probes_lost": self._probes.lost,
+            "robot_probe_interval": self._probes.interval,
         }
 
 

@@ -7,10 +7,24 @@ robot that got faster again is noticed. Without hedging the probe serves the fra
 (P) instead, and each probe that finds the estimate right doubles the interval to the next (up to
 `ROBOT_PROBE_MAX_FACTOR` times), as these probes cost latency; one that finds it wrong is confirmed
 by a probe on the next frame.
+
+A hedged probe costs robot CPU instead: its local run of the whole model starts at once and runs
+until the reply stops it, so on a robot that only sends JPEG frames a probe every 10 frames kept
+the robot computing through a whole reply in one frame of ten (the robot-CPU p95 of `elastic`
+was 3x a static policy's; docs/policies.md, "Robot CPU beyond a static policy"). That robot time
+is counted in the objective, priced like any robot compute (`Objective.robot_rate`, the cost of a
+second of it): a probe whose local run lost the race to the reply timed nothing and cost
+`robot_rate` times the time from its start to the reply. The interval to the next probe then
+keeps what lost probes cost within `PROBE_COST_SHARE` of what the frames between them cost (the
+current choice's estimate), up to `PROBE_COST_MAX_FACTOR` times `robot_probe_frames`; a probe that
+wins its race (P may be worth it) brings the interval back. Only a robot that reports its CPU
+(`Outcome.cpu_s`, the robot daemon) is charged: the simulator models no CPU contention, and its
+robot is probed every `robot_probe_frames` as before.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 from robotd.policies.params import ElasticParams
@@ -19,13 +33,17 @@ from robotd.policies.robotcost import RobotCostModel
 # Without hedging, a robot probe serves a frame on the robot (P). Each probe that finds the
 # estimate right doubles the interval to the next, up to this multiple of robot_probe_frames.
 ROBOT_PROBE_MAX_FACTOR = 4
+# Lost hedged probes may cost at most this share of what the frames between them cost.
+PROBE_COST_SHARE = 0.025
+# ... which may stretch the interval up to this multiple of robot_probe_frames.
+PROBE_COST_MAX_FACTOR = 8
 
 
 class RobotProbes:
     """The robot-probe schedule of one ElasticAction policy (see the module docstring)."""
 
     def __init__(
-        self, params: ElasticParams, robot: RobotCostModel, untimed: Sequence[bool]
+        self, params: ElasticParams, robot: RobotCostModel, untimed: Sequence[bool], rate: float
     ) -> None:
         self._params = params
         self._robot = robot
@@ -37,8 +55,15 @@ class RobotProbes:
         self._interval = params.robot_probe_frames
         self._suspect_probed = False
         self._on_p = False
+        # The decision of the last probe made by hedging, whose race is awaited (by identity:
+        # a hedged frame served by the robot is observed after later frames were decided).
+        self._awaited: object | None = None
+        self._bounded = False  # the robot's time is only bounded from below: time it on P
+        self._rate = rate  # objective units per second of robot compute
         self.count = 0
         """Frames served on the robot (P) to time it."""
+        self.lost = 0
+        """Hedged probes whose local run lost the race to the reply (they timed nothing)."""
 
     def tick(self) -> None:
         """A frame begins."""
@@ -54,12 +79,62 @@ class RobotProbes:
         return self._since >= self._interval
 
     def tried(self, *, on_p: bool = False) -> None:
-        """A probe is made this frame (`on_p`: by serving it on the robot, without hedging)."""
+        """The robot may be timed this frame: a hedged frame, or a probe served on the robot
+        (`on_p`, without hedging)."""
         self._since = 0
         if self._robot.suspect:
             self._suspect_probed = True
         if on_p:
             self._on_p = True
+
+    @property
+    def wants_p(self) -> bool:
+        """A stopped local run showed the robot slower than estimated (`bounded`): the next
+        probe serves the frame on the robot, as a bound alone never tells how much slower."""
+        return self._bounded
+
+    def bounded(self, miss: int | None) -> None:
+        """After a stopped local run (`RobotCostModel.observe_slower_than`'s answer)."""
+        self.timed(miss)
+        if miss is not None and miss > 0:
+            self._bounded = True
+
+    def hedged(self, decision: object) -> None:
+        """`decision` is a probe made by hedging: its race is priced when it is observed."""
+        self._awaited = decision
+
+    @property
+    def interval(self) -> int:
+        """Frames from one probe to the next, now."""
+        return self._interval
+
+    def raced(
+        self,
+        decision: object,
+        *,
+        timed: bool,
+        busy_s: float,
+        cpu_known: bool,
+        frame_cost: float,
+    ) -> None:
+        """After hedged frame `decision`: whether its local run finished (`timed`), how long
+        it kept the robot computing before the reply stopped it (`busy_s`), whether the robot
+        reports its CPU (`cpu_known`) and the current choice's estimated cost per frame
+        (objective units). Prices a lost probe (module docstring)."""
+        if decision is not self._awaited:
+            return
+        self._awaited = None
+        base = self._params.robot_probe_frames
+        if timed:
+            self._interval = base
+            return
+        self.lost += 1
+        if not cpu_known:
+            return
+        cost = self._rate * max(busy_s, 0.0)
+        budget = PROBE_COST_SHARE * max(frame_cost, 1e-9)
+        frames = math.ceil(cost / budget) if cost > 0 else base
+        self._interval = min(max(base, frames), PROBE_COST_MAX_FACTOR * base)
 
     def timed(self, miss: int | None, *, on_p: bool = False) -> None:
         """After a robot measurement (`miss`: `RobotCostModel.observe`'s answer); `on_p`: of a
@@ -69,6 +144,7 @@ class RobotProbes:
             self._on_p = False
         if miss is None:
             return
+        self._bounded = False  # timed (a stopped run's bound sets it again in `bounded`)
         self._since = 0
         self._suspect_probed = False
         if p_probe:

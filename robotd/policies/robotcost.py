@@ -110,6 +110,24 @@ class RobotCostModel:
         self._rescale()
         return sign
 
+    def observe_slower_than(self, busy_s: float, profiled_s: float) -> int | None:
+        """Learn from a run that was stopped unfinished after `busy_s` on the robot (a hedged
+        local run that lost its race to the reply) and takes `profiled_s` when profiled: the
+        robot needs more than `busy_s` for it. A bound above the estimate by more than the
+        tolerance is a miss like a measurement (`observe`); any other bound says nothing.
+        A robot profiled at full speed and then given a tenth of a core, whose only local runs
+        are probes the reply always stops, otherwise kept its profile's speed: its whole model
+        looked 10x cheaper than it was, and the probes' deferral and price with it."""
+        if (
+            busy_s <= 0
+            or profiled_s < MIN_TIMED_S
+            or profiled_s < SHORT_RUN_SHARE * self._cuts.full_s
+        ):
+            return None
+        if busy_s / profiled_s <= self.ratio * (1.0 + self._tolerance):
+            return None
+        return self.observe(busy_s, profiled_s)
+
     def _rescale(self) -> None:
         ratio = self.scale
         self.unit_cost = self._rate * ratio
