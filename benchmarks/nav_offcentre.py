@@ -26,7 +26,7 @@ import numpy as np
 from nav.closed_loop import DEFAULT_ROBOT_RADIUS_M, StereoPerception, run_maneuver
 from nav.curvature import DEFAULT_MAX_RANGE_M, DcollProfile, arc_to_point
 from nav.live_drive import maneuver_params
-from nav.maneuvers import circuit_lap
+from nav.maneuvers import MANEUVERS_PER_LAP, circuit_lap
 from nav.render import Pose
 from nav.world import World
 
@@ -130,7 +130,9 @@ def markdown(run: dict[str, Any], every: int) -> str:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--size", action="append", help="WxH (repeatable; default both)")
-    parser.add_argument("--maneuver", type=int, default=2, help="index in the lap (0-6)")
+    parser.add_argument(
+        "--maneuver", default="2", help="index in the lap (0-6), or all: the seven in turn"
+    )
     parser.add_argument("--lap", type=int, default=0)
     parser.add_argument("--latency", type=float, default=0.1, help="fixed latency, s")
     parser.add_argument("--every", type=int, default=2, help="table: every Nth frame")
@@ -142,13 +144,16 @@ def main() -> None:
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args()
     runs = []
+    maneuvers = range(MANEUVERS_PER_LAP) if args.maneuver == "all" else [int(args.maneuver)]
     for size in args.size or ["320x240", "640x480"]:
         width, height = (int(v) for v in size.split("x"))
-        runs.append(drive((width, height), args.maneuver, args.lap, args.latency, args.half_width))
+        for maneuver in maneuvers:
+            run = drive((width, height), maneuver, args.lap, args.latency, args.half_width)
+            runs.append(run)
+            if not args.json:  # as it comes: a 640×480 maneuver takes minutes
+                print(markdown(run, args.every) + "\n", flush=True)
     if args.json:
         print(json.dumps(runs))
-    else:
-        print("\n\n".join(markdown(run, args.every) for run in runs))
 
 
 if __name__ == "__main__":
