@@ -57,7 +57,8 @@ log = logging.getLogger(__name__)
 CONTROL_PERIOD_S = DEFAULT_CONTROL_PERIOD_S
 STOP_MARGIN_BEYOND_CAMERA_M = 0.35
 """Free distance kept in front of the camera: beyond the nearest depth the disparity range sees
-(0.27 m at any resolution), so a face the robot approaches never drops out of range."""
+(0.27 m at any resolution), so a face the robot approaches never drops out of range (while the
+bins within the half width see it: an empty path bin let the robot creep past the margin)."""
 OUTCOME_FORMAT = 1
 STOP_JOIN_S = 5.0
 """How long `LiveDrive.stop` waits for the control thread (it wakes every control period)."""
