@@ -94,6 +94,12 @@ def assist_cmd(
     stop_margin: float = typer.Option(
         0.0, "--stop-margin", help="Free distance kept in front of the axle, m."
     ),
+    half_width: float = typer.Option(
+        0.0,
+        "--half-width",
+        help="Obstacles this near the path beside it count too, m (half the robot's width; "
+        "0: the axle's path only).",
+    ),
 ) -> None:
     """Filter the operator's cmd_vel with the fleet's d_coll (a ROS 2 safety filter); runs until
     Ctrl-C."""
@@ -112,6 +118,7 @@ def assist_cmd(
                 deadline_s=deadline_s,
                 deadline_decel_mps2=deadline_decel,
                 stop_margin_m=stop_margin,
+                half_width_m=half_width,
             )
             run_assist(
                 str(config),

@@ -57,7 +57,8 @@ log = logging.getLogger(__name__)
 CONTROL_PERIOD_S = DEFAULT_CONTROL_PERIOD_S
 STOP_MARGIN_BEYOND_CAMERA_M = 0.35
 """Free distance kept in front of the camera: beyond the nearest depth the disparity range sees
-(0.27 m at any resolution), so a face the robot approaches never drops out of range."""
+(0.27 m at any resolution), so a face the robot approaches never drops out of range (while the
+bins within the half width see it: an empty path bin let the robot creep past the margin)."""
 OUTCOME_FORMAT = 1
 STOP_JOIN_S = 5.0
 """How long `LiveDrive.stop` waits for the control thread (it wakes every control period)."""
@@ -67,10 +68,15 @@ Clock = Callable[[], float]
 
 def maneuver_params(camera: CameraModel, deadline_s: float = DEFAULT_DEADLINE_S) -> AssistantParams:
     """The assistant's parameters for the circuit: the stop margin keeps the camera
-    `STOP_MARGIN_BEYOND_CAMERA_M` from a face (the in-process loop uses the same); `deadline_s`
-    is T_dead, the age past which d_coll is no longer trusted (the paper gives no value)."""
+    `STOP_MARGIN_BEYOND_CAMERA_M` from a face (the in-process loop uses the same); the half
+    width is the simulated robot's radius, so the bins beside the path count (an empty path bin
+    near a face let the robot creep into the off-centre box at 640×480, docs/navigation.md);
+    `deadline_s` is T_dead, the age past which d_coll is no longer trusted (the paper gives no
+    value)."""
     return AssistantParams(
-        deadline_s=deadline_s, stop_margin_m=camera.forward_m + STOP_MARGIN_BEYOND_CAMERA_M
+        deadline_s=deadline_s,
+        stop_margin_m=camera.forward_m + STOP_MARGIN_BEYOND_CAMERA_M,
+        half_width_m=DEFAULT_ROBOT_RADIUS_M,
     )
 
 

@@ -66,11 +66,16 @@ class AssistantParams:
     deadline_decel_mps2: float = DEFAULT_DEADLINE_DECEL_MPS2
     # Free distance kept in front of the axle: the robot's front overhang plus a safety gap.
     stop_margin_m: float = 0.0
+    # Half the robot's width: an obstacle this near the path beside it limits the speed too
+    # (DcollProfile.within). 0 is the paper's footprint, the point at the axle centre.
+    half_width_m: float = 0.0
 
     def __post_init__(self) -> None:
         _positive(self, ("deadline_s", "deadline_decel_mps2"))
-        if not (math.isfinite(self.stop_margin_m) and self.stop_margin_m >= 0):
-            raise UserError(f"stop_margin_m must be ≥ 0, got {self.stop_margin_m}")
+        for name in ("stop_margin_m", "half_width_m"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise UserError(f"{name} must be ≥ 0, got {value}")
 
 
 @dataclass(frozen=True)
@@ -136,7 +141,8 @@ class SharedControl:
                 return self._send(_same_curvature(joystick, v_ramp), Limit.DEADLINE, t_now)
             return self._send(joystick, Limit.NONE, t_now)
         curvature = w_j / v_j
-        free = self._profile.at(curvature) - v_j * max(age, 0.0) - self.params.stop_margin_m
+        ahead = self._profile.within(curvature, self.params.half_width_m)
+        free = ahead - v_j * max(age, 0.0) - self.params.stop_margin_m
         v_allowed = math.sqrt(2.0 * self.limits.a_max_mps2 * max(free, 0.0))
         if v_allowed < v_j:
             return self._send(_same_curvature(joystick, v_allowed), Limit.OBSTACLE, t_now, free)

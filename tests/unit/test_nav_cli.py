@@ -1,5 +1,6 @@
 """`elasticfog nav disparity`: the contract (float32 H×W .npy in pixels of the left image, NaN
-where invalid) on a real pair written as image files, and one-line errors for bad input."""
+where invalid) on a real pair written as image files, and one-line errors for bad input;
+`nav assist`'s half width checked before anything starts."""
 
 from __future__ import annotations
 
@@ -130,3 +131,14 @@ def test_bad_output_path(pair: tuple[Path, Path, np.ndarray, np.ndarray], tmp_pa
     assert_one_line_error(result, ".npy")
     result = invoke(str(left), str(right), "--out", str(tmp_path / "no" / "d.npy"))
     assert_one_line_error(result, "does not exist")
+
+
+def test_assist_half_width_below_zero_is_one_line(tmp_path: Path) -> None:
+    # Checked before the fleet file is read or a session opened.
+    result = runner.invoke(
+        app,
+        ["nav", "assist", "--config", str(tmp_path / "fleet.yaml"), "--robot", "r",
+         "--half-width", "-0.1"],
+    )  # fmt: skip
+    assert result.exit_code == 2
+    assert "half_width_m must be ≥ 0, got -0.1" in result.output

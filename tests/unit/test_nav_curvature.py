@@ -1,5 +1,6 @@
 """d_coll(K) geometry against hand-computed arcs: straight ahead, left and right turns, points
-beside and behind the axle, R → ∞; the bins of a wall; the interpolated profile."""
+beside and behind the axle, R → ∞; the bins of a wall; the interpolated profile; the bins
+within the robot's half width of a path."""
 
 from __future__ import annotations
 
@@ -18,6 +19,7 @@ from nav.curvature import (
     arc_to_point,
     dcoll_from_points,
 )
+from tests.unit.nav_support import OFFCENTRE_640_FRAME34
 
 coords = st.floats(-5.0, 5.0, allow_nan=False).filter(lambda v: abs(v) > 1e-3)
 
@@ -114,6 +116,49 @@ def test_profile_from_bins_checks_the_count() -> None:
         DcollProfile.from_bins(bins, np.arange(4.0))
 
 
+def test_within_sees_the_face_beside_an_empty_path_bin() -> None:
+    profile = DcollProfile.from_bins(CurvatureBins(), np.array(OFFCENTRE_640_FRAME34))
+    assert profile.at(0.0) == 5.0  # the axle's path alone: nothing ahead
+    assert profile.within(0.0, 0.0) == 5.0
+    # Within 0.2 m of the path: the nearest of the bins around it, K = 0.4 at 0.40 m among them
+    # (0.4·0.40²/2 = 3 cm to the left).
+    assert profile.within(0.0, 0.2) == pytest.approx(math.sin(0.4 * 0.40) / 0.4, abs=1e-9)
+
+
+def test_within_ignores_what_is_farther_from_the_path_than_the_half_width() -> None:
+    # One obstacle, in the bin K = −1 at 1 m: (1 − cos 1, sin 1) = (0.460, 0.841) m.
+    profile = DcollProfile(np.array([-1.0, 0.0, 1.0]), np.array([1.0, 5.0, 5.0]))
+    assert profile.within(0.0, 0.45) == 5.0
+    assert profile.within(0.0, 0.47) == pytest.approx(math.sin(1.0))
+    # On a right turn of radius 2 it is 2 − |(0.460, 0.841) − (2, 0)| = 0.245 m inside, at the
+    # angle atan2(0.841, 1.540) of the circle from the axle.
+    inside = 2.0 - math.hypot(2.0 - (1 - math.cos(1.0)), math.sin(1.0))
+    assert inside == pytest.approx(0.2448, abs=1e-4)
+    assert profile.within(-0.5, inside + 1e-6) == pytest.approx(
+        2.0 * math.atan2(math.sin(1.0), 2.0 - (1 - math.cos(1.0)))
+    )
+    assert profile.within(-0.5, inside - 1e-6) == profile.at(-0.5) == 3.0  # interpolated
+    # The mirror image on the left.
+    mirrored = DcollProfile(np.array([-1.0, 0.0, 1.0]), np.array([5.0, 5.0, 1.0]))
+    assert mirrored.within(0.5, inside + 1e-6) == profile.within(-0.5, inside + 1e-6)
+
+
+@given(
+    st.floats(-2.0, 2.0),
+    st.floats(0.05, 3.0),  # less than a full turn at |K| ≤ 2, as any arc of arc_to_point
+    st.floats(-2.0, 2.0),
+    st.floats(0.0, 1.0),
+)
+def test_within_is_never_more_than_the_path_bins_own(
+    bin_k: float, distance: float, path_k: float, half_width: float
+) -> None:
+    seen = DcollProfile(np.array([bin_k - 0.1, bin_k, bin_k + 0.1]), np.array([5.0, distance, 5.0]))
+    assert seen.within(path_k, half_width) <= seen.at(path_k)
+    assert seen.within(path_k, 0.0) == seen.at(path_k)
+    # on the bin's own path the obstacle is on the path, at its own arc
+    assert seen.within(bin_k, half_width) == pytest.approx(distance)
+
+
 @pytest.mark.parametrize(
     ("make", "message"),
     [
@@ -121,6 +166,7 @@ def test_profile_from_bins_checks_the_count() -> None:
         (lambda: CurvatureBins(-1.0, 41), "positive curvature"),
         (lambda: ObstacleBand(0.5, 0.4), "below max height"),
         (lambda: ObstacleBand(max_range_m=0.0), "max range"),
+        (lambda: DcollProfile(np.zeros(3), np.ones(3)).within(0.0, -0.1), "half width"),
     ],
 )
 def test_bad_settings_are_named(make: object, message: str) -> None:

@@ -4,6 +4,7 @@ correction, left/right arcs, stale frames, deadline braking, what passes unchang
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -11,7 +12,10 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from common.errors import UserError
-from nav.curvature import DcollProfile
+from nav.camera import CameraModel
+from nav.closed_loop import DEFAULT_ROBOT_RADIUS_M
+from nav.curvature import CurvatureBins, DcollProfile
+from nav.live_drive import maneuver_params
 from nav.shared_control import (
     AssistantParams,
     Command,
@@ -19,6 +23,7 @@ from nav.shared_control import (
     RobotLimits,
     SharedControl,
 )
+from tests.unit.nav_support import OFFCENTRE_640_FRAME34
 
 A_MAX = 8.0  # the paper's a_max
 CURVATURES = np.array([-1.0, -0.5, 0.0, 0.5, 1.0])
@@ -126,9 +131,32 @@ def test_non_finite_input_is_named(bad: float) -> None:
         control().observe(flat(1.0), t_frame=bad)
 
 
+def test_the_circuits_assistant_stops_for_the_face_beside_an_empty_path_bin() -> None:
+    # 640×480, straight at the off-centre box, 0.48 m from its face: the frame whose empty path
+    # bin (nothing seen, 5 m) let the robot creep on until the face was nearer than the
+    # disparity range sees, and hit it (docs/navigation.md, "Why the off-centre box was hit").
+    camera = CameraModel.for_image(640, 480)
+    params = maneuver_params(camera)
+    assert params.half_width_m == DEFAULT_ROBOT_RADIUS_M
+    frame = DcollProfile.from_bins(CurvatureBins(), np.array(OFFCENTRE_640_FRAME34))
+    sc = SharedControl(RobotLimits(), params)
+    sc.observe(frame, t_frame=0.0)
+    decision = sc.command(Command(0.4, 0.0), t_now=0.1)
+    # The bins beside the path see the face 0.40 m ahead: less than the stop margin, so stop.
+    assert decision.limit is Limit.OBSTACLE
+    assert decision.command == Command(0.0, 0.0)
+    assert decision.free_m == pytest.approx(frame.within(0.0, 0.2) - 0.04 - params.stop_margin_m)
+    # The paper's footprint (the axle's path alone) drives on at full speed.
+    axle_only = SharedControl(RobotLimits(), replace(params, half_width_m=0.0))
+    axle_only.observe(frame, t_frame=0.0)
+    assert axle_only.command(Command(0.4, 0.0), t_now=0.1).command == Command(0.4, 0.0)
+
+
 def test_bad_parameters_are_named() -> None:
     with pytest.raises(UserError, match="deadline_s"):
         AssistantParams(deadline_s=0.0)
+    with pytest.raises(UserError, match="half_width_m"):
+        AssistantParams(half_width_m=-0.1)
     with pytest.raises(UserError, match="a_max_mps2"):
         RobotLimits(a_max_mps2=-1.0)
 
