@@ -45,6 +45,11 @@ class ServiceMatch:
         else:
             self._served.clear()
 
+    def wait_served(self, timeout_s: float) -> bool:
+        """Wait at most `timeout_s` for a deployment serving the key (a frame's resend after a
+        move, `robotd.offload.CloudCall`); True if one serves it."""
+        return self._served.wait(timeout_s)
+
     def wait(self, timeout_s: float, interrupt: threading.Event) -> bool:
         """Wait at most `timeout_s` for a deployment serving the key, cut short once `interrupt`
         is set (a signal handler can only set the daemon's stop flag, so the wait looks at it
