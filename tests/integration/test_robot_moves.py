@@ -4,7 +4,8 @@ loopback: the registry's router, two deployment peers, the robot peer).
 The deployments move the robot's complete service queryable make-before-break, as the switch
 protocol does (the new one declares, the old one undeclares after): here the robot has seen the
 new declaration before the old one is withdrawn (the new deployment's token, declared after its
-queryable on the same session, is seen first), and a frame is sent while both declare the key.
+queryable on the same session, is seen first), a frame is sent while both declare the key and
+one while the old one, in standby, still declares it (answered NOT_SERVING there).
 With zenoh 1.10 the robot's BEST_MATCHING route then still points at the old deployment, and
 every query finishes at once without a reply (`no_route`) until another declaration changes the
 key; `CloudCall` resends such a query within
@@ -22,6 +23,7 @@ import numpy as np
 import zenoh
 
 from common import keys
+from common.wire import ErrorCode, ErrorReply
 from common.wire.cloud_to_robot import InferReply
 from common.wire.telemetry import FallbackReason
 from robotd.offload import CloudCall
@@ -42,11 +44,16 @@ class Deployment:
         self.name = name
         self.key = key
         self.computed = 0
+        self.serving = False
         self._lock = threading.Lock()
         self._queryable: Any = None
         self._tokens: list[Any] = []
 
     def _on_query(self, query: zenoh.Query) -> None:
+        if not self.serving:  # in standby, key not withdrawn yet: as cloudd.admission answers
+            refusal = ErrorReply.make(ErrorCode.NOT_SERVING, f"{self.name} does not serve")
+            query.reply(self.key, refusal.to_wire())
+            return
         with self._lock:
             self.computed += 1
         assert query.payload is not None
@@ -62,12 +69,17 @@ class Deployment:
 
     def service(self, marker: str) -> str:
         """Declare the key, then a token `marker` (seen by a peer only after the queryable)."""
+        self.serving = True
         self._queryable = self.session.declare_queryable(self.key, self._on_query, complete=True)
         token_key = keys.alive_cloud(FLEET, marker)
         self._tokens.append(self.session.liveliness().declare_token(token_key))
         return token_key
 
     def standby(self) -> None:
+        """Stop serving; the key stays declared until `withdraw` (cloudd.control's order)."""
+        self.serving = False
+
+    def withdraw(self) -> None:
         self._queryable.undeclare()
         self._queryable = None
 
@@ -122,7 +134,9 @@ def test_frames_after_make_before_break_moves_reach_the_new_deployment(
         # them computes it, and the robot's route for the key is cached.
         overlap = _frame(robot, key, 1000 + move, served)
         assert overlap.reason is None, overlap.detail
-        old.standby()  # ... before break
+        old.standby()  # ... before break: the old one answers NOT_SERVING ...
+        results.append(_frame(robot, key, 2000 + move, served))
+        old.withdraw()  # ... and then withdraws the key
         serving = 1 - serving
         for i in range(FRAMES_PER_MOVE):
             frame = move * FRAMES_PER_MOVE + i
@@ -133,5 +147,5 @@ def test_frames_after_make_before_break_moves_reach_the_new_deployment(
     # Each frame computed once, by the deployment in service when it was sent.
     assert sum(edge.computed for edge in edges) == len(results) + MOVES
     assert [r.deployment for r in results[FRAMES_PER_MOVE:]] == [
-        edges[move % 2].name for move in range(1, MOVES + 1) for _ in range(FRAMES_PER_MOVE)
+        edges[move % 2].name for move in range(1, MOVES + 1) for _ in range(FRAMES_PER_MOVE + 1)
     ]
