@@ -22,19 +22,20 @@ The robot then finishes the frame itself: no frame is ever lost.
 A query that Zenoh finishes with no reply before its deadline (`no_route`), or whose only reply
 is NOT_SERVING (the old deployment, already in standby, had not withdrawn the key yet), is not
 given up at once when the call knows the service key's matching status (`served`): it waits for
-a matching queryable (at most `MATCH_WAIT_S`) and is sent again, up to `NO_ROUTE_RESENDS` times
-within the deadline, with target ALL and no consolidation (Zenoh's default would keep one reply
-per key: the old deployment's NOT_SERVING could hide the new one's answer). This covers the
-ways a move leaves a robot without a route (docs/registry.md, "A move and the robot's route"):
-the old deployment's undeclaration reaching the robot before the new one's declaration (a few
-frames), and zenoh 1.10's cached BEST_MATCHING route that still points at the old deployment
-after it undeclared the key, when the new deployment's complete queryable had been declared
-beside it (the route is not recomputed because the key's "complete" info did not change; zenoh
-PR #2660): every frame then finished as `no_route` until the next declaration change, 24 s
-once. A query with target ALL is routed afresh and reaches only sessions that still declare the
-key; one that finished without a reply, or only with NOT_SERVING, never reached a serving
-deployment, so the resend cannot make two deployments compute it; a NOT_SERVING reply to the
-resend is passed over while another reply may still come.
+a matching queryable (at most `MATCH_WAIT_S`; after a NOT_SERVING first `NOT_SERVING_PAUSE_S`,
+since the old deployment's declaration still matches) and is sent again, up to
+`NO_ROUTE_RESENDS` times within the deadline, with target ALL and no consolidation (Zenoh's
+default would keep one reply per key: the old deployment's NOT_SERVING could hide the new one's
+answer). This covers the ways a move leaves a robot without a route (docs/registry.md, "A move
+and the robot's route"): the old deployment's undeclaration reaching the robot before the new
+one's declaration (a few frames), and zenoh 1.10's cached BEST_MATCHING route that still points
+at the old deployment after it undeclared the key, when the new deployment's complete queryable
+had been declared beside it (the route is not recomputed because the key's "complete" info did
+not change; zenoh PR #2660): every frame then finished as `no_route` until the next declaration
+change, 24 s once. A query with target ALL is routed afresh and reaches only sessions that still
+declare the key; one that finished without a reply, or only with NOT_SERVING, never reached a
+serving deployment, so the resend cannot make two deployments compute it; a NOT_SERVING reply to
+the resend is passed over while another reply may still come.
 
 A hedged frame also runs the local suffix, speculatively, on `LocalRunner`'s thread (as do the
 next frames' model runs while its reply is still on its way). That thread runs at the lowest CPU
@@ -81,6 +82,9 @@ NO_ROUTE_RESENDS = 3
 # The longest a resend waits for the service key's matching status to say a deployment serves it
 # (it is sent then anyway: in the stale-route case the status never stopped saying so).
 MATCH_WAIT_S = 0.05
+# A frame answered only NOT_SERVING is resent after this pause: the robot may not have seen the
+# new deployment's declaration yet, while the old one's still says the key is served.
+NOT_SERVING_PAUSE_S = 0.01
 # A resend needs at least this much of the deadline left to be worth it.
 MIN_RESEND_BUDGET_S = 0.005
 # Replies at most this long are looked at on arrival for NOT_SERVING (an ErrorReply is ~100 B;
@@ -145,6 +149,7 @@ class CloudCall:
         self.resends = 0
         # A NOT_SERVING reply held back while the query may still be answered (resends only).
         self._not_serving: bytes | None = None
+        self._pause_s = 0.0
         self._key = key
         self._payload = payload
         self.frame = frame
@@ -246,6 +251,7 @@ class CloudCall:
             if resend:
                 self.resends_left -= 1
                 self.resends += 1
+                self._pause_s = NOT_SERVING_PAUSE_S if self._not_serving is not None else 0.0
             elif self.replied_at is None and self._not_serving is not None:
                 # Nothing but NOT_SERVING, and no resend left: that is the frame's answer.
                 self.replied_at = self._clock()
@@ -258,6 +264,8 @@ class CloudCall:
 
     def _resend(self) -> None:
         assert self._served is not None  # resends_left is 0 without it
+        if self._pause_s > 0:  # cut short if the call settles meanwhile (cancelled)
+            self._settled.wait(min(self._pause_s, self.deadline_at - self._clock()))
         wait_s = min(MATCH_WAIT_S, self.deadline_at - self._clock() - MIN_RESEND_BUDGET_S)
         if wait_s > 0:
             self._served(wait_s)
