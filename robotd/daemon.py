@@ -405,6 +405,7 @@ class RobotDaemon(Daemon):
             max_reply_bytes=cfg.max_payload_bytes,
             uplink=None if self.uplink_mbit is None else TokenBucket.from_mbit(self.uplink_mbit),
             member_key=functools.partial(keys.svc_infer_at, self.fleet, cfg.service, self.robot),
+            served=self._served.wait_served,
         )
 
         def set_uplink(bucket: TokenBucket | None) -> None:

@@ -19,6 +19,24 @@ wire values these are):
 
 The robot then finishes the frame itself: no frame is ever lost.
 
+A query that Zenoh finishes with no reply before its deadline (`no_route`), or whose only reply
+is NOT_SERVING (the old deployment, already in standby, had not withdrawn the key yet), is not
+given up at once when the call knows the service key's matching status (`served`): it waits for
+a matching queryable (at most `MATCH_WAIT_S`; after a NOT_SERVING first `NOT_SERVING_PAUSE_S`,
+since the old deployment's declaration still matches) and is sent again, up to
+`NO_ROUTE_RESENDS` times within the deadline, with target ALL and no consolidation (Zenoh's
+default would keep one reply per key: the old deployment's NOT_SERVING could hide the new one's
+answer). This covers the ways a move leaves a robot without a route (docs/registry.md, "A move
+and the robot's route"): the old deployment's undeclaration reaching the robot before the new
+one's declaration (a few frames), and zenoh 1.10's cached BEST_MATCHING route that still points
+at the old deployment after it undeclared the key, when the new deployment's complete queryable
+had been declared beside it (the route is not recomputed because the key's "complete" info did
+not change; zenoh PR #2660): every frame then finished as `no_route` until the next declaration
+change, 24 s once. A query with target ALL is routed afresh and reaches only sessions that still
+declare the key; one that finished without a reply, or only with NOT_SERVING, never reached a
+serving deployment, so the resend cannot make two deployments compute it; a NOT_SERVING reply to
+the resend is passed over while another reply may still come.
+
 A hedged frame also runs the local suffix, speculatively, on `LocalRunner`'s thread (as do the
 next frames' model runs while its reply is still on its way). That thread runs at the lowest CPU
 priority: on a robot with a small CPU quota the robot's compute and the offload (Zenoh's threads
@@ -58,6 +76,20 @@ ZENOH_TIMEOUT_TEXT = "Timeout"
 FINISH_GRACE_S = 0.05
 # How often a waiting frame looks at the stop flag.
 STOP_POLL_S = 0.05
+# A query that found no serving deployment is sent again at most this many times within its
+# deadline (a move: see `CloudCall`'s docstring).
+NO_ROUTE_RESENDS = 3
+# The longest a resend waits for the service key's matching status to say a deployment serves it
+# (it is sent then anyway: in the stale-route case the status never stopped saying so).
+MATCH_WAIT_S = 0.05
+# A frame answered only NOT_SERVING is resent after this pause: the robot may not have seen the
+# new deployment's declaration yet, while the old one's still says the key is served.
+NOT_SERVING_PAUSE_S = 0.01
+# A resend needs at least this much of the deadline left to be worth it.
+MIN_RESEND_BUDGET_S = 0.005
+# Replies at most this long are looked at on arrival for NOT_SERVING (an ErrorReply is ~100 B;
+# an InferReply carries tensors and is never decoded on Zenoh's thread).
+SMALL_REPLY_BYTES = 1024
 
 Clock = Callable[[], float]
 
@@ -108,8 +140,16 @@ class CloudCall:
         delay_s: float = 0.0,
         max_reply_bytes: int,
         clock: Clock = time.perf_counter,
+        served: Callable[[float], bool] | None = None,
     ) -> None:
         self._session = session
+        # Waits at most the given seconds for a deployment serving the key (None: no resends).
+        self._served = served
+        self.resends_left = NO_ROUTE_RESENDS if served is not None else 0
+        self.resends = 0
+        # A NOT_SERVING reply held back while the query may still be answered (resends only).
+        self._not_serving: bytes | None = None
+        self._pause_s = 0.0
         self._key = key
         self._payload = payload
         self.frame = frame
@@ -159,17 +199,20 @@ class CloudCall:
         else:
             self._send()
 
-    def _send(self) -> None:
+    def _send(self, resend: bool = False) -> None:
         remaining = self.deadline_at - self._clock()
         if remaining <= 0 or self._settled.is_set():
             self._finish()
             return
-        self.sent_at = self._clock()
+        if self.sent_at is None:
+            self.sent_at = self._clock()
         try:
             self._session.get(
                 self._key,
-                zenoh.handlers.Callback(self._on_reply, self._finish),
+                zenoh.handlers.Callback(self._on_reply, self._on_final),
                 payload=self._payload,
+                target=zenoh.QueryTarget.ALL if resend else zenoh.QueryTarget.BEST_MATCHING,
+                consolidation=zenoh.ConsolidationMode.NONE if resend else None,
                 timeout=remaining,
                 congestion_control=zenoh.CongestionControl.BLOCK,
             )
@@ -182,12 +225,51 @@ class CloudCall:
         with self._lock:
             if self.replied_at is not None or self._finished_at is not None:
                 return  # only the first reply counts (anycast: there is only one)
-            self.replied_at = now
             if reply.ok is not None:
-                self._ok = reply.ok.payload.to_bytes()
+                payload = reply.ok.payload.to_bytes()
+                if self._served is not None and _is_not_serving(payload, self._max_reply_bytes):
+                    self._not_serving = payload  # settled (or resent) when the query finishes
+                    return
+                self.replied_at = now
+                self._ok = payload
             else:
+                self.replied_at = now
                 self._err = reply.err.payload.to_bytes() if reply.err is not None else b""
         self._set_settled()
+
+    def _on_final(self) -> None:
+        """Zenoh finished the query. Without a reply (or with only NOT_SERVING) and with time
+        left, it found no serving deployment (a move under way, or a stale route): resend it
+        from a thread of its own (this is Zenoh's callback thread), see the module docstring."""
+        with self._lock:
+            resend = (
+                self.replied_at is None
+                and self._finished_at is None
+                and self.resends_left > 0
+                and self.deadline_at - self._clock() > MIN_RESEND_BUDGET_S
+            )
+            if resend:
+                self.resends_left -= 1
+                self.resends += 1
+                self._pause_s = NOT_SERVING_PAUSE_S if self._not_serving is not None else 0.0
+            elif self.replied_at is None and self._not_serving is not None:
+                # Nothing but NOT_SERVING, and no resend left: that is the frame's answer.
+                self.replied_at = self._clock()
+                self._ok = self._not_serving
+            self._not_serving = None
+        if not resend:
+            self._finish()
+            return
+        threading.Thread(target=self._resend, name=f"resend-{self.frame}", daemon=True).start()
+
+    def _resend(self) -> None:
+        assert self._served is not None  # resends_left is 0 without it
+        if self._pause_s > 0:  # cut short if the call settles meanwhile (cancelled)
+            self._settled.wait(min(self._pause_s, self.deadline_at - self._clock()))
+        wait_s = min(MATCH_WAIT_S, self.deadline_at - self._clock() - MIN_RESEND_BUDGET_S)
+        if wait_s > 0:
+            self._served(wait_s)
+        self._send(resend=True)
 
     def _finish(self) -> None:
         with self._lock:
@@ -330,6 +412,18 @@ class CloudCall:
             shown = text.strip()[:200] if text.strip().isprintable() else f"{len(err)} bytes"
             return fail(FallbackReason.ERROR, f"error reply: {shown}")
         return fail(FallbackReason.ERROR, f"{message.code}: {message.reason}")
+
+
+def _is_not_serving(payload: bytes, max_bytes: int) -> bool:
+    """Whether a reply is a deployment's NOT_SERVING (it crossed a switch and was not computed);
+    only small replies are decoded (on Zenoh's callback thread)."""
+    if len(payload) > SMALL_REPLY_BYTES:
+        return False
+    try:
+        message = decode(payload, expect=INFER_REPLIES, max_bytes=max_bytes)
+    except WireError:
+        return False
+    return isinstance(message, ErrorReply) and message.error_code is ErrorCode.NOT_SERVING
 
 
 Outputs = dict[str, np.ndarray]

@@ -26,7 +26,9 @@ from robotd.pacing import TokenBucket
 class RequestSender:
     """`RequestSender(session, key, robot=..., model_digest=..., deadline_s=...)`; `uplink`
     paces requests (None: sent at once); `member_key(deployment)` is the key of one member of
-    the robot's round-robin pool (None: only the anycast key is used)."""
+    the robot's round-robin pool (None: only the anycast key is used); `served(timeout_s)` waits for
+    a deployment serving the key, so a query that found none is sent again within its deadline
+    (`robotd.offload.CloudCall`; None: it falls back at once)."""
 
     def __init__(
         self,
@@ -39,6 +41,7 @@ class RequestSender:
         max_reply_bytes: int,
         uplink: TokenBucket | None = None,
         member_key: Callable[[str], str] | None = None,
+        served: Callable[[float], bool] | None = None,
     ) -> None:
         self._session = session
         self.key = key
@@ -48,6 +51,8 @@ class RequestSender:
         self._deadline_s = deadline_s
         self._max_reply_bytes = max_reply_bytes
         self.uplink = uplink
+        # Waits for a deployment serving the key: a query that found none is resent (a move).
+        self._served = served
 
     def send(
         self,
@@ -100,6 +105,7 @@ class RequestSender:
             budget_s=self._deadline_s,
             delay_s=delay,
             max_reply_bytes=self._max_reply_bytes,
+            served=self._served,
         )
         call.start(background=background)
         return call

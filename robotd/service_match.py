@@ -4,7 +4,8 @@ The robot daemon declares a querier on its service key only for this (frames use
 each with its own timeout): Zenoh's matching status of that querier says whether a queryable
 serves the key, and its matching listener follows the changes. Startup waits on it, bounded and
 cut short by a signal, so that the first frames are not finished on the robot only because the
-session was still meeting its peers.
+session was still meeting its peers; a frame whose query found no serving deployment (a move)
+waits on it briefly before it is resent (`wait_served`, `robotd.offload.CloudCall`).
 """
 
 from __future__ import annotations
@@ -44,6 +45,11 @@ class ServiceMatch:
             self._served.set()
         else:
             self._served.clear()
+
+    def wait_served(self, timeout_s: float) -> bool:
+        """Wait at most `timeout_s` for a deployment serving the key (a frame's resend after a
+        move, `robotd.offload.CloudCall`); True if one serves it."""
+        return self._served.wait(timeout_s)
 
     def wait(self, timeout_s: float, interrupt: threading.Event) -> bool:
         """Wait at most `timeout_s` for a deployment serving the key, cut short once `interrupt`
