@@ -363,6 +363,7 @@ class RssWatch:
         import threading
 
         self._process = psutil.Process()
+        self._lock = threading.Lock()  # a sample must not land after a mark's reset
         self._peak = self._process.memory_info().rss
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._sample, name="rss-watch", daemon=True)
@@ -370,15 +371,17 @@ class RssWatch:
 
     def _sample(self) -> None:
         while not self._stop.wait(RSS_SAMPLE_S):
-            self._peak = max(self._peak, self._process.memory_info().rss)
+            with self._lock:
+                self._peak = max(self._peak, self._process.memory_info().rss)
 
     def mark(self) -> tuple[float, float]:
         """(RSS now, peak since the last mark), MiB; the peak starts again from now."""
         import gc
 
         gc.collect()
-        now = self._process.memory_info().rss
-        peak, self._peak = max(self._peak, now), now
+        with self._lock:
+            now = self._process.memory_info().rss
+            peak, self._peak = max(self._peak, now), now
         return round(now / MiB, 1), round(peak / MiB, 1)
 
     def close(self) -> None:
