@@ -20,15 +20,20 @@ once), with this script's own router session standing in for the registry's:
 default way (each `InferenceSession` reads its own copy of the weights): what sharing saves.
 `--breakdown` shows, in one process, the RSS each step of loading a 16-cut model adds.
 
-`--robot FLEET.yaml` measures the robot daemon's start-up steps instead, in one process, as the
-daemon takes them (imports, the split model's sessions, the warm-up that runs every prefix and
-suffix once, the profile and codec calibration, the source, frames run on the robot), for the
-fleet's first robot (`--robot-id`). With zoo:stereo at 640x480 (the navigation benchmark) most of
-the resident memory is freed activation buffers that glibc's allocator keeps: run it again with
-`MALLOC_MMAP_THRESHOLD_=131072` in the environment to see the difference.
+`--robot [FLEET.yaml]` measures the robot daemon instead: its start-up steps as the daemon takes
+them (imports, the split model's sessions, the warm-up that runs every prefix and suffix once,
+the profile and codec calibration, the trim of the freed heap, the source), then `--rounds`
+rounds of frames, each running every action the robot may take (the whole model; each cut's
+prefix, then its suffix as a fallback does) on a frame of the source: per step the RSS after it
+and the peak during it, and each action's median time. Each run is a fresh interpreter, two
+variants alternated `--pairs` times: `before` (every session, the segments' too, and the startup
+runs' freed memory left in the heap) and `after` (as `elasticfog robot` starts now). Without a
+file, the navigation benchmark's fleet (zoo:stereo with segments, `stereo:world` frames, one
+onnxruntime thread) at each of `--resolutions` (`docs/robot.md`, Memory).
 
     python benchmarks/memory_bench.py [--naive] [--breakdown] [--repeat 3] [--json]
-    python benchmarks/memory_bench.py --robot fleet.yaml [--robot-id robot-1] [--frames 20]
+    python benchmarks/memory_bench.py --robot [FLEET] [--resolutions 320x240,640x480]
+        [--rounds 3] [--pairs 1] [--robot-id robot-1] [--json]
 
 Splits go to the model cache (`ELASTICFOG_CACHE_DIR`, else the user cache directory).
 """
@@ -323,19 +328,86 @@ def print_table(result: dict[str, Any]) -> None:
             print(f"| {model} | " + " | ".join(deltas) + " |")
 
 
-def robot_breakdown(config: Path, robot_id: str | None, frames: int) -> dict[str, float]:
-    """RSS (MiB) after each start-up step of the robot daemon, in this process."""
-    import gc
+ROBOT_MODEL = "zoo:stereo"
+ROBOT_SOURCE = "stereo:world"
+ROBOT_RESOLUTIONS = "320x240,640x480"
+ROBOT_ROUNDS = 3
+NAV_FLEET = Path("nav")
+"""`--robot` without a file: the navigation benchmark's fleet."""
+RSS_SAMPLE_S = 0.01
+VARIANTS = ("before", "after")
+"""`before`: the robot as it was (every session, the segments' too; the startup runs' freed
+memory left in the heap); `after`: as `elasticfog robot` starts now (`open_split_model`, then
+`common.heap.trim_heap` once the profile is measured)."""
 
-    process = psutil.Process()
-    steps: dict[str, float] = {}
+
+def nav_fleet(directory: Path, size: tuple[int, int]) -> Path:
+    """The navigation benchmark's fleet at `size` (WxH): zoo:stereo split with segments, the
+    robot on `stereo:world` frames with one onnxruntime thread (`deploy.experiments.nav`)."""
+    return write_local_fleet(
+        directory,
+        model=ROBOT_MODEL,
+        changes={
+            "input_shape": [3, size[1], size[0]],
+            "cuts": {"segments": True},
+            "machines": {"robot-1": {"source": ROBOT_SOURCE, "threads": 1}},
+            "fidelity": {"calibration_frames": 1},
+        },
+    )
+
+
+class RssWatch:
+    """The process's RSS now, and its peak since the last mark (sampled by a thread)."""
+
+    def __init__(self) -> None:
+        import threading
+
+        self._process = psutil.Process()
+        self._lock = threading.Lock()  # a sample must not land after a mark's reset
+        self._peak = self._process.memory_info().rss
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._sample, name="rss-watch", daemon=True)
+        self._thread.start()
+
+    def _sample(self) -> None:
+        while not self._stop.wait(RSS_SAMPLE_S):
+            with self._lock:
+                self._peak = max(self._peak, self._process.memory_info().rss)
+
+    def mark(self) -> tuple[float, float]:
+        """(RSS now, peak since the last mark), MiB; the peak starts again from now."""
+        import gc
+
+        gc.collect()
+        with self._lock:
+            now = self._process.memory_info().rss
+            peak, self._peak = max(self._peak, now), now
+        return round(now / MiB, 1), round(peak / MiB, 1)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join()
+
+
+def robot_breakdown(
+    config: Path, robot_id: str | None, rounds: int, variant: str
+) -> dict[str, Any]:
+    """(In a child process) the robot daemon's start-up steps as it takes them, then `rounds`
+    rounds of frames, each running every action the robot may take on a frame of its source
+    (the whole model; every cut's prefix, then its suffix as a fallback does): per step the RSS
+    after it and the peak during it (MiB), and each action's median time (ms)."""
+    import resource
+
+    watch = RssWatch()
+    steps: dict[str, dict[str, float]] = {}
 
     def mark(step: str) -> None:
-        gc.collect()
-        steps[step] = round(process.memory_info().rss / MiB, 1)
+        rss, peak = watch.mark()
+        steps[step] = {"rss_mib": rss, "peak_mib": peak}
 
     mark("python and this script")
     from common.config import load_fleet
+    from common.heap import trim_heap
     from common.keys import Role
     from robotd.daemon import RobotDaemon  # noqa: F401 - what the daemon imports
     from robotd.robot_model import RobotModel, open_split_model
@@ -346,7 +418,10 @@ def robot_breakdown(config: Path, robot_id: str | None, frames: int) -> dict[str
     robot = robot_id or cfg.robot_ids[0]
     machine = cfg.machine(robot, role=Role.ROBOT)
     model = open_split_model(cfg, machine)
-    mark(f"split model loaded ({model.num_cuts} cuts)")
+    if variant == "before":
+        model.build_all()  # the segments' sessions, which the robot used to build too
+    sessions = len(model.session_providers())
+    mark(f"sessions built ({model.num_cuts} cuts)")
     robot_model = RobotModel(model, cfg.model)
     warm_up(model, robot_model.sample_feeds)
     mark("warm-up (every prefix and suffix run once)")
@@ -354,13 +429,129 @@ def robot_breakdown(config: Path, robot_id: str | None, frames: int) -> dict[str
         cfg, source_spec=machine.source, seed=0, threads=machine.threads, policy_spec="robot"
     )
     mark("profile and codec calibration")
+    if variant == "after":
+        trim_heap()
+    mark("freed heap returned (after only)")
     source = robot_model.open_source(machine.source, seed=0)
     mark(f"source {machine.source} opened")
-    for _ in range(frames):
-        model.run_full(robot_model.feeds(source.read()))
-    mark(f"{frames} frames run on the robot")
+    times: dict[str, list[float]] = {}
+    cpu: dict[str, list[float]] = {}
+    faults: dict[str, list[int]] = {}
+
+    def frame(k: int | None) -> None:
+        """One frame of the source: the whole model (k None), or cut k's prefix and suffix.
+        Its wall time is at the mercy of a shared host; its CPU time and page faults are not."""
+        feeds = robot_model.feeds(source.read())
+        faulted = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+        started, cpu_started = time.perf_counter(), time.process_time()
+        if k is None:
+            model.run_full(feeds)
+        else:
+            model.run_suffix(k, model.run_prefix(k, feeds), feeds)
+        action = "whole model" if k is None else f"cut {k}: prefix + suffix"
+        times.setdefault(action, []).append((time.perf_counter() - started) * 1e3)
+        cpu.setdefault(action, []).append((time.process_time() - cpu_started) * 1e3)
+        faulted = resource.getrusage(resource.RUSAGE_SELF).ru_minflt - faulted
+        faults.setdefault(action, []).append(faulted)
+
+    for _ in range(rounds):
+        for k in [None, *range(model.num_cuts)]:
+            frame(k)
+    mark(f"{rounds} rounds of frames (steady state)")
     source.close()
-    return steps
+    watch.close()
+    return {
+        "variant": variant,
+        "input_shape": list(cfg.input_shape or []),
+        "sessions": sessions,
+        "steps": steps,
+        "max_rss_mib": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
+        "times_ms": {a: [round(x, 1) for x in t] for a, t in times.items()},
+        "cpu_ms": {a: [round(x, 1) for x in t] for a, t in cpu.items()},
+        "minor_faults": faults,
+    }
+
+
+def measure_robot(config: Path, robot_id: str | None, rounds: int, variant: str) -> dict[str, Any]:
+    """`robot_breakdown` in a fresh interpreter (RSS is a process's own)."""
+    command = [sys.executable, __file__, "--robot-child", str(config), "--variant", variant]
+    command += ["--rounds", str(rounds)] + (["--robot-id", robot_id] if robot_id else [])
+    done = subprocess.run(command, capture_output=True, text=True)
+    if done.returncode != 0:
+        raise SystemExit(f"{variant} robot at {config} exited {done.returncode}:\n{done.stderr}")
+    result: dict[str, Any] = json.loads(done.stdout.strip().splitlines()[-1])
+    return result
+
+
+def run_robot(
+    fleet: Path | None,
+    resolutions: list[tuple[int, int]],
+    robot_id: str | None,
+    rounds: int,
+    pairs: int,
+    workdir: Path,
+) -> list[dict[str, Any]]:
+    """`pairs` times both variants, one after the other (before, after, before, ...: a shared
+    host's load drifts), at each resolution (or for `fleet` only)."""
+    fleets = [fleet] if fleet is not None else []
+    for w, h in [] if fleet is not None else resolutions:
+        fleets.append(nav_fleet(workdir / f"{w}x{h}", (w, h)))
+    return [
+        measure_robot(f, robot_id, rounds, v)
+        for f in fleets
+        for _ in range(pairs)
+        for v in VARIANTS
+    ]
+
+
+def print_robot(results: list[dict[str, Any]]) -> None:
+    """Per resolution: each step's median RSS over the runs of each variant, and each action's
+    median time over all of a variant's frames."""
+    shapes: dict[str, dict[str, list[dict[str, Any]]]] = {}
+    for r in results:
+        runs = shapes.setdefault("x".join(map(str, r["input_shape"])), {})
+        runs.setdefault(r["variant"], []).append(r)
+    for shape, by in shapes.items():
+        before, after = by["before"], by["after"]
+
+        def med(runs: list[dict[str, Any]], step: str, key: str) -> float:
+            return statistics.median(r["steps"][step][key] for r in runs)
+
+        def peak(runs: list[dict[str, Any]]) -> float:
+            return statistics.median(r["max_rss_mib"] for r in runs)
+
+        print(
+            f"### {shape}: {before[0]['sessions']} sessions before, {after[0]['sessions']} "
+            f"after; process peak {peak(before):.0f} / {peak(after):.0f} MiB "
+            f"(medians of {len(before)} / {len(after)} runs)"
+        )
+        print()
+        print("| step | before: RSS MiB | peak during | after: RSS MiB | peak during |")
+        print("| --- | ---: | ---: | ---: | ---: |")
+        for step in before[0]["steps"]:
+            print(
+                f"| {step} | {med(before, step, 'rss_mib'):.0f} "
+                f"| {med(before, step, 'peak_mib'):.0f} | {med(after, step, 'rss_mib'):.0f} "
+                f"| {med(after, step, 'peak_mib'):.0f} |"
+            )
+        print()
+        print(
+            "| action (median over frames) | before: wall ms | CPU ms | page faults "
+            "| after: wall ms | CPU ms | page faults | CPU after / before |"
+        )
+        print("| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
+
+        def frames(runs: list[dict[str, Any]], key: str, action: str) -> float:
+            return statistics.median(t for r in runs for t in r[key][action])
+
+        for a in before[0]["times_ms"]:
+            b_cpu, a_cpu = frames(before, "cpu_ms", a), frames(after, "cpu_ms", a)
+            print(
+                f"| {a} | {frames(before, 'times_ms', a):.0f} | {b_cpu:.0f} "
+                f"| {frames(before, 'minor_faults', a):.0f} | {frames(after, 'times_ms', a):.0f} "
+                f"| {a_cpu:.0f} | {frames(after, 'minor_faults', a):.0f} | {a_cpu / b_cpu:.2f} |"
+            )
+        print()
 
 
 def main() -> None:
@@ -372,12 +563,28 @@ def main() -> None:
         "--breakdown", action="store_true", help="also show where the memory goes, step by step"
     )
     parser.add_argument(
-        "--robot", metavar="FLEET", type=Path, help="the robot daemon's start-up steps instead"
+        "--robot",
+        metavar="FLEET",
+        nargs="?",
+        type=Path,
+        const=NAV_FLEET,
+        help="the robot daemon's start-up steps and frames instead (default: the navigation "
+        "benchmark's fleet at each of --resolutions)",
     )
     parser.add_argument("--robot-id", help="which robot of the fleet (default: the first)")
-    parser.add_argument("--frames", type=int, default=20, help="frames run after start-up")
+    parser.add_argument(
+        "--resolutions", default=ROBOT_RESOLUTIONS, help="WxH,... of the navigation fleet"
+    )
+    parser.add_argument(
+        "--rounds", type=int, default=ROBOT_ROUNDS, help="rounds of every robot action run"
+    )
+    parser.add_argument(
+        "--pairs", type=int, default=1, help="robot runs of each variant, alternated"
+    )
     parser.add_argument("--naive-child", metavar="SPLIT_DIR", help=argparse.SUPPRESS)
     parser.add_argument("--breakdown-child", metavar="SPLIT_DIR", help=argparse.SUPPRESS)
+    parser.add_argument("--robot-child", metavar="FLEET", type=Path, help=argparse.SUPPRESS)
+    parser.add_argument("--variant", choices=VARIANTS, default="after", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.naive_child:
         naive_child(args.naive_child)
@@ -385,13 +592,27 @@ def main() -> None:
     if args.breakdown_child:
         breakdown_child(args.breakdown_child)
         return
-    if args.robot:
-        steps = robot_breakdown(args.robot, args.robot_id, max(0, args.frames))
+    if args.robot_child:
+        result = robot_breakdown(args.robot_child, args.robot_id, max(1, args.rounds), args.variant)
+        print(json.dumps(result))
+        return
+    if args.robot is not None:
+        from deploy.experiments.nav_rows import parse_resolutions
+
+        fleet = None if args.robot == NAV_FLEET else args.robot
+        with tempfile.TemporaryDirectory(prefix="memory-bench-") as tmp:
+            results = run_robot(
+                fleet,
+                parse_resolutions(args.resolutions),
+                args.robot_id,
+                max(1, args.rounds),
+                max(1, args.pairs),
+                Path(tmp),
+            )
         if args.json:
-            print(json.dumps(steps, indent=2))
+            print(json.dumps(results, indent=2))
         else:
-            for step, mib in steps.items():
-                print(f"{step:45s} {mib:8.1f} MiB")
+            print_robot(results)
         return
     with tempfile.TemporaryDirectory(prefix="memory-bench-") as tmp:
         result = run(args.naive, args.breakdown, max(1, args.repeat), Path(tmp))

@@ -3,8 +3,8 @@
 Lifecycle (`common.daemon.Daemon`: startup -> main loop -> shutdown, in reverse order):
 
 1. Load the split model (one set of shared-weight onnxruntime sessions, every cut warmed up),
-   start the low-priority local-run thread, build the policy from a robot-side profile, open the
-   `--telemetry` file.
+   start the low-priority local-run thread, build the policy from a robot-side profile, return
+   the heap memory those runs freed to the system (`common.heap`), open the `--telemetry` file.
 2. Open a Zenoh *peer* session connected to the registry endpoint only (the robot's config names
    no cloud host: it finds deployments through the registry's router and queries its anycast
    service key). Make the result sinks (`robotd.result_sinks`) and open the frame source on it
@@ -55,6 +55,7 @@ from common import keys, rmw_zenoh
 from common.config import FleetConfig
 from common.daemon import Daemon
 from common.errors import UserError
+from common.heap import release_freed_memory
 from common.keys import Role
 from common.membership import MemberChange, MembershipView
 from common.metrics import MetricsEndpoint, check_port, serve
@@ -305,6 +306,8 @@ class RobotDaemon(Daemon):
             ),
             self._objective,
         )
+        # The runs above (warm-up, profile, codec calibration) leave their freed tensors resident.
+        release_freed_memory(self.robot)
         if self.options.telemetry is not None:
             self._sink.file = self.hold(TelemetryFile(self.options.telemetry), "telemetry file")
         source, requests, link, emulation = self._open_zenoh(model, robot_model)

@@ -1,8 +1,9 @@
 """The robot's split model as its frame loop uses it.
 
 `open_split_model` loads the fleet's model at startup: its partition at the configured cuts, as
-one set of shared-weight onnxruntime sessions for this machine (the caller hands it to the
-lifecycle, which closes it). `RobotModel` is what the loop needs around those sessions: the
+one set of shared-weight onnxruntime sessions for this machine (the full model and every cut's
+prefix and suffix; not the segments, which only the cloud runs), which the caller hands to the
+lifecycle, which closes it. `RobotModel` is what the loop needs around those sessions: the
 camera inputs (`common.image_input.ImageInputs`: one image, or the views of a stereo pair matched
 by name, and the source opened for them), the startup profile the
 policies start from (`robotd.robot_profile`), the position of each cut index in the partition,
@@ -39,12 +40,16 @@ def open_split_model(
 ) -> SplitModel:
     """The fleet's model, partitioned at its cuts, as sessions on `machine`'s providers; a
     session that did not get an accelerator asked for is a one-line UserError (or, with
-    `providers_fallback: allow`, a warning: `common.providers.enforce`)."""
+    `providers_fallback: allow`, a warning: `common.providers.enforce`).
+
+    The segments' sessions are not built: the robot runs a segment's tail as the suffix of its
+    end cut, never the segment itself (with zoo:stereo at 640x480 they held ~140 MB)."""
     prepare(machine.providers)
     model = SplitModel(
         fleet_partition(config),
         providers=ort_providers(machine.providers),
         threads=machine.threads or None,
+        segments=False,
     )
     try:
         enforce(

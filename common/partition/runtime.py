@@ -166,7 +166,9 @@ class SplitModel:
 
     ``partition`` comes from :func:`~common.partition.load_partition` (or ``split_model``).
     Sessions are built at construction unless ``lazy`` is true; either way they share one copy
-    of the weights. Methods are safe to call from several threads.
+    of the weights. ``segments=False`` leaves the segments' sessions out of that (a robot runs
+    none: the cloud serves them; each one of a large graph holds tens of MB of session state);
+    one is still built on first use. Methods are safe to call from several threads.
 
     ``arena`` turns on onnxruntime's CPU memory arena: slightly faster runs, but every session
     then keeps its peak activation memory (hundreds of MB over a few dozen cuts at 240x320).
@@ -180,6 +182,7 @@ class SplitModel:
         *,
         optimization: Optimization = "extended",
         lazy: bool = False,
+        segments: bool = True,
         arena: bool = False,
         io_binding: bool = False,
         buckets: Sequence[int] | None = None,
@@ -208,7 +211,7 @@ class SplitModel:
         self._segment: dict[tuple[int, int], ort.InferenceSession] = {}
         self._batch_rows: dict[int, int] = {}  # cut -> rows of one item, for batched suffixes
         if not lazy:
-            self.build_all()
+            self.build_all(segments=segments)
 
     # -- facts --
 
@@ -457,13 +460,16 @@ class SplitModel:
             for i in range(count)
         ]
 
-    def build_all(self) -> None:
-        """Build every session now (startup cost paid once, nothing built on the frame path)."""
+    def build_all(self, *, segments: bool = True) -> None:
+        """Build every session now (startup cost paid once, nothing built on the frame path);
+        the segments' too unless ``segments`` is false."""
         self._full_session()
         for k, cut in enumerate(self.partition.cuts):
             if cut.prefix is not None:
                 self._prefix_session(k)
             self._suffix_session(k)
+        if not segments:
+            return
         for seg in self.partition.segments:
             self._segment_session(seg.start, seg.end)
 
