@@ -83,6 +83,7 @@ from cloudd.workers import BatchWorkers
 from common import keys
 from common.config import FleetConfig, MachineConfig
 from common.daemon import Daemon
+from common.heap import release_freed_memory
 from common.keys import Role
 from common.membership import MembershipView
 from common.metrics import MetricsEndpoint, serve
@@ -381,6 +382,9 @@ class CloudDaemon(Daemon):
         )
         if warm is None:
             return
+        # The warm-up's first runs allocate tensor by tensor and glibc keeps what they freed;
+        # later runs take one planned block each, so giving it back now is not undone.
+        release_freed_memory(self.deployment)
         self._cut_specs = cut_specs = warm.cut_specs
         self.providers = warm.providers
         oversized = self.limits.oversized_tensors(cut_specs)

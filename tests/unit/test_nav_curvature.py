@@ -19,7 +19,7 @@ from nav.curvature import (
     arc_to_point,
     dcoll_from_points,
 )
-from tests.unit.nav_support import OFFCENTRE_640_FRAME34
+from tests.helpers.nav import OFFCENTRE_640_FRAME34
 
 coords = st.floats(-5.0, 5.0, allow_nan=False).filter(lambda v: abs(v) > 1e-3)
 

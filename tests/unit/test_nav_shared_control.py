@@ -23,7 +23,7 @@ from nav.shared_control import (
     RobotLimits,
     SharedControl,
 )
-from tests.unit.nav_support import OFFCENTRE_640_FRAME34
+from tests.helpers.nav import OFFCENTRE_640_FRAME34
 
 A_MAX = 8.0  # the paper's a_max
 CURVATURES = np.array([-1.0, -0.5, 0.0, 0.5, 1.0])
