@@ -7,6 +7,9 @@ converging to a segment where it is the best action."""
 from __future__ import annotations
 
 import dataclasses
+import importlib.util
+from pathlib import Path
+from types import ModuleType
 from typing import Any
 
 import numpy as np
@@ -21,6 +24,7 @@ from robotd.policies.segment_actions import action_contexts, actions_table
 from robotd.sim import Simulator, segment_costs
 from robotd.trace import Segment, trace_from_dict
 
+DECISION_COST = Path(__file__).resolve().parents[2] / "benchmarks" / "decision_cost.py"
 POINTS = 4
 POINTS_BYTES = 921_600  # 320×240×3 float32: zoo:stereo's points at 320×240
 PAIR_BYTES = 460_800
@@ -222,3 +226,21 @@ def test_elastic_leaves_the_segment_where_the_cloud_is_faster() -> None:
     assert np.mean(segments[result.column[-500:]]) <= 0.05
     assert result.summary()["ratio_to_oracle"] <= 1.10
     assert not result.hedged[segments[result.column]].any()
+
+
+def _decision_cost() -> ModuleType:
+    """benchmarks/decision_cost.py, loaded from its file (benchmarks/ is not a package)."""
+    spec = importlib.util.spec_from_file_location("decision_cost", DECISION_COST)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_the_decision_cost_benchmark_runs_the_stereo_sized_action_set() -> None:
+    # zoo:stereo's largest action set: 5 cuts x 4 codecs and the 10 segments in their start
+    # cut's codecs; the incremental and the inverting learner decide alike on every frame.
+    report = _decision_cost().run(frames=300, cuts=5, seed=0, uplink_mbit=200.0, segments=True)
+    assert report["actions"] == 5 * 4 + 10 * 4 + 1 and report["features"] == 4
+    assert report["mismatched_decisions"] == 0
+    assert report["fast"]["decide_median_us"] > 0
