@@ -104,11 +104,8 @@ class InvertingRidge(RidgeEstimator):
 class InvertEveryFrame(ElasticPolicy):
     """ElasticAction that inverts Q and recomputes every score at each decision."""
 
+    ridge_type = InvertingRidge
     _ridge: InvertingRidge
-
-    def __init__(self, *args: Any, **kwargs: Any) -> None:
-        super().__init__(*args, **kwargs)
-        self._ridge = InvertingRidge(self.contexts, self.params.gamma)
 
     def _refresh(self, learned: bool) -> None:
         """Nothing to keep current between frames: `decide` recomputes everything."""

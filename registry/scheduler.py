@@ -3,8 +3,8 @@
 Pure decision logic, no I/O: the registry daemon hands it a snapshot (the robot's route and
 telemetry window, the live deployments with their load, the robot's probe profiles) and gets back
 a `RouteDecision` or None. It keeps a little memory per robot (when a violation started, when the
-robot last moved, which deployments it left for being slow) so that it can apply hysteresis; time
-comes from an injectable clock so tests run instantly.
+robot last moved, which deployments it left for being slow: `registry.robot_memory`) so that it
+can apply hysteresis; time comes from an injectable clock so tests run instantly.
 
 Triggers, in order:
 1. the robot has no route and a deployment is available (`initial`);
@@ -73,6 +73,7 @@ from enum import Enum
 
 from common.wire.registry import NO_CAPACITY_REASON
 from registry.latency import LatencyBound, Profiles, WindowStats
+from registry.robot_memory import RobotMemory, RobotState, recent_profile
 
 DEFAULT_MIN_DWELL_S = 3.0
 DEFAULT_TIMEOUT_COUNT = 3
@@ -275,22 +276,6 @@ class _Candidate:
         )
 
 
-@dataclass
-class _RobotState:
-    last_switch_at: float | None = None
-    violation_since: float | None = None
-    busy_since: float | None = None
-    better_since: float | None = None
-    better_target: str | None = None
-    failed_at: float | None = None
-    violation_move_at: float | None = None
-    left_at: dict[str, float] = field(default_factory=dict)
-    left_busy: dict[str, float] = field(default_factory=dict)
-    good_since: dict[str, float] = field(default_factory=dict)
-    # The robot was told it has no route for want of capacity: not told again each round.
-    no_capacity: bool = False
-
-
 class Scheduler:
     """Latency-bounded deployment choice with hysteresis; see the module docstring."""
 
@@ -304,71 +289,43 @@ class Scheduler:
         self.bound = bound
         self.params = params if params is not None else SchedulerParams()
         self._clock = clock
-        self._robots: dict[str, _RobotState] = {}
-        # deployment -> when a robot was last moved there for `busy` (the arrival gap).
-        self._busy_arrivals: dict[str, float] = {}
+        # Per robot: moves, waiting triggers, deployments left (`registry.robot_memory`).
+        self.memory = RobotMemory(
+            bound,
+            flap_window_s=self.params.flap_window_s,
+            recovery_s=self.params.recovery_s,
+            min_probe_samples=self.params.min_probe_samples,
+            profile_max_age_s=self.params.profile_max_age_s,
+        )
 
     # -- memory --------------------------------------------------------------------------------
     def record_switch(
         self, robot: str, from_deployment: str | None, to_deployment: str | None, reason: Reason
     ) -> None:
         """Tell the scheduler a switch was carried out (the switch protocol may pick a fallback)."""
-        now = self._clock()
-        st = self._state(robot)
-        st.last_switch_at = now
-        st.violation_since = None
-        st.busy_since = None
-        st.better_since = None
-        st.better_target = None
-        st.failed_at = None
-        st.no_capacity = to_deployment is None and Reason(reason) is Reason.NO_CAPACITY
-        if Reason(reason) is Reason.BUSY:
-            if from_deployment is not None:
-                st.left_busy[from_deployment] = now
-            if to_deployment is not None:
-                self._busy_arrivals[to_deployment] = now
-        if Reason(reason) is Reason.BOUND_VIOLATION:
-            st.violation_move_at = now
-        if from_deployment is not None and Reason(reason) in PENALIZING_REASONS:
-            st.left_at[from_deployment] = now
-            st.good_since.pop(from_deployment, None)
-        if to_deployment is not None:
-            # A forced move may have had to pick a penalized deployment: it is the route now.
-            st.left_at.pop(to_deployment, None)
-            st.left_busy.pop(to_deployment, None)
-            st.good_since.pop(to_deployment, None)
+        why = Reason(reason)
+        self.memory.moved(
+            robot,
+            from_deployment,
+            to_deployment,
+            self._clock(),
+            busy=why is Reason.BUSY,
+            violation=why is Reason.BOUND_VIOLATION,
+            penalizing=why in PENALIZING_REASONS,
+            no_capacity=why is Reason.NO_CAPACITY,
+        )
 
     def record_failure(self, robot: str) -> None:
         """Tell the scheduler no candidate took the robot: back off before deciding again."""
-        self._state(robot).failed_at = self._clock()
+        self.memory.failed(robot, self._clock())
 
     def forget(self, robot: str) -> None:
         """Drop the memory of a robot that left the fleet."""
-        self._robots.pop(robot, None)
+        self.memory.forget(robot)
 
     def penalized(self, robot: str) -> frozenset[str]:
         """Deployments the robot left for being slow and that have not recovered yet."""
-        st = self._robots.get(robot)
-        return frozenset(st.left_at) if st else frozenset()
-
-    def _avoided(self, st: _RobotState, deployment: str, now: float) -> bool:
-        """Whether a move by choice must not go to `deployment`: left for being slow and not
-        recovered, or left for `busy` within flap_window_s."""
-        if deployment in st.left_at:
-            return True
-        left = st.left_busy.get(deployment)
-        if left is None:
-            return False
-        if now - left < self.params.flap_window_s:
-            return True
-        del st.left_busy[deployment]
-        return False
-
-    def _state(self, robot: str) -> _RobotState:
-        st = self._robots.get(robot)
-        if st is None:
-            st = self._robots[robot] = _RobotState()
-        return st
+        return self.memory.penalized(robot)
 
     # -- decision --------------------------------------------------------------------------------
     def evaluate(
@@ -385,14 +342,14 @@ class Scheduler:
         once per change of the robot's probes, not once per round).
         """
         now = self._clock()
-        st = self._state(robot.id)
+        st = self.memory.state(robot.id)
         table = (
             deployments
             if isinstance(deployments, DeploymentTable)
             else DeploymentTable(deployments)
         )
         snapshot = profiles if isinstance(profiles, Profiles) else Profiles(profiles)
-        self._update_recovery(st, table.by_id, snapshot, now)
+        self.memory.update_recovery(st, table.by_id, snapshot, now)
 
         current = table.by_id.get(robot.route) if robot.route is not None else None
         if robot.route is not None:
@@ -450,7 +407,7 @@ class Scheduler:
         return self._on_improvement(robot, current, targets, reference, st, now)
 
     def _forced(
-        self, robot: RobotView, reason: Reason, ranked: list[_Candidate], st: _RobotState
+        self, robot: RobotView, reason: Reason, ranked: list[_Candidate], st: RobotState
     ) -> RouteDecision | None:
         targets = [c for c in ranked if c.deployment.id != robot.route]
         if (
@@ -537,7 +494,7 @@ class Scheduler:
         current: DeploymentView,
         table: DeploymentTable,
         profiles: Profiles,
-        st: _RobotState,
+        st: RobotState,
         now: float,
     ) -> RouteDecision | None:
         # Any deployment with room beats frames finished on the robot, but one predicted to meet
@@ -548,9 +505,9 @@ class Scheduler:
             for c in self._rank(robot, table, profiles, st, now)
             if c.deployment.id != current.id
             and c.tier <= 1
-            and not self._avoided(st, c.deployment.id, now)
+            and not self.memory.avoided(st, c.deployment.id, now)
             and c.deployment.has_room(self.params.busy_headroom)
-            and now - self._busy_arrivals.get(c.deployment.id, -math.inf) >= gap
+            and now - self.memory.busy_arrivals.get(c.deployment.id, -math.inf) >= gap
         ]
         if not ranked:
             return None
@@ -562,7 +519,7 @@ class Scheduler:
         current: DeploymentView,
         targets: _Targets,
         reference: float | None,
-        st: _RobotState,
+        st: RobotState,
         now: float,
     ) -> RouteDecision | None:
         if reference is None:
@@ -589,7 +546,7 @@ class Scheduler:
         return _move(robot.id, current.id, ranked, Reason.BETTER)
 
     # -- helpers ---------------------------------------------------------------------------------
-    def _dwelt(self, st: _RobotState, now: float) -> bool:
+    def _dwelt(self, st: RobotState, now: float) -> bool:
         return st.last_switch_at is None or now - st.last_switch_at >= self.params.min_dwell_s
 
     def _reference(
@@ -597,7 +554,7 @@ class Scheduler:
         robot: RobotView,
         current: DeploymentView,
         profiles: Mapping[str, WindowStats],
-        st: _RobotState,
+        st: RobotState,
         now: float,
     ) -> float | None:
         """The current deployment's latency on the same scale as the candidates' predictions.
@@ -625,28 +582,15 @@ class Scheduler:
         observed = self._observed(robot)
         return observed is not None and observed > self.bound.seconds
 
-    def _fresh(self, stats: WindowStats | None, now: float) -> WindowStats | None:
-        """`stats` if recent and of at least min_probe_samples probes, else None."""
-        recent = self._recent(stats, now)
-        if recent is None or recent.count < self.params.min_probe_samples:
-            return None
-        return recent
-
-    def _recent(self, stats: WindowStats | None, now: float) -> WindowStats | None:
-        """`stats` if it has a sample younger than profile_max_age_s, else None."""
-        if stats is None or stats.count < 1 or now - stats.last_at > self.params.profile_max_age_s:
-            return None
-        return stats
-
     def _candidate(
         self,
         robot: RobotView,
         dep: DeploymentView,
         profiles: Mapping[str, WindowStats],
-        st: _RobotState,
+        st: RobotState,
         now: float,
     ) -> _Candidate:
-        stats = self._recent(profiles.get(dep.id), now)
+        stats = recent_profile(profiles.get(dep.id), now, self.params.profile_max_age_s)
         predicted = None
         if stats is not None:
             # Load-aware: a busier deployment queues more; scale by its utilization.
@@ -657,7 +601,7 @@ class Scheduler:
             deployment=dep,
             predicted_s=predicted,
             meets=predicted is not None and predicted <= self.bound.seconds,
-            penalized=self._avoided(st, dep.id, now),
+            penalized=self.memory.avoided(st, dep.id, now),
             thin=stats is not None and stats.count < self.params.min_probe_samples,
         )
 
@@ -666,41 +610,13 @@ class Scheduler:
         robot: RobotView,
         table: DeploymentTable,
         profiles: Mapping[str, WindowStats],
-        st: _RobotState,
+        st: RobotState,
         now: float,
     ) -> list[_Candidate]:
         ranked = [
             self._candidate(robot, d, profiles, st, now) for d in table.views if _usable(robot, d)
         ]
         return sorted(ranked, key=_Candidate.sort_key)
-
-    def _update_recovery(
-        self,
-        st: _RobotState,
-        by_id: Mapping[str, DeploymentView],
-        profiles: Mapping[str, WindowStats],
-        now: float,
-    ) -> None:
-        for dep, left_at in list(st.left_at.items()):
-            view = by_id.get(dep)
-            if view is None or not view.alive:
-                # Gone: a deployment that comes back is a fresh process and starts clean.
-                del st.left_at[dep]
-                st.good_since.pop(dep, None)
-                continue
-            stats = self._fresh(profiles.get(dep), now)
-            good = (
-                stats is not None
-                and stats.last_at > left_at
-                and stats.value(self.bound.stat) <= self.bound.seconds
-            )
-            if not good:
-                st.good_since.pop(dep, None)
-                continue
-            since = st.good_since.setdefault(dep, now)
-            if now - since >= self.params.recovery_s:
-                del st.left_at[dep]
-                del st.good_since[dep]
 
 
 def _usable(robot: RobotView, dep: DeploymentView) -> bool:
@@ -763,7 +679,7 @@ class _Targets:
         current: DeploymentView,
         table: DeploymentTable,
         profiles: Profiles,
-        st: _RobotState,
+        st: RobotState,
         now: float,
     ) -> None:
         self._scheduler = scheduler
@@ -808,7 +724,7 @@ class _Targets:
             dep = self._table.by_id.get(dep_id)
             if (
                 dep is None
-                or sched._avoided(self._st, dep_id, now=self._now)
+                or sched.memory.avoided(self._st, dep_id, now=self._now)
                 or dep.full
                 or (headroom is not None and not dep.has_room(headroom))
                 or not _usable(self._robot, dep)

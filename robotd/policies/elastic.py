@@ -13,19 +13,11 @@ On forced-sampling frames the choice is restricted to offloading actions. Only o
 update the regression.
 
 `elastic` adds what ElasticROS adds to μLinUCB:
-- change detection: `change_frames` residuals in a row, same sign, each off by more than
-  `change_tolerance` of the prediction, on actions the model knows (their prediction rests on
-  about `known_samples` observations or more), start a parameter-update period. Old evidence is
-  dropped (Q, p are reset and the misses that revealed the change are replayed) and the actions
-  are restricted in one direction: slower than predicted → only actions sending no more data
-  than the one that missed (and P); faster → only actions sending at least as much. The period
-  ends after `fit_frames` fitting predictions in a row, or when the mean relative residual of
-  the last `fit_frames` is within half the tolerance (on a link whose times come in steps,
-  single residuals of ±30% are noise, and "in a row" would hardly ever happen). Inside a
-  restricted period, `change_frames` misses in a row *against* its direction, on actions that
-  already fitted in it, start a period the other way: the link that fell while only actions
-  sending more (and not P) were allowed is noticed. A run starts in an unrestricted period
-  (nothing is known yet).
+- change detection (`robotd.policies.change_detector`): misses in a row on actions the model knows
+  start a parameter-update period, which drops old evidence and restricts the actions to one
+  direction (less data and P when the cloud got slower, at least as much data when it got
+  faster) until predictions fit again; after a single miss the next frame is a forced frame, so
+  a change is confirmed within `change_frames` frames.
 - hedging: an exploring frame — one whose action differs from what the estimates alone would
   choose, because it is a forced frame or because its confidence bonus won — and every offloaded
   frame of an update period, is also computed on the robot and served by the faster path;
@@ -41,20 +33,11 @@ update the regression.
   and each probe that finds the estimate right doubles the interval to the next (up to
   `ROBOT_PROBE_MAX_FACTOR` times), as these probes cost latency; one that finds it wrong is
   confirmed by a probe on the next frame.
-- confirmation: after a single miss the next frame is a forced frame (so it samples the cloud,
-  hedged if the policy would not otherwise offload), and a change is confirmed within
-  `change_frames` frames rather than `change_frames` forced intervals.
-- take-up: an offloading action whose observation (its robot part as estimated plus the cloud
-  part observed) costs less than (1 − `takeover_margin`) of the current choice's estimate is
-  sampled again on the next frame (hedged), and `takeover_samples` such observations in a row
-  start an update period on its evidence (the "faster" direction). Change detection only counts
-  misses on actions the model knows; an action that rests on a few samples, e.g. the cloud after
-  a bad phase while the robot served every frame, would otherwise be learned one forced sample
-  at a time, its old samples outweighing the new ones for hundreds of frames. The rule needs no
-  count of samples: it only compares what the action just cost with what is being served.
-- hint: while P serves, an unknown explored action answering faster than predicted makes the next
-  frame sample the action that was cheapest at its best (`_hint_cheaper`), so take-up can judge
-  the action worth taking rather than whichever had the largest confidence bonus.
+- take-up and hint (`robotd.policies.take_up`): an offloading action seen to cost less than
+  (1 − `takeover_margin`) of the current choice is sampled again on the next frame, and
+  `takeover_samples` such observations in a row start an update period on its evidence; while P
+  serves, an unknown action answering faster than predicted makes the next frame sample the
+  action that was cheapest at its best.
 
 A frame the cloud did not answer teaches y = the time the robot waited (its deadline): a dead or
 congested route then looks expensive instead of unknown, and the miss feeds change detection.
@@ -63,7 +46,6 @@ congested route then looks expensive instead of unknown, and the miss feeds chan
 from __future__ import annotations
 
 import math
-from collections import deque
 from typing import Any
 
 import numpy as np
@@ -77,6 +59,7 @@ from robotd.policies.base import (
     Outcome,
     Policy,
 )
+from robotd.policies.change_detector import MIN_PREDICTION, ChangeDetector, miss_tolerance
 from robotd.policies.objective import Objective, cloud_cost
 from robotd.policies.params import AnsParams, ElasticParams
 from robotd.policies.ridge import RidgeEstimator, quadratic_features
@@ -84,15 +67,10 @@ from robotd.policies.robot_probes import RobotProbes
 from robotd.policies.robotcost import SHORT_RUN_SHARE, RobotCostModel
 from robotd.policies.schedule import ForcedSchedule
 from robotd.policies.segment_actions import action_contexts
+from robotd.policies.take_up import TakeUp
 
-# Relative residuals are taken against at least this prediction (objective units), so a
-# near-zero prediction does not turn every residual into a miss.
-MIN_PREDICTION = 1e-3
 # A failed attempt with no reported wait is charged this multiple of its prediction.
 UNKNOWN_WAIT_FACTOR = 2.0
-# An update period ends when the mean relative residual of its last fit_frames observations is
-# within this share of change_tolerance.
-FIT_BIAS_SHARE = 0.5
 # Learned bytes of an action change its context only when they moved by more than this share.
 BYTES_CHANGE_SHARE = 0.02
 # Action costs within this share of the whole model's time count as equal when dominated
@@ -104,6 +82,8 @@ class ElasticPolicy(Policy):
     """ElasticAction; with change detection, restriction and hedging off it is μLinUCB (`ans`)."""
 
     name = "elastic"
+    # The regression's implementation (the decision-cost benchmark compares another one).
+    ridge_type: type[RidgeEstimator] = RidgeEstimator
 
     def __init__(
         self, cuts: CutTable, params: ElasticParams, objective: Objective, name: str = "elastic"
@@ -119,7 +99,7 @@ class ElasticPolicy(Policy):
         self.contexts = action_contexts(cuts)
         # Bytes sent per action, learned online: a JPEG's size follows the content.
         self._bytes: list[float] = cuts.bytes.tolist()
-        self._ridge = RidgeEstimator(self.contexts, params.gamma)
+        self._ridge = self.ridge_type(self.contexts, params.gamma)
         self._robot = RobotCostModel(cuts, objective, params)
         self._wait_rate = objective.wait_rate
         self._radio_rate = objective.radio_rate
@@ -156,33 +136,9 @@ class ElasticPolicy(Policy):
         self._prefix_s: list[float] = cuts.prefix_s.tolist()
         self._suffix_s: list[float] = cuts.suffix_s.tolist()
         self._frame = 0
-        # Direction restriction: None means every cut is allowed.
-        self._mask: list[bool] | None = None
-        self._p_allowed = True
-        # A run starts in an (unrestricted) update period when change detection is on.
-        self._updating = params.change_detection
-        self._period_frames = 0
-        self._fits = 0
-        # Relative residuals of the period's last `fit_frames` observations: their mean decides
-        # when predictions fit again (one by one, a noisy link would rarely fit in a row).
-        self._recent: deque[float] = deque(maxlen=params.fit_frames)
-        # The period's restriction: +1 slower (less data, P allowed), -1 faster, 0 none.
-        self._direction = 0
-        # Columns whose prediction fitted in this period (first: the one whose misses started
-        # it): only their misses can reveal that conditions changed again.
-        self._fitted: set[int] = set()
-        self._streak: list[tuple[int, float]] = []
-        self._streak_sign = 0
-        self._confirm = False
-        self.update_periods = 0
-        # Take-up: per column, the cloud-side observations in a row that beat the current
-        # choice by the margin; the column to sample on the next frame to confirm them.
-        self._beating: dict[int, list[float]] = {}
-        self._challenger: int | None = None
-        self.takeovers = 0
-        # Per column, the least cloud-side cost it was ever seen to take (`_hint_cheaper`).
-        self._best_seen: dict[int, float] = {}
-        self._next_hint = 0  # no hint before this frame
+        # Streaks, update periods and the direction restriction; take-up candidates and hints.
+        self._detector = ChangeDetector(params, self._ridge, self._bytes)
+        self._take_up = TakeUp(params, self._detector, self._schedule)
         # When to time the robot on a frame whose action runs nothing measurable there.
         self._probes = RobotProbes(params, self._robot, self._untimed)
         # Score parts, cut order: base = E^c + bytes cost + α̂ᵀv (inf where restricted away in
@@ -205,33 +161,37 @@ class ElasticPolicy(Policy):
         robot.tick()
         self._probes.tick()
         params = self.params
+        detector = self._detector
+        take_up = self._take_up
+        updating = detector.updating
+        p_allowed = detector.p_allowed
         best, j = self._best_key if ctx.entropy >= params.key_entropy else self._best_nonkey
         p_cost = robot.full_cost
-        regular_p = self._p_allowed and p_cost <= best
-        forced = self._confirm or self._schedule.is_forced(n)
-        self._confirm = False
-        challenger = self._challenger
+        regular_p = p_allowed and p_cost <= best
+        forced = detector.confirm or self._schedule.is_forced(n)
+        detector.confirm = False
+        challenger = take_up.challenger
         if challenger is not None:
             # Confirm a take-up candidate on this frame (it is allowed: a restriction starts
             # only with an update period, which clears the candidate).
-            self._challenger = None
+            take_up.challenger = None
             j, forced = challenger, True
         if regular_p and not forced:
-            return Decision(PURE_ROBOT, updating=self._updating, predicted_cost=p_cost)
+            return Decision(PURE_ROBOT, updating=updating, predicted_cost=p_cost)
         probe = self._probes.due(j)
         if not params.hedge:
-            if probe and self._p_allowed and not forced:
+            if probe and p_allowed and not forced:
                 # Without hedging the robot is timed by serving the frame on it.
                 self._probes.tried(on_p=True)
-                return Decision(PURE_ROBOT, updating=self._updating, predicted_cost=p_cost)
+                return Decision(PURE_ROBOT, updating=updating, predicted_cost=p_cost)
             return self.cuts.decision_at(
-                j, forced=forced, updating=self._updating, predicted_cost=self._base[j]
+                j, forced=forced, updating=updating, predicted_cost=self._base[j]
             )
         # Exploring = serving something else than the estimates alone would choose.
         cheapest, greedy = self._cheapest
-        if self._p_allowed and p_cost <= cheapest:
+        if p_allowed and p_cost <= cheapest:
             greedy = -1
-        hedge = greedy != j or self._updating or probe
+        hedge = greedy != j or updating or probe
         if self._segment[j]:
             # Explored unhedged: a local race would run the whole suffix from the start cut,
             # while the reply still needs the tail (`Decision`); a probe waits for a cut.
@@ -245,7 +205,7 @@ class ElasticPolicy(Policy):
             j,
             hedge=hedge,
             forced=forced,
-            updating=self._updating,
+            updating=updating,
             predicted_cost=self._base[j],
             hedge_after_s=after_s,
             local_expected=hedge and greedy < 0,
@@ -298,9 +258,7 @@ class ElasticPolicy(Policy):
             target = cloud_cost(self._wait_rate, self._radio_rate, outcome.waited_s, None)
         else:
             target = UNKNOWN_WAIT_FACTOR * max(self._pred[j], MIN_PREDICTION)
-        if target < self._best_seen.get(j, math.inf):
-            self._best_seen[j] = target
-        if self._take_up(j, target):
+        if self._take_up.observe(j, target, self._base[j] - self._pred[j], self._current):
             pass  # the observation started an update period on this action's evidence
         elif self.params.change_detection:
             self._track(j, target)
@@ -327,191 +285,25 @@ class ElasticPolicy(Policy):
         self._features[2 * k + j, 0] = mb
 
     def _track(self, j: int, target: float) -> None:
-        """Update the regression and the change detector with one cloud-side observation."""
-        params = self.params
+        """Feed one cloud-side observation of column j to the change detector (which updates
+        the regression); a surprise on an action the model does not know may hint at a cheaper
+        one (`TakeUp.hint`; a known action's misses are confirmed by the detector)."""
         pred = self._pred[j]
-        residual = target - pred
-        scale = max(abs(pred), MIN_PREDICTION)
-        tolerance = params.change_tolerance * scale
-        sign = 1 if residual > 0 else -1
-        if sign < 0 and abs(residual) > tolerance and self._width[j] > self._known_width:
-            # A surprise on an action the model does not know: change detection ignores it
-            # (below), the hint does not (a known action's misses are confirmed there).
-            self._hint_cheaper(j, target)
-        if self._updating:
-            missed = abs(residual) > tolerance
-            if self._reversed(j, sign, missed, target):
-                return
-            if not missed:
-                self._fitted.add(j)
-            self._ridge.update(j, target)
-            self._period_frames += 1
-            self._fits = self._fits + 1 if abs(residual) <= tolerance else 0
-            recent = self._recent
-            recent.append(residual / scale)
-            # Fitting again: fit_frames predictions in a row within the tolerance, or (on a
-            # noisy link, where single residuals often miss) the mean residual of the last
-            # fit_frames well inside it; leaving on a bias just inside the tolerance would let
-            # the next residuals on the same bias start another period.
-            fits = self._fits >= params.fit_frames or (
-                len(recent) >= params.fit_frames
-                and abs(sum(recent)) <= FIT_BIAS_SHARE * params.change_tolerance * len(recent)
-            )
-            if fits or self._period_frames >= params.max_update_frames:
-                self._leave_update()
-            return
-        # Only an action the model knows well can reveal a change; a surprise on an action still
-        # being explored is ordinary learning.
         known = self._width[j] <= self._known_width
-        if known and abs(residual) > tolerance:
-            if sign != self._streak_sign:
-                self._streak.clear()
-                self._streak_sign = sign
-            self._streak.append((j, target))
-            if len(self._streak) >= params.change_frames:
-                self._enter_update(j, sign, self._streak)
-                return
-            self._confirm = params.confirm_misses
-        else:
-            self._streak.clear()
-            self._streak_sign = 0
-        self._ridge.update(j, target)
-
-    def _hint_cheaper(self, j: int, target: float) -> None:
-        """Column j answered faster than predicted while P serves every frame: offloading may
-        have got cheaper (a bad phase ended), but j itself need not be the action to take (an
-        explored action far from competitive). Sample on the next frame the action that was
-        cheapest at its best: its robot part plus the least cloud part it was ever seen to
-        take (an action never seen: its prediction shrunk as j's answer shrank), if that beat P
-        by `takeover_margin`. The take-up rule then judges it on its own answers. The sample
-        is hedged; on a link that is still bad it only confirms the estimate."""
-        margin = self.params.takeover_margin
-        if margin <= 0.0 or self._challenger is not None or self._frame < self._next_hint:
-            return
-        if self._direction != 0:
-            return  # a restricted period is learning the new conditions afresh: no hints
-        p_cost, greedy = self._current()
-        if greedy >= 0:
-            return
-        ratio = max(target, 0.0) / max(self._pred[j], MIN_PREDICTION)
-        seen = self._best_seen
-        best_case = [
-            b - y + (seen[a] if a in seen else y * ratio)
-            for a, (b, y) in enumerate(zip(self._allowed_base, self._pred, strict=False))
-        ]
-        best = min(best_case)
-        candidate = best_case.index(best)
-        # Only an action that at its best beat P by the margin is worth a sample; j itself
-        # is not asked for again (its own answers already teach the regression, and samples
-        # of it in a row would make ordinary misses look like a change).
-        if candidate != j and best < (1.0 - margin) * p_cost:
-            self._challenger = candidate
-            # At most one hint per forced interval: on a link that is still bad, every hinted
-            # sample costs a hedged frame (and, paced, delays the frames behind it).
-            self._next_hint = self._frame + self._schedule.interval(self._frame)
+        if not known and pred - target > miss_tolerance(self.params, pred)[1]:
+            self._take_up.hint(
+                j, target, self._frame, self._current(), self._allowed_base, self._pred
+            )
+        if self._detector.observe(j, target, pred, known):
+            self._take_up.forget()  # candidates were judged against the old conditions
 
     def _current(self) -> tuple[float, int]:
         """(estimated cost, column) of what the estimates alone choose now; column -1: P."""
         current, greedy = self._cheapest
         p_cost = self._robot.full_cost
-        if self._p_allowed and p_cost <= current:
+        if self._detector.p_allowed and p_cost <= current:
             return p_cost, -1
         return current, greedy
-
-    def _take_up(self, j: int, target: float) -> bool:
-        """Take-up rule: True when this observation of column j, with the ones before it in a
-        row, beat the current choice by `takeover_margin` and started an update period on j's
-        evidence; a first beating observation asks for j on the next frame."""
-        params = self.params
-        margin = params.takeover_margin
-        if margin <= 0.0 or not params.change_detection:
-            return False
-        current, greedy = self._current()
-        beating = self._beating.setdefault(j, [])
-        # The robot part and the bytes as estimated (base − prediction), the cloud part seen.
-        observed = self._base[j] - self._pred[j] + target
-        if greedy == j or observed >= (1.0 - margin) * current:
-            beating.clear()
-            return False
-        beating.append(target)
-        if len(beating) < params.takeover_samples:
-            self._challenger = j
-            return False
-        misses = [(j, y) for y in beating]
-        self._beating.clear()
-        self._challenger = None
-        self._enter_update(j, -1, misses, only_p_out=greedy < 0)
-        self.takeovers += 1
-        return True
-
-    def _reversed(self, j: int, sign: int, missed: bool, target: float) -> bool:
-        """Inside a restricted update period: `change_frames` misses in a row against its
-        direction (slower while only actions sending more are allowed, e.g. the link fell
-        during a period that excludes P; or faster while only actions sending less are), on
-        actions whose prediction already fitted in this period (the first: the one whose misses
-        started it), start a period the other way. True when that happened (the observation then
-        went into the new period). Misses in the period's own direction are left to the
-        regression: restarting on them would discard what the period has learned."""
-        if self._direction == 0 or j not in self._fitted:
-            return False  # unrestricted, or an action still being learned: not a miss nor a fit
-        if not missed or sign == self._direction:
-            self._streak.clear()
-            self._streak_sign = 0
-            return False
-        if sign != self._streak_sign:
-            self._streak.clear()
-            self._streak_sign = sign
-        self._streak.append((j, target))
-        if len(self._streak) < self.params.change_frames:
-            return False
-        self._enter_update(j, sign, self._streak)
-        return True
-
-    def _enter_update(
-        self, j: int, sign: int, evidence: list[tuple[int, float]], only_p_out: bool = False
-    ) -> None:
-        """Start a parameter-update period after the action in column j missed repeatedly
-        (`evidence`: the (column, observation) pairs that revealed it; `only_p_out`: a take-up
-        of j over P, whose period leaves P out and every cut in)."""
-        misses = list(evidence)
-        self._streak.clear()
-        self._streak_sign = 0
-        # Old evidence describes the old conditions; the misses are the first of the new ones.
-        self._ridge.reset()
-        for row, y in misses:
-            self._ridge.update(row, y)
-        if self.params.direction_restriction:
-            sizes = np.array(self._bytes)
-            anchor = sizes[j]
-            if only_p_out:
-                self._mask = [True] * self._k
-                self._p_allowed = False
-            elif sign > 0:
-                self._mask = (sizes <= anchor).tolist()
-                self._p_allowed = True
-            else:
-                self._mask = (sizes >= anchor).tolist()
-                self._p_allowed = False
-            self._direction = sign
-        self._fitted = {j}
-        self._updating = True
-        self._period_frames = 0
-        self._fits = 0
-        self._recent.clear()
-        self._beating.clear()
-        self._challenger = None
-        self.update_periods += 1
-
-    def _leave_update(self) -> None:
-        self._updating = False
-        self._mask = None
-        self._p_allowed = True
-        self._direction = 0
-        self._fitted.clear()
-        self._fits = 0
-        self._recent.clear()
-        self._streak.clear()
-        self._streak_sign = 0
 
     def _refresh(self, learned: bool) -> None:
         """Recompute the score parts after an observation (`learned`: the regression changed)."""
@@ -531,7 +323,7 @@ class ElasticPolicy(Policy):
             except ValueError:  # round-off can leave a tiny negative form once Q is large
                 self._width = [math.sqrt(x) if x > 0.0 else 0.0 for x in quad]
             self._pred = values[2 * k :]
-        mask = self._mask
+        mask = self._detector.mask
         self._allowed_base = (
             base
             if mask is None
@@ -572,14 +364,25 @@ class ElasticPolicy(Policy):
     @property
     def updating(self) -> bool:
         """True inside a parameter-update period."""
-        return self._updating
+        return self._detector.updating
+
+    @property
+    def update_periods(self) -> int:
+        """Parameter-update periods started so far (the run's first, unrestricted one aside)."""
+        return self._detector.update_periods
+
+    @property
+    def takeovers(self) -> int:
+        """Update periods started by the take-up rule."""
+        return self._take_up.takeovers
 
     def allowed_actions(self) -> list[str]:
         """Labels of the actions the direction restriction currently allows (all of them
         outside a period)."""
         labels = self.cuts.labels
-        cuts = [labels[i] for i in range(self._k) if self._mask is None or self._mask[i]]
-        return [*cuts, PURE_ROBOT] if self._p_allowed else cuts
+        mask = self._detector.mask
+        cuts = [labels[i] for i in range(self._k) if mask is None or mask[i]]
+        return [*cuts, PURE_ROBOT] if self._detector.p_allowed else cuts
 
     def predicted_cloud_cost(self) -> dict[str, float]:
         """α̂ᵀv_a for every offloading action, by label (objective units)."""
@@ -595,10 +398,10 @@ class ElasticPolicy(Policy):
             "frame": self._frame,
             "alpha": list(self._ridge.alpha),
             "samples": self._ridge.samples,
-            "updating": self._updating,
+            "updating": self._detector.updating,
             "update_periods": self.update_periods,
             "takeovers": self.takeovers,
-            "direction": self._direction,
+            "direction": self._detector.direction,
             "robot_speed_ratio": self._robot.ratio,
             "robot_probes": self._probes.count,
         }

@@ -60,7 +60,7 @@ def test_best_is_the_first_of_the_full_ranking(stat: Stat) -> None:
     compared = 0
     for case in range(400):
         table, profiles, penalized = _fleet(rng)
-        st = sched._state(f"robot-{case}")
+        st = sched.memory.state(f"robot-{case}")
         st.left_at = dict.fromkeys(penalized, NOW - 1.0)
         current = rng.choice(table.views)
         robot = RobotView(

@@ -355,7 +355,7 @@ def test_carry_out_tells_the_scheduler(rib: Rib) -> None:
         sched, Switcher(rib, transport), RouteDecision(ROBOT, "b", "c", Reason.TIMEOUTS, ("c",))
     )
     assert not stuck.changed
-    assert sched._robots[ROBOT].failed_at == 0.0
+    assert sched.memory.state(ROBOT).failed_at == 0.0
 
 
 def test_anycast_invariant_under_random_failures() -> None:
