@@ -25,7 +25,8 @@ update the regression.
   `Decision.hedge_after_s` after the request: one expected to beat the reply at the latest
   moment that still finishes it when the greedy choice would have served the frame; one expected
   to lose to it once the reply is overdue. A local run that cannot beat the expected reply then
-  does not compete with the offload for the robot's CPU.
+  does not compete with the offload for the robot's CPU. A segment is never hedged: it is
+  explored on the cloud alone (and a robot probe due on it waits for a whole suffix).
 - robot probes (`robotd.policies.robot_probes`): when the robot has not been timed for
   `robot_probe_frames` frames (its actions run less than `SHORT_RUN_SHARE` of the model there,
   e.g. cut 0 with a JPEG encode), the next offloaded frame is hedged at once, so a robot that got
