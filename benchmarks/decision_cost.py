@@ -11,9 +11,12 @@ timed; the table gives medians in µs.
   `decide` inverts Q (numpy) and recomputes α̂, the predictions and widths before choosing.
 
     python benchmarks/decision_cost.py [--frames 20000] [--cuts 16] [--codecs 4] [--uplink-mbit 10]
-                                       [--seed 0]
+                                       [--seed 0] [--segments]
 
 Every (cut, codec) stays an action (`prune_dominated` off): the worst case for the decision.
+`--segments` adds the segment between every two cuts, once per codec of its start cut (a split
+made with `cuts.segments`), and with it the fourth context feature, MB returned (d = 4): with
+`--cuts 5 --codecs 4` that is zoo:stereo's largest action set, 20 whole suffixes and 40 segments.
 """
 
 from __future__ import annotations
@@ -50,9 +53,10 @@ CODECS = (
 )
 
 
-def synthetic_profile(cuts: int, codecs: int = 4) -> dict[str, Any]:
+def synthetic_profile(cuts: int, codecs: int = 4, segments: bool = False) -> dict[str, Any]:
     """A chain CNN-like profile: time grows along the net, bytes shrink (cut 0 = raw input);
-    every cut crosses in each of the first `codecs` of CODECS."""
+    every cut crosses in each of the first `codecs` of CODECS; with `segments`, the segment
+    between every two cuts is listed (as `robotd.robot_profile` lists a split's)."""
     full_ms = 72.9
     rows = []
     for k in range(cuts):
@@ -70,7 +74,8 @@ def synthetic_profile(cuts: int, codecs: int = 4) -> dict[str, Any]:
                 ],
             }
         )
-    return {"full_ms": full_ms, "cuts": rows}
+    pairs = [[a, b] for a in range(cuts) for b in range(a + 1, cuts)] if segments else []
+    return {"full_ms": full_ms, "cuts": rows, **({"segments": pairs} if pairs else {})}
 
 
 class InvertingRidge(RidgeEstimator):
@@ -124,10 +129,14 @@ def outcome_for(
         return Outcome(prefix_s=full, latency_s=full)
     cut = profile["cuts"][int(decision.action)]
     sent = int(next(c["bytes"] for c in cut["codecs"] if c["name"] == decision.codec))
-    prefix = cut["prefix_ms"] / 1000 * ROBOT_SLOWDOWN * noise[0]
-    compute = cut["suffix_ms"] / 1000 / CLOUD_SPEEDUP * noise[1]
-    uplink_s = sent * BITS_PER_BYTE / (uplink_mbit * MBIT)
-    y = (uplink_s + RTT_S) * noise[2] + compute
+    # A segment: the robot also runs the tail after the reply, which brings the end cut back.
+    end = None if decision.end is None else profile["cuts"][decision.end]
+    tail_ms = 0.0 if end is None else end["suffix_ms"]
+    back = 0 if end is None else end["bytes"]
+    prefix = (cut["prefix_ms"] + tail_ms) / 1000 * ROBOT_SLOWDOWN * noise[0]
+    compute = (cut["suffix_ms"] - tail_ms) / 1000 / CLOUD_SPEEDUP * noise[1]
+    transfer_s = (sent + back) * BITS_PER_BYTE / (uplink_mbit * MBIT)
+    y = (transfer_s + RTT_S) * noise[2] + compute
     local = cut["suffix_ms"] / 1000 * ROBOT_SLOWDOWN * noise[0] if decision.hedge else None
     return Outcome(
         prefix_s=prefix,
@@ -140,14 +149,19 @@ def outcome_for(
 
 
 def _key(d: Decision) -> tuple[Any, ...]:
-    return (d.action, d.codec, d.hedge, d.forced, d.updating)
+    return (d.action, d.codec, d.end, d.hedge, d.forced, d.updating)
 
 
 def run(
-    frames: int, cuts: int, seed: int, uplink_mbit: float = 10.0, codecs: int = 4
+    frames: int,
+    cuts: int,
+    seed: int,
+    uplink_mbit: float = 10.0,
+    codecs: int = 4,
+    segments: bool = False,
 ) -> dict[str, Any]:
     """Time both implementations on the same frames; µs medians per implementation."""
-    profile = synthetic_profile(cuts, codecs)
+    profile = synthetic_profile(cuts, codecs, segments)
     fast = make_policy("elastic", profile, {"prune_dominated": False})
     assert isinstance(fast, ElasticPolicy)
     slow = InvertEveryFrame(fast.cuts, fast.params, fast.objective, "elastic-invert")
@@ -156,7 +170,7 @@ def run(
     entropies = rng.uniform(0.5, 1.0, size=frames + WARMUP_FRAMES)
     decide_ns: dict[str, list[int]] = {"fast": [], "slow": []}
     observe_ns: dict[str, list[int]] = {"fast": [], "slow": []}
-    mismatches = offloaded = hedged = 0
+    mismatches = offloaded = hedged = on_segments = 0
     clock = time.perf_counter_ns
     gc.disable()
     try:
@@ -183,9 +197,14 @@ def run(
             if t >= WARMUP_FRAMES:
                 offloaded += decisions["fast"].offloads
                 hedged += decisions["fast"].hedge
+                on_segments += decisions["fast"].end is not None
     finally:
         gc.enable()
-    report: dict[str, Any] = {"mismatched_decisions": mismatches}
+    report: dict[str, Any] = {
+        "mismatched_decisions": mismatches,
+        "actions": fast.cuts.size + 1,
+        "features": fast.contexts.shape[1],
+    }
     for key in policies:
         frame_ns = [a + b for a, b in zip(decide_ns[key], observe_ns[key], strict=True)]
         report[key] = {
@@ -196,6 +215,7 @@ def run(
         }
     report["offloaded_share"] = offloaded / frames
     report["hedged_share"] = hedged / frames
+    report["segment_share"] = on_segments / frames
     return report
 
 
@@ -210,17 +230,24 @@ def main() -> None:
         "--uplink-mbit", type=float, default=10.0, help="uplink of the simulated link, Mbit/s"
     )
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--segments",
+        action="store_true",
+        help="also the segment between every two cuts, per codec of its start cut",
+    )
     args = parser.parse_args()
     if args.frames < 1 or args.cuts < 1 or args.uplink_mbit <= 0:
         parser.error("--frames and --cuts must be >= 1 and --uplink-mbit > 0")
     if not 1 <= args.codecs <= len(CODECS):
         parser.error(f"--codecs must be 1 to {len(CODECS)}")
-    report = run(args.frames, args.cuts, args.seed, args.uplink_mbit, args.codecs)
+    report = run(args.frames, args.cuts, args.seed, args.uplink_mbit, args.codecs, args.segments)
+    shape = f"{args.cuts} cuts x {args.codecs} codecs" + (" with segments" if args.segments else "")
     print(
-        f"ElasticAction decision cost: {args.cuts} cuts x {args.codecs} codecs, d=3, "
-        f"{args.frames} frames "
-        f"({report['offloaded_share']:.0%} offloaded, {report['hedged_share']:.0%} hedged), "
-        f"{args.uplink_mbit:g} Mbit/s, seed {args.seed}\n"
+        f"ElasticAction decision cost: {shape}, {report['actions']} actions with P, "
+        f"d={report['features']}, {args.frames} frames "
+        f"({report['offloaded_share']:.0%} offloaded, {report['hedged_share']:.0%} hedged, "
+        f"{report['segment_share']:.0%} on segments), {args.uplink_mbit:g} Mbit/s, "
+        f"seed {args.seed}\n"
     )
     print(
         "| implementation | decide median (µs) | observe median (µs) "

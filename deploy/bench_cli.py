@@ -354,10 +354,11 @@ def nav(
         "320x240,640x480", "--resolutions", help="Camera resolutions WxH, comma-separated."
     ),
     nav_options: str = typer.Option(
-        "1,2,3,4,elastic,off",
+        "1,2,3,4,elastic,elastic-segments,off",
         "--options",
-        help="Offloading options 1-4, elastic (the runtime's learner) and off (the assistant "
-        "off, closed loop only), comma-separated.",
+        help="Offloading options 1-4, elastic (the runtime's learner over whole suffixes), "
+        "elastic-segments (with the split's segments too: option 3 among its actions) and off "
+        "(the assistant off, closed loop only), comma-separated.",
     ),
     uplink_mbit: float | None = typer.Option(
         None,

@@ -3,7 +3,8 @@
 Cost model, per segment (times in seconds; the profile was taken on some host):
 - robot time of a prefix/suffix/whole model = profiled time / robot_cpu;
 - uplink = bytes·8 / uplink + rtt/2; cloud compute = suffix time / cloud_speedup;
-  downlink = output bytes·8 / downlink + rtt/2; y = uplink + cloud + downlink;
+  downlink = returned bytes·8 / downlink + rtt/2 (the model's outputs; a segment's end-cut
+  tensors, `CutTable.returns`); y = uplink + cloud + downlink;
 - every one of robot, uplink, cloud and downlink time is multiplied per frame by its own seeded
   lognormal factor of mean 1 (σ = `noise.jitter`). The factors are drawn once per frame from the
   seed, independent of the policy, so every policy (and the oracle) meets the same conditions.
@@ -12,6 +13,8 @@ Cost model, per segment (times in seconds; the profile was taken on some host):
   comes first (it then reports no robot time); with a `deadline_ms`, a reply later than the
   deadline is lost and the robot finishes locally after waiting (a hedged frame's local run then
   started at d or at the deadline, whichever is first). Frames are independent (no queueing).
+- a segment (cut_in → cut_out) is never hedged; its robot part is the prefix and, after the
+  reply, the tail; a reply past the deadline is finished from cut_in, without the tail.
 
 The expected cost of an action is its cost at the mean conditions of its segment. The oracle
 picks the least expected cost in every segment; regret sums, frame by frame, the expected cost of
@@ -40,6 +43,7 @@ from robotd.policies.base import (
     Outcome,
 )
 from robotd.policies.objective import Objective
+from robotd.policies.segment_actions import actions_table
 from robotd.trace import ConstantEntropy, Segment, Trace, UniformEntropy, video_entropies
 
 BITS_PER_BYTE = 8.0
@@ -61,7 +65,8 @@ class SegmentCosts:
     full_s: float  # robot time of the whole model
     uplink_s: FloatArray
     compute_s: FloatArray  # cloud compute of each suffix
-    downlink_s: float
+    downlink_s: FloatArray  # of each action's reply
+    head_s: FloatArray  # robot time before the reply (a segment's prefix without its tail)
     plain: FloatArray  # expected cost of each action, cuts then P, served as decided
     hedged: FloatArray  # expected cost of each cut when hedged (P: same as plain)
     latency_plain: FloatArray  # expected latency of each action
@@ -83,8 +88,10 @@ def segment_costs(
     uplink = cuts.bytes * BITS_PER_BYTE / (seg.uplink_mbit * MBIT) + seg.rtt_ms / MS_PER_S / 2
     compute = cuts.cloud_s / seg.cloud_speedup
     downlink = (
-        cuts.output_bytes * BITS_PER_BYTE / (seg.downlink_mbit * MBIT) + seg.rtt_ms / MS_PER_S / 2
+        cuts.returned_bytes * BITS_PER_BYTE / (seg.downlink_mbit * MBIT) + seg.rtt_ms / MS_PER_S / 2
     )
+    head = (cuts.prefix_s - cuts.tail_s) / seg.robot_cpu
+    segment = np.array([e is not None for e in cuts.ends], dtype=bool)
     y = uplink + compute + downlink
     mb = cuts.bytes / BYTES_PER_MB
     radio = y - compute
@@ -94,13 +101,14 @@ def segment_costs(
         answered = y <= deadline_s
         radio = np.where(answered, radio, np.minimum(radio, deadline_s))
     wait = y if deadline_s is None else np.where(answered, y, deadline_s)
-    lat_plain = np.where(answered, prefix + y, prefix + wait + local)
-    cpu_plain = np.where(answered, prefix, prefix + local)
+    lat_plain = np.where(answered, prefix + y, head + wait + local)
+    cpu_plain = np.where(answered, prefix, head + local)
     lat_hedged = np.where(answered, prefix + np.minimum(y, local), prefix + local)
     # A local run that loses to the reply is stopped then.
     cpu_hedged = prefix + np.where(answered, np.minimum(y, local), local)
     plain = objective.frame_cost(lat_plain, cpu_plain, radio, mb)
-    hedged = objective.frame_cost(lat_hedged, cpu_hedged, radio, mb)
+    # A segment is not hedged: its "hedged" cost is its plain one.
+    hedged = np.where(segment, plain, objective.frame_cost(lat_hedged, cpu_hedged, radio, mb))
     p_cost = objective.frame_cost(full, full, 0.0, 0.0)
     plain_all = np.append(plain, p_cost)
     return SegmentCosts(
@@ -110,6 +118,7 @@ def segment_costs(
         uplink_s=uplink,
         compute_s=compute,
         downlink_s=downlink,
+        head_s=head,
         plain=plain_all,
         hedged=np.append(hedged, p_cost),
         latency_plain=np.append(lat_plain, full),
@@ -285,7 +294,7 @@ class Simulator:
         """Expected cost of cut j hedged with its local run starting `after_s` after the request
         (the segment's mean conditions; `table` is the run's per-segment table)."""
         prefix, local, _full, uplink, compute, downlink = table[:6]
-        y = uplink[j] + compute[j] + downlink
+        y = uplink[j] + compute[j] + downlink[j]
         deadline = self.deadline_s
         if deadline is None or y <= deadline:
             done = min(y, after_s + local[j])
@@ -301,13 +310,12 @@ class Simulator:
         fr, fu, fc, fd = (f[frames] for f in self.factors)
         if col == self.cuts.size:
             return seg.full_s * fr
-        y = seg.uplink_s[col] * fu + seg.compute_s[col] * fc + seg.downlink_s * fd
+        y = seg.uplink_s[col] * fu + seg.compute_s[col] * fc + seg.downlink_s[col] * fd
         prefix = seg.prefix_s[col] * fr
         if self.deadline_s is None:
             return prefix + y
-        return np.where(
-            y <= self.deadline_s, prefix + y, prefix + self.deadline_s + seg.local_s[col] * fr
-        )
+        late = (seg.head_s[col] + seg.local_s[col]) * fr + self.deadline_s
+        return np.where(y <= self.deadline_s, prefix + y, late)
 
     def _oracle_latencies(self) -> FloatArray:
         out = np.empty(self.trace.total_frames)
@@ -337,10 +345,11 @@ class Simulator:
                 seg.full_s,
                 seg.uplink_s.tolist(),
                 seg.compute_s.tolist(),
-                seg.downlink_s,
+                seg.downlink_s.tolist(),
                 seg.plain.tolist(),
                 seg.hedged.tolist(),
                 tuple(seg.plain.tolist()),
+                seg.head_s.tolist(),
             )
             for seg in self.segments
         ]
@@ -356,7 +365,8 @@ class Simulator:
         clock = time.perf_counter_ns
         for t in range(total):
             s = segment_of[t]
-            prefix, local, full, uplink, compute, downlink, plain, hedge_cost, truth = tables[s]
+            table = tables[s]
+            prefix, local, full, uplink, compute, downlink, plain, hedge_cost, truth, head = table
             ctx = FrameContext(index=t, entropy=entropy[t], expected_costs=truth)
             started = clock()
             decision = policy.decide(ctx)
@@ -368,10 +378,10 @@ class Simulator:
                 outcome = Outcome(prefix_s=lat, latency_s=lat)
                 cost = plain[k]
             else:
-                j = position[(int(decision.action), decision.codec)]
+                j = position[(int(decision.action), decision.codec, decision.end)]
                 pre = prefix[j] * fr
                 cc = compute[j] * fc_all[t]
-                y = uplink[j] * fu_all[t] + cc + downlink * fd_all[t]
+                y = uplink[j] * fu_all[t] + cc + downlink[j] * fd_all[t]
                 answered = deadline is None or y <= deadline
                 loc = local[j] * fr
                 if decision.hedge:
@@ -383,9 +393,7 @@ class Simulator:
                         lat = pre + min(after, float(deadline or 0.0)) + loc
                         ran_local = True
                     cost = (
-                        hedge_cost[j]
-                        if after <= 0.0
-                        else self._delayed_hedge_cost(tables[s], j, after)
+                        hedge_cost[j] if after <= 0.0 else self._delayed_hedge_cost(table, j, after)
                     )
                     hedged[t] = True
                 elif answered:
@@ -393,6 +401,7 @@ class Simulator:
                     cost = plain[j]
                     ran_local = False
                 else:
+                    pre = head[j] * fr  # a segment's tail never ran
                     lat = pre + float(deadline or 0.0) + loc
                     cost = plain[j]
                     ran_local = True
@@ -439,7 +448,7 @@ def simulate(
 ) -> SimResult:
     """Replay `trace` against `policy` with the costs of `profile` (one-call form)."""
     sim = Simulator(
-        CutTable.from_profile(profile), trace, seed=seed, objective=objective, trace_dir=trace_dir
+        actions_table(profile), trace, seed=seed, objective=objective, trace_dir=trace_dir
     )
     return sim.run(policy, params)
 

@@ -82,7 +82,9 @@ def _cuts(model: str | None, profile: Path | None, quiet: bool) -> CutTable:
     if (model is None) == (profile is None):
         raise UserError("give exactly one of --model MODEL or --profile FILE")
     if profile is not None:
-        return load_profile(profile)[0]
+        from robotd.policies.segment_actions import actions_table
+
+        return actions_table(load_profile(profile)[1])  # with the segments it lists, if any
     try:
         from common.profiler import profile_model  # the partitioner; heavy, so imported late
     except ImportError:

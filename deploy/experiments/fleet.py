@@ -48,6 +48,9 @@ POLICY_VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
     # Its periodic local timing (`robot_probe_frames`) stays on: without it a robot whose CPU
     # came back would never learn that computing locally got cheap again.
     "elastic-nohedge": ("elastic", {"hedge": False}),
+    # ElasticAction over whole suffixes only, on a split made with segments (`bench nav`'s
+    # `elastic` row, as it ran before segments were actions; `elastic-segments` is the default).
+    "elastic-suffixes": ("elastic", {"segments": False}),
 }
 """Bench policy names beyond the runtime's: name -> (policy kind, its parameters)."""
 

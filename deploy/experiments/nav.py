@@ -6,8 +6,9 @@ robot daemon on the `robot` host with `stereo:world` frames, its host held at `r
 core and its uplink capped at `uplink_mbit`. Each option is one robot run of N frames at full
 speed (no --fps, one frame in flight): the update frequency is the frames it completes per
 second, t_o / t_p / t_c / t_f the means of its telemetry's transfer, cloud, robot compute and
-whole-frame times (`nav_rows`). `elastic` is the runtime's learner: it chooses among the whole
-suffixes (options 1, 2 and 4 are among them), not option 3's segment, which is a fixed action.
+whole-frame times (`nav_rows`). `elastic` is the runtime's learner over the whole suffixes
+(options 1, 2 and 4 are among them); `elastic-segments` the same learner with the split's
+segments among its actions too (option 3 is one), as the runtime runs it on this fleet.
 
 Table V (`--table5`): `sim` (the default) runs afterwards in the in-process closed loop
 (`nav_loop`), in simulated time, each frame's latency drawn from the t_f samples just measured
@@ -38,6 +39,7 @@ from .nav_loop import LoopResult, fig8, table5
 from .nav_rows import (
     DEFAULT_T_DEAD_S,
     ELASTIC,
+    ELASTIC_SEGMENTS,
     NO_TIMING,
     OFF,
     TABLE5_LIVE,
@@ -62,7 +64,7 @@ DEFAULT_UPLINK_MBIT = 100.0
 FULL_FRAMES, QUICK_FRAMES = 30, 10
 FULL_WARMUP, QUICK_WARMUP = 5, 3
 FULL_LAPS, QUICK_LAPS = 10, 1
-LOOP_OPTIONS: tuple[Option, ...] = (1, 4, ELASTIC, OFF)
+LOOP_OPTIONS: tuple[Option, ...] = (1, 4, ELASTIC, ELASTIC_SEGMENTS, OFF)
 """Driven in the closed loop (the paper's Table V: options 1 and 4, and the assistant off)."""
 DEADLINE_S = 30.0
 """Far above option 4 at 640x480 on half a core: every option is measured, not cut off."""
@@ -92,7 +94,7 @@ class NavSettings:
     """What `bench nav` runs beyond the shared bench options."""
 
     resolutions: tuple[tuple[int, int], ...] = RESOLUTIONS
-    options: tuple[Option, ...] = (1, 2, 3, 4, ELASTIC, OFF)
+    options: tuple[Option, ...] = (1, 2, 3, 4, ELASTIC, ELASTIC_SEGMENTS, OFF)
     uplink_mbit: float = DEFAULT_UPLINK_MBIT
     laps: int | None = None
     """Laps of the 7-maneuver circuit; None: 10, 1 with --quick."""

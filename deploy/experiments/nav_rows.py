@@ -38,7 +38,13 @@ ROW_KEYS = (
 OFF = "off"
 """The assistant off: the joystick passed straight to the robot (closed loop only)."""
 ELASTIC = "elastic"
-NAV_OPTIONS: tuple[int | str, ...] = (1, 2, 3, 4, ELASTIC, OFF)
+"""The runtime's learner over whole suffixes (options 1, 2 and 4 among them)."""
+ELASTIC_SEGMENTS = "elastic-segments"
+"""The learner with the split's segments among its actions too (option 3 among them): what the
+runtime's `elastic` does on a split made with `cuts.segments`."""
+ELASTIC_SUFFIXES_POLICY = "elastic-suffixes"
+"""The bench's policy variant (`fleet.POLICY_VARIANTS`) that runs the `elastic` row."""
+NAV_OPTIONS: tuple[int | str, ...] = (1, 2, 3, 4, ELASTIC, ELASTIC_SEGMENTS, OFF)
 TABLE5_SIM = "sim"
 """Table V in the in-process closed loop, latencies drawn from the measured t_f."""
 TABLE5_LIVE = "live"
@@ -53,7 +59,8 @@ Option = int | str
 
 
 def parse_options(text: str) -> list[Option]:
-    """'1,4,off' -> [1, 4, 'off']; anything else than 1-4, elastic or off is one line."""
+    """'1,4,off' -> [1, 4, 'off']; anything else than 1-4, elastic, elastic-segments or off is
+    one line."""
     found: list[Option] = []
     for part in (p.strip().lower() for p in text.split(",")):
         if not part:
@@ -65,7 +72,8 @@ def parse_options(text: str) -> list[Option]:
         if option not in found:
             found.append(option)
     if not found:
-        raise UserError("--options: expected at least one of 1, 2, 3, 4, elastic, off")
+        known = ", ".join(map(str, NAV_OPTIONS))
+        raise UserError(f"--options: expected at least one of {known}")
     return found
 
 
@@ -118,10 +126,13 @@ def resolution_label(size: tuple[int, int]) -> str:
 
 
 def robot_policy(option: Option) -> str:
-    """The robot's `--policy` for an option measured on the daemons."""
+    """The robot's `--policy` for an option measured on the daemons (`elastic`: the bench's
+    variant without segments; `elastic-segments`: the runtime's `elastic`)."""
     if option == OFF:
         raise ValueError("the assistant off is not run on the daemons")
-    return ELASTIC if option == ELASTIC else f"option:{option}"
+    if option == ELASTIC:
+        return ELASTIC_SUFFIXES_POLICY
+    return ELASTIC if option == ELASTIC_SEGMENTS else f"option:{option}"
 
 
 @dataclass(frozen=True)

@@ -54,6 +54,7 @@ from robotd.policies.params import (
     parse_assignments,
     parse_params,
 )
+from robotd.policies.segment_actions import actions_table
 
 __all__ = [
     "POLICIES",
@@ -168,7 +169,7 @@ POLICIES: dict[str, PolicyKind] = {
             "elastic",
             ("elastic",),
             lambda spec, profile, params, goal: ElasticPolicy(
-                CutTable.from_profile(profile), params, goal, spec
+                actions_table(profile, params.segments), params, goal, spec
             ),
             params=lambda _spec: ElasticParams,
         ),

@@ -198,9 +198,12 @@ class CutTable:
     and encode), `suffix_s` the suffix (what the robot runs when it finishes a frame itself,
     from the tensors it still holds), `cloud_s` the cloud's part (decode and suffix); `bytes` is
     what crosses (the median over calibration frames for content-dependent codecs). `ends`
-    (empty: none) is each action's end cut, None but for segments (`with_segment`): those
-    are fixed actions, which the learning policies' per-(cut, codec) lookups (`positions`)
-    leave out.
+    (empty: none) is each action's end cut, None but for segments (`with_segment`,
+    `with_segments`); `returns` the bytes each action's reply brings back (empty: the model's
+    `output_bytes` for every action; a segment's: its end cut's tensors, raw) and `tails` the
+    robot's part after the reply (empty: none; a segment's: its end cut's suffix, which its
+    `prefix_s` includes). Per-frame lookups key on (cut, codec, end) (`positions`), so a
+    segment's outcome is never learned as its start cut's.
     """
 
     indices: tuple[int, ...]
@@ -212,12 +215,16 @@ class CutTable:
     full_s: float
     output_bytes: int
     ends: tuple[int | None, ...] = ()
+    returns: tuple[float, ...] = ()
+    tails: tuple[float, ...] = ()
 
     def __post_init__(self) -> None:
-        if not self.ends:
-            object.__setattr__(self, "ends", (None,) * len(self.indices))
-        if len(self.ends) != len(self.indices):
-            raise ValueError(f"{len(self.ends)} end cuts for {len(self.indices)} actions")
+        n = len(self.indices)
+        for name, empty in (("ends", None), ("returns", float(self.output_bytes)), ("tails", 0.0)):
+            if not getattr(self, name):
+                object.__setattr__(self, name, (empty,) * n)
+            if len(getattr(self, name)) != n:
+                raise ValueError(f"{len(getattr(self, name))} {name} for {n} actions")
 
     @classmethod
     def from_profile(
@@ -269,6 +276,22 @@ class CutTable:
         return len(self.indices)
 
     @property
+    def has_segments(self) -> bool:
+        """True when some action is a segment (the learners then add a feature for the bytes
+        coming back, `robotd.policies.segment_actions.action_contexts`)."""
+        return any(e is not None for e in self.ends)
+
+    @property
+    def returned_bytes(self) -> FloatArray:
+        """Bytes each action's reply brings back, in action order."""
+        return np.array(self.returns, dtype=np.float64)
+
+    @property
+    def tail_s(self) -> FloatArray:
+        """The robot's part after each action's reply (a segment's tail; else 0), seconds."""
+        return np.array(self.tails, dtype=np.float64)
+
+    @property
     def actions(self) -> tuple[Action, ...]:
         """The cut of every action in the policy order (offloading actions, then P)."""
         return (*self.indices, PURE_ROBOT)
@@ -292,16 +315,17 @@ class CutTable:
         what += "" if codec == RAW_CODEC else f" with codec {codec}"
         raise UserError(f"{what} is not in the profile (actions: {valid})")
 
-    def positions(self) -> dict[tuple[int, str], int]:
-        """Column of every offloading action by (cut, codec), for per-frame lookups (segments
-        left out)."""
+    def positions(self) -> dict[tuple[int, str, int | None], int]:
+        """Column of every offloading action by (cut, codec, end cut), for per-frame lookups
+        (`Decision.action`, `.codec`, `.end`); end None for a whole suffix."""
         rows = zip(self.indices, self.codecs, self.ends, strict=True)
-        return {(k, c): j for j, (k, c, e) in enumerate(rows) if e is None}
+        return {(k, c, e): j for j, (k, c, e) in enumerate(rows)}
 
     def with_segment(self, start: int, end: int, codec: str = RAW_CODEC) -> CutTable:
         """This table with the segment from cut `start` to cut `end` (crossing in `codec`) as
         one more action: the robot runs `start`'s prefix and `end`'s suffix (the tail), the
-        cloud the part between; a failed request is finished from `start` as for that cut."""
+        cloud the part between and replies with `end`'s tensors (raw); a failed request is
+        finished from `start` as for that cut."""
         first = self.position(start, codec)
         last = self.position(end)
         return CutTable(
@@ -314,7 +338,28 @@ class CutTable:
             full_s=self.full_s,
             output_bytes=self.output_bytes,
             ends=(*self.ends, end),
+            returns=(*self.returns, float(self.bytes[last])),
+            tails=(*self.tails, float(self.suffix_s[last])),
         )
+
+    def with_segments(self, pairs: Sequence[Sequence[int]]) -> CutTable:
+        """This table with the segment of every (start, end) pair in `pairs` (a split's
+        `segments`), once per codec its start cut crosses in (in table order), after the whole
+        suffixes; a pair already present is not added again. UserError for a pair whose cuts
+        are not in the table."""
+        table = self
+        for pair in pairs:
+            start, end = (int(c) for c in pair)
+            if start not in self.indices or end not in self.indices:
+                raise UserError(
+                    f"segment from cut {start} to cut {end}: the profile has no such cut "
+                    f"(cuts: {', '.join(str(i) for i in sorted(set(self.indices)))})"
+                )
+            rows = zip(self.indices, self.codecs, self.ends, strict=True)
+            for codec in [c for k, c, e in rows if k == start and e is None]:
+                if (start, codec, end) not in table.positions():
+                    table = table.with_segment(start, end, codec)
+        return table
 
     def undominated(self, slack: float) -> CutTable:
         """The actions that some link speed can make the best, given a robot no faster than the
@@ -327,23 +372,33 @@ class CutTable:
         model's time count as equal (profiling noise, and a codec's encode/decode, are smaller
         than what they would keep). A learner that tries a dominated action spends its link on
         it: a 7 MB early-layer crossing ties a 1 Mbit/s uplink up for a minute, to learn what the
-        profile already says. The order of the remaining actions is kept; at least one stays."""
+        profile already says. The order of the remaining actions is kept; at least one stays.
+
+        Segments stand outside the rule: all are kept, and none prunes a whole suffix. Under
+        its premise every segment is beaten by its start cut (the same bytes sent, more back,
+        the tail moved to the slower robot, the same work in all), so pruning them would make
+        `cuts.segments` a no-op; a segment is there for what the premise excludes, a cloud
+        slower than the robot at the tail (loaded, or an accelerator that runs the tail's ops
+        badly), which only measurement shows. Nor may a segment prune a whole suffix: the rule
+        does not count the bytes coming back (a segment returning the points "beats" the points
+        cut), and the whole suffixes kept are then the same with or without segments."""
         tol = slack * self.full_s
         robot = self.prefix_s.tolist()
         work = (self.prefix_s + self.cloud_s).tolist()
         size = self.bytes.tolist()
-        rows = [(size[j], robot[j], work[j], j) for j in range(self.size)]
-        rows.append((0.0, self.full_s, self.full_s, -1))  # P, which always stays
+        whole = [j for j in range(self.size) if self.ends[j] is None]
+        rows = {j: (size[j], robot[j], work[j], j) for j in whole}
+        rivals = [*rows.values(), (0.0, self.full_s, self.full_s, -1)]  # P, which always stays
 
         def beats(a: tuple[float, float, float, int], b: tuple[float, float, float, int]) -> bool:
             # The tuple order breaks ties, so of two equal actions exactly one stays.
             close = a[1] <= b[1] + tol and a[2] <= b[2] + tol
             return a[0] <= b[0] and close and (a[3] < 0 or a < b)
 
-        keep = [j for j in range(self.size) if not any(beats(a, rows[j]) for a in rows)]
-        if not keep:
-            keep = [min(range(self.size), key=lambda j: rows[j])]
-        return self.subset(keep)
+        keep = {j for j in whole if not any(beats(a, rows[j]) for a in rivals)}
+        if not keep and whole:
+            keep = {min(whole, key=lambda j: rows[j])}
+        return self.subset([j for j in range(self.size) if j in keep or self.ends[j] is not None])
 
     def subset(self, columns: Sequence[int]) -> CutTable:
         """The table of the actions in `columns` (in that order)."""
@@ -358,6 +413,8 @@ class CutTable:
             full_s=self.full_s,
             output_bytes=self.output_bytes,
             ends=tuple(self.ends[j] for j in cols),
+            returns=tuple(self.returns[j] for j in cols),
+            tails=tuple(self.tails[j] for j in cols),
         )
 
     def decision_at(self, position: int, **fields: Any) -> Decision:

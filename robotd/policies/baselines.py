@@ -93,12 +93,15 @@ class NeurosurgeonPolicy(Policy):
         # Seconds per byte: averaging the inverse keeps one slow sample from dominating.
         self.s_per_byte = BITS_PER_BYTE / (params.uplink_mbit * MBIT)
         self.cloud_speedup = params.cloud_speedup
+        # Bytes a segment's reply brings back beyond the model's outputs (0 for a whole
+        # suffix), taken to cross at the uplink's rate: the transfer model has no downlink.
+        self._extra_back = np.maximum(cuts.returned_bytes - cuts.output_bytes, 0.0)
 
     def predicted_costs(self) -> np.ndarray:
         """Predicted objective cost of every action, cuts then P."""
         cuts = self.cuts
         compute = cuts.cloud_s / self.cloud_speedup
-        transfer = self.rtt_s + self._bytes * self.s_per_byte
+        transfer = self.rtt_s + (self._bytes + self._extra_back) * self.s_per_byte
         cloud = self.objective.wait_rate * (transfer + compute) + self.objective.radio_rate * (
             transfer
         )
@@ -117,10 +120,11 @@ class NeurosurgeonPolicy(Policy):
         if decision.action == PURE_ROBOT:
             self._robot.observe(outcome.prefix_s, cuts.full_s)
             return
-        j = self._position[(int(decision.action), decision.codec)]
+        j = self._position[(int(decision.action), decision.codec, decision.end)]
         if outcome.bytes_up > 0:
             self._bytes[j] += self.params.bytes_ewma * (outcome.bytes_up - self._bytes[j])
-        self._robot.observe(outcome.prefix_s, float(cuts.prefix_s[j]))
+        robot_s = cuts.prefix_s[j] - (0.0 if outcome.cloud_s is not None else cuts.tails[j])
+        self._robot.observe(outcome.prefix_s, float(robot_s))
         if outcome.local_s is not None:
             self._robot.observe(outcome.local_s, float(cuts.suffix_s[j]))
         w = self.params.ewma
@@ -136,7 +140,7 @@ class NeurosurgeonPolicy(Policy):
             transfer = outcome.waited_s  # the transfer took at least this long
         else:
             return
-        size = float(self._bytes[j])
+        size = float(self._bytes[j] + self._extra_back[j])
         if size <= self.params.small_transfer_bytes:
             self.rtt_s += w * (transfer - self.rtt_s)
         else:

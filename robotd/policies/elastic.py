@@ -2,7 +2,8 @@
 
 Both estimate the cloud-side cost y of each offloading action a as α̂ᵀv_a, with the context
 v_a = [MB sent, share of the model left to the cloud, 1] (so α̂ learns seconds per MB, the cloud's
-time for the whole model and the fixed round-trip cost), and choose
+time for the whole model and the fixed round-trip cost; with segments among the actions a fourth
+feature, MB returned: `robotd.policies.segment_actions`), and choose
 
     a_t = argmin_a  E_a^c + α̂ᵀv_a − β·E_P·sqrt((1−σ_t)·v_aᵀQ⁻¹v_a),   P scored by E_P^c,
 
@@ -24,7 +25,8 @@ update the regression.
   `Decision.hedge_after_s` after the request: one expected to beat the reply at the latest
   moment that still finishes it when the greedy choice would have served the frame; one expected
   to lose to it once the reply is overdue. A local run that cannot beat the expected reply then
-  does not compete with the offload for the robot's CPU.
+  does not compete with the offload for the robot's CPU. A segment is never hedged: it is
+  explored on the cloud alone (and a robot probe due on it waits for a whole suffix).
 - robot probes (`robotd.policies.robot_probes`): when the robot has not been timed for
   `robot_probe_frames` frames (its actions run less than `SHORT_RUN_SHARE` of the model there,
   e.g. cut 0 with a JPEG encode), the next offloaded frame is hedged at once, so a robot that got
@@ -71,6 +73,7 @@ from robotd.policies.ridge import RidgeEstimator, quadratic_features
 from robotd.policies.robot_probes import RobotProbes
 from robotd.policies.robotcost import SHORT_RUN_SHARE, RobotCostModel
 from robotd.policies.schedule import ForcedSchedule
+from robotd.policies.segment_actions import action_contexts
 from robotd.policies.take_up import TakeUp
 
 # A failed attempt with no reported wait is charged this multiple of its prediction.
@@ -99,8 +102,8 @@ class ElasticPolicy(Policy):
         self.params = params
         self.objective = objective
         mb = cuts.bytes / BYTES_PER_MB
-        share = cuts.cloud_s / cuts.full_s
-        self.contexts = np.column_stack([mb, share, np.ones(cuts.size)])
+        # [MB sent, cloud share, 1], and MB returned when segments are among the actions.
+        self.contexts = action_contexts(cuts)
         # Bytes sent per action, learned online: a JPEG's size follows the content.
         self._bytes: list[float] = cuts.bytes.tolist()
         self._ridge = self.ridge_type(self.contexts, params.gamma)
@@ -114,6 +117,9 @@ class ElasticPolicy(Policy):
             params.forced_every_frames,
         )
         self._position = cuts.positions()
+        # Segments are never hedged; a failed one ran no tail (`CutTable.tails`).
+        self._segment = [e is not None for e in cuts.ends]
+        self._head_s = (cuts.prefix_s - cuts.tail_s).tolist()
         # Actions whose robot part is too short to time the robot (`RobotCostModel.observe`).
         self._untimed = (cuts.prefix_s < SHORT_RUN_SHARE * cuts.full_s).tolist()
         self._known_width = 1.0 / math.sqrt(params.known_samples)
@@ -196,6 +202,10 @@ class ElasticPolicy(Policy):
         if p_allowed and p_cost <= cheapest:
             greedy = -1
         hedge = greedy != j or updating or probe
+        if self._segment[j]:
+            # Explored unhedged: a local race would run the whole suffix from the start cut,
+            # while the reply still needs the tail (`Decision`); a probe waits for a cut.
+            hedge = False
         after_s = 0.0
         if hedge:
             self._probes.tried()  # a hedged frame times the robot when its local run wins
@@ -257,9 +267,10 @@ class ElasticPolicy(Policy):
             self._probes.timed(robot.observe(outcome.prefix_s, self.cuts.full_s), on_p=True)
             self._refresh(learned=False)
             return
-        j = self._position[(int(decision.action), decision.codec)]
+        j = self._position[(int(decision.action), decision.codec, decision.end)]
         self._learn_bytes(j, outcome.bytes_up)
-        self._probes.timed(robot.observe(outcome.prefix_s, self._prefix_s[j]))
+        robot_s = self._prefix_s[j] if outcome.cloud_s is not None else self._head_s[j]
+        self._probes.timed(robot.observe(outcome.prefix_s, robot_s))
         if outcome.local_s is not None:
             self._probes.timed(robot.observe(outcome.local_s, self._suffix_s[j]))
         if outcome.cpu_s is not None:

@@ -168,9 +168,9 @@ def option_policy(option: OptionParams, profile: Mapping[str, Any] | CutTable, n
 def _check_pair_codec(cuts: CutTable, start: int, option: OptionParams, name: str) -> None:
     """UserError unless the profile has the pair's cut in the option's codec (the robot measures
     it at start; a profile from elsewhere may lack it)."""
-    if (start, option.codec) in cuts.positions():
+    if (start, option.codec, None) in cuts.positions():
         return
-    offered = [codec for cut, codec in cuts.positions() if cut == start]
+    offered = [codec for cut, codec, end in cuts.positions() if cut == start and end is None]
     raise UserError(
         f"policy {name} (navigation option {option.option}): the profile has no codec "
         f"{option.codec} for the camera pair (cut {start}; it has {', '.join(offered)})"

@@ -109,6 +109,11 @@ class AnsParams(RobotCostParams):
 class ElasticParams(AnsParams):
     """ElasticAction: μLinUCB plus change detection, direction restriction and hedging."""
 
+    segments: bool = Field(
+        default=True,
+        description="On a split made with segments (fleet `cuts.segments`), also learn each "
+        "segment (cut_in, cut_out, codec) as an action; false: whole suffixes only.",
+    )
     change_detection: bool = Field(
         default=True, description="Start a parameter-update period when predictions stop fitting."
     )

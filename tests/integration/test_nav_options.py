@@ -9,7 +9,8 @@ everything on the robot; options 1 and 3 also run with the pair coded (`option:1
 must hold: no frame lost, every offloaded frame answered by the cloud, the action label naming
 the segment and the codec, and each frame's d_coll equal (float tolerance) to the all-robot one
 on the same frame when the pair crossed losslessly (raw, PNG); under JPEG, d_coll with the
-model's bins.
+model's bins. A last run is `elastic`, which learns over the segments too: it explores one,
+unhedged, and the cloud answers it with the end cut's tensors.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ import numpy as np
 import pytest
 
 from common.config import FleetConfig, fleet_from_dict
+from common.wire.telemetry import parse_action_codec
 from robotd.daemon import FrameResult, RobotDaemon, RobotOptions
 from robotd.telemetry import SERVED_BY_CLOUD, SERVED_BY_ROBOT
 from tests.helpers.registry import LEASE_MS, TEST_PARAMS, RunningRegistry
@@ -37,12 +39,18 @@ RUNS = {
     "4": "option:4",
     "1:jpeg80": None,
     "3:png": "option:3:png",
+    "elastic": "elastic",
 }
 """Run → the robot's `--policy`; None takes the fleet file's (`static`, option 1 with jpeg80)."""
+ELASTIC_FRAMES = 12
+"""elastic's run: enough for its first exploring frames (the segments' MB-returned feature is
+unknown at first, so their confidence bonus is the largest)."""
 ROBOTS = {run: f"robot-{run.replace(':', '-')}" for run in RUNS}
 ALL_ROBOT = "4"
 LOSSLESS = ("1", "2", "3", "3:png")
 """The runs whose crossings are exact, so d_coll equals the all-robot one."""
+LOSSLESS_CODECS = ("raw", "raw+zstd", "png")
+"""The pair's and the cuts' codecs that leave d_coll exact."""
 DCOLL_BINS = 41
 """zoo:stereo's curvature bins (`nav.bins.count`)."""
 FRAMES = 4
@@ -106,7 +114,7 @@ def results(
                     cfg,
                     ROBOTS[run],
                     RobotOptions(
-                        frames=FRAMES,
+                        frames=ELASTIC_FRAMES if run == "elastic" else FRAMES,
                         policy=spec,
                         registry_wait_s=WAIT_S,
                         route_wait_s=WAIT_S,
@@ -120,7 +128,7 @@ def results(
         registry.stop()
 
 
-@pytest.mark.parametrize("run", list(RUNS))
+@pytest.mark.parametrize("run", [run for run in RUNS if run in EXPECTED_ACTIONS])
 def test_no_frame_is_lost_and_the_cloud_answers_each_offload(
     results: dict[str, list[FrameResult]], run: str
 ) -> None:
@@ -177,3 +185,29 @@ def test_the_segment_reply_carried_the_points(results: dict[str, list[FrameResul
             assert r.record.bytes_down > points_bytes
     for r in results["1"]:
         assert r.record.bytes_down < points_bytes
+
+
+def test_elastic_explores_a_segment_unhedged_and_the_cloud_answers_it(
+    results: dict[str, list[FrameResult]],
+) -> None:
+    """The learner's actions include the split's segments (`cuts.segments`): one is explored,
+    never hedged, answered by the cloud with its end cut's tensors, the robot finishing the
+    frame from them; no frame lost, and d_coll exact where the crossing was lossless (the
+    calibration on a few frames may admit a lossy codec: then d_coll with the model's bins)."""
+    frames = results["elastic"]
+    assert sorted(r.frame for r in frames) == list(range(ELASTIC_FRAMES))
+    segments = [r for r in frames if "-" in r.record.action]
+    assert segments, [r.record.action for r in frames]
+    robot_only = {r.frame: r for r in results[ALL_ROBOT]}
+    for r in segments:
+        assert not r.hedged and not r.record.fallback, r.record.detail
+        assert r.served_by == SERVED_BY_CLOUD
+        assert r.record.bytes_down > DCOLL_BINS * 4
+    for r in frames:
+        d_coll = np.asarray(r.outputs["d_coll"])
+        assert d_coll.shape == (1, DCOLL_BINS) and np.isfinite(d_coll).all()
+        lossless = parse_action_codec(r.record.action)[1] in LOSSLESS_CODECS
+        if r.frame in robot_only and lossless:
+            np.testing.assert_allclose(
+                d_coll, robot_only[r.frame].outputs["d_coll"], rtol=0, atol=DCOLL_ATOL_M
+            )

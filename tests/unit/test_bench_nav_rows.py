@@ -12,6 +12,7 @@ from typer.testing import CliRunner
 
 from common.cli import app
 from common.errors import UserError
+from deploy.experiments.fleet import POLICY_VARIANTS
 from deploy.experiments.nav_rows import (
     DEFAULT_T_DEAD_S,
     NO_TIMING,
@@ -87,9 +88,15 @@ def test_update_rate_ignores_record_order_and_needs_two_frames() -> None:
 
 
 def test_options_and_resolutions_parse_and_bad_ones_are_named() -> None:
-    assert parse_options("1, 4,Elastic,off,1") == [1, 4, "elastic", "off"]
+    assert parse_options("1, 4,Elastic,off,1,elastic-segments") == [
+        1, 4, "elastic", "off", "elastic-segments",
+    ]  # fmt: skip
     assert parse_resolutions("320x240,640X480") == [(320, 240), (640, 480)]
-    assert [robot_policy(o) for o in (1, 3, "elastic")] == ["option:1", "option:3", "elastic"]
+    # `elastic` is the learner over whole suffixes (a bench variant: the fleet has segments),
+    # `elastic-segments` the runtime's own elastic, with the segments among its actions.
+    policies = [robot_policy(o) for o in (1, 3, "elastic", "elastic-segments")]
+    assert policies == ["option:1", "option:3", "elastic-suffixes", "elastic"]
+    assert POLICY_VARIANTS["elastic-suffixes"] == ("elastic", {"segments": False})
     with pytest.raises(UserError, match="unknown '5'"):
         parse_options("1,5")
     with pytest.raises(UserError, match="'640' is not WIDTHxHEIGHT"):

@@ -177,15 +177,20 @@ def test_a_segment_is_after_its_cut_and_never_hedged() -> None:
         Decision(0, end=3, hedge=True)
 
 
-def test_a_segment_row_keeps_the_learners_lookups_to_whole_suffixes() -> None:
+def test_a_segment_row_has_its_own_key_in_the_learners_lookups() -> None:
     table = CutTable.from_profile(nav_profile()).with_segment(0, POINTS)
     assert table.labels[-2:] == ("0-4", "P")
     assert table.position(0, end=POINTS) == table.size - 1
-    assert table.positions()[(0, "raw")] == 0  # the cut, not the segment
-    # The robot's part is the prefix and the tail; the cloud's, what lies between.
+    assert table.positions()[(0, "raw", None)] == 0  # the cut
+    assert table.positions()[(0, "raw", POINTS)] == table.size - 1  # the segment
+    # The robot's part is the prefix and the tail; the cloud's, what lies between; the reply
+    # brings the end cut's tensors back.
     assert table.prefix_s[-1] == pytest.approx(0.008)
+    assert table.tails[-1] == pytest.approx(0.008)
     assert table.cloud_s[-1] == pytest.approx(0.092)
-    assert table.subset([table.size - 1]).ends == (POINTS,)
+    assert table.returns[-1] == 900 and table.returns[0] == table.output_bytes
+    kept = table.subset([table.size - 1])
+    assert kept.ends == (POINTS,) and kept.returns == (900,) and kept.tails == table.tails[-1:]
 
 
 def test_telemetry_labels_name_the_segment_and_old_readers_get_its_cut() -> None:
