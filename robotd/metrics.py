@@ -2,11 +2,12 @@
 
 `RobotMetrics.frame` is the one call the frame loop makes per frame (through the telemetry sink,
 beside the run summary, so the two count the same frames): frames by action and by which result
-served them, fallbacks by reason, the end-to-end latency histogram, bytes sent, stale results
-dropped and frames answered per deployment. The route (epoch and deployment) is read at scrape
-time from the registry link, and the source's own counts (frames it dropped unread because a
-newer one arrived, `dropped_stale`, and frames it refused, `rejected_frames`) from the frame source:
-the same counters the run summary takes at the end, so the two agree, and the loop pays nothing.
+served them, fallbacks by reason, queries resent by reason, the end-to-end latency histogram, bytes
+sent, stale results dropped and frames answered per deployment. The route (epoch and deployment) is
+read at scrape time from the registry link, and the source's own counts (frames it dropped unread
+because a newer one arrived, `dropped_stale`, and frames it refused, `rejected_frames`) from the
+frame source: the same counters the run summary takes at the end, so the two agree, and the loop
+pays nothing.
 
 Per frame: a dict lookup of the label set's child (made once per label set: prometheus_client's
 `labels()` builds a key each call), two or three locked increments and one histogram observe, a
@@ -15,14 +16,14 @@ few microseconds (benchmarks/metrics_overhead.py; docs/metrics.md).
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from typing import TYPE_CHECKING
 
 from prometheus_client import CollectorRegistry, Counter, Histogram
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, InfoMetricFamily, Metric
 
 from common.metrics import LATENCY_BUCKETS_S, NAMESPACE, ReadCollector
-from common.wire.telemetry import FallbackReason, TelemetryRecord
+from common.wire.telemetry import FallbackReason, ResendReason, TelemetryRecord
 
 if TYPE_CHECKING:
     from robotd.sources import FrameSource
@@ -59,6 +60,15 @@ class RobotMetrics:
         self._fallbacks = Counter(
             "fallbacks",
             "Offloaded frames the robot finished itself, by reason.",
+            ["robot", "reason"],
+            namespace=ns,
+            subsystem="robot",
+            registry=registry,
+        )
+        self._resends = Counter(
+            "resends",
+            "Queries of offloaded frames sent again within the frame's deadline because they found "
+            "no serving deployment, by reason (no_reply, not_serving).",
             ["robot", "reason"],
             namespace=ns,
             subsystem="robot",
@@ -105,11 +115,15 @@ class RobotMetrics:
         # with its first fallback would miss that one (Prometheus: initialize known labels).
         for known in FallbackReason:
             self._fallbacks_by[known.value] = self._fallbacks.labels(robot, known.value)
+        self._resends_by = {r: self._resends.labels(robot, r.value) for r in ResendReason}
         registry.register(ReadCollector(self._read_route, "the robot's route"))
         registry.register(ReadCollector(self._read_source, "the frame source's counts"))
 
-    def frame(self, record: TelemetryRecord, served_by: str) -> None:
-        """Count one completed frame (its telemetry record, which result served it)."""
+    def frame(
+        self, record: TelemetryRecord, served_by: str, resends: Sequence[ResendReason] = ()
+    ) -> None:
+        """Count one completed frame (its telemetry record, which result served it, why each
+        resend of its query was made: `CallResult.resends`)."""
         key = (record.action, served_by)
         frames = self._frames_by.get(key)
         if frames is None:
@@ -132,6 +146,8 @@ class RobotMetrics:
             answered.inc()
         if record.stale:
             self._stale.inc()
+        for reason in resends:
+            self._resends_by[reason].inc()
 
     def _read_route(self) -> Iterator[Metric]:
         deployment, epoch = self._route()

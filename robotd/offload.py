@@ -35,7 +35,9 @@ not change; zenoh PR #2660): every frame then finished as `no_route` until the n
 change, 24 s once. A query with target ALL is routed afresh and reaches only sessions that still
 declare the key; one that finished without a reply, or only with NOT_SERVING, never reached a
 serving deployment, so the resend cannot make two deployments compute it; a NOT_SERVING reply to
-the resend is passed over while another reply may still come.
+the resend is passed over while another reply may still come. Each resend is kept with its
+reason (`ResendReason`: no reply, or only NOT_SERVING) in `CallResult.resends`, for the frame's
+telemetry and the robot's `resends_total` counter.
 
 A hedged frame also runs the local suffix, speculatively, on `LocalRunner`'s thread (as do the
 next frames' model runs while its reply is still on its way). That thread runs at the lowest CPU
@@ -63,7 +65,7 @@ import zenoh
 
 from common.wire import ErrorCode, ErrorReply, WireError, decode
 from common.wire.cloud_to_robot import INFER_REPLIES, BusyReply, InferReply
-from common.wire.telemetry import FallbackReason
+from common.wire.telemetry import FallbackReason, ResendReason
 
 log = logging.getLogger("robotd")
 
@@ -101,7 +103,8 @@ class CallResult:
     `reply` is set when the frame was answered (`reason` None). Times are the caller's clock:
     `handed_at` when the request entered the (emulated) uplink, `sent_at` when Zenoh got it
     (None if it never did), `replied_at` when the first reply arrived, `finished_at` when the
-    result was settled. `bytes_down` is the reply's size.
+    result was settled. `bytes_down` is the reply's size. `resends`: why each resend of the
+    query was made, in order (empty when the first query settled it).
     """
 
     reply: InferReply | None
@@ -113,6 +116,7 @@ class CallResult:
     finished_at: float
     bytes_down: int
     deployment: str | None
+    resends: tuple[ResendReason, ...] = ()
 
     @property
     def answered(self) -> bool:
@@ -146,7 +150,8 @@ class CloudCall:
         # Waits at most the given seconds for a deployment serving the key (None: no resends).
         self._served = served
         self.resends_left = NO_ROUTE_RESENDS if served is not None else 0
-        self.resends = 0
+        # Why each resend was made, in order (its length is the number of resends).
+        self.resends: list[ResendReason] = []
         # A NOT_SERVING reply held back while the query may still be answered (resends only).
         self._not_serving: bytes | None = None
         self._pause_s = 0.0
@@ -250,8 +255,11 @@ class CloudCall:
             )
             if resend:
                 self.resends_left -= 1
-                self.resends += 1
-                self._pause_s = NOT_SERVING_PAUSE_S if self._not_serving is not None else 0.0
+                not_serving = self._not_serving is not None
+                self.resends.append(
+                    ResendReason.NOT_SERVING if not_serving else ResendReason.NO_REPLY
+                )
+                self._pause_s = NOT_SERVING_PAUSE_S if not_serving else 0.0
             elif self.replied_at is None and self._not_serving is not None:
                 # Nothing but NOT_SERVING, and no resend left: that is the frame's answer.
                 self.replied_at = self._clock()
@@ -325,6 +333,7 @@ class CloudCall:
         with self._lock:
             ok, err, replied_at = self._ok, self._err, self.replied_at
             finished_at = self._finished_at
+            resends = tuple(self.resends)
             if finished_at is None and replied_at is None:
                 finished_at = self._finished_at = self._clock()
         end = replied_at if replied_at is not None else finished_at
@@ -341,6 +350,7 @@ class CloudCall:
                 finished_at=end,
                 bytes_down=len(ok or err or b""),
                 deployment=deployment,
+                resends=resends,
             )
 
         if ok is None and err is None:
@@ -396,6 +406,7 @@ class CloudCall:
             finished_at=end,
             bytes_down=len(ok),
             deployment=message.deployment,
+            resends=resends,
         )
 
     def _classify_error(self, err: bytes, fail: Callable[..., CallResult]) -> CallResult:

@@ -9,10 +9,11 @@ knew), `entropy` (the frame's normalized grey-level entropy), `hedged` (the loca
 alongside the cloud), `served_by` (`cloud` or `robot`: which result the frame used), `detail`
 (why the cloud failed, for a person: the record's `detail`), `phase` (the emulation phase the
 frame ran in, `robotd.emulation`; null without `--phases`), `stale` (the frame's result was
-dropped, not applied: a newer frame's had been, `robotd.pipeline`) and `dropped_stale` (frames
+dropped, not applied: a newer frame's had been, `robotd.pipeline`), `dropped_stale` (frames
 the source dropped unread just before this one: a newer one had arrived,
-`robotd.zenoh_source`). Lines are flushed as they are written, so a reader can follow the file
-while the robot runs.
+`robotd.zenoh_source`) and `resends` (how many times the frame's query was sent again within its
+deadline, having found no serving deployment: `robotd.offload`). Lines are flushed as they are
+written, so a reader can follow the file while the robot runs.
 
 The record itself is built here too (`frame_record`), from what the frame loop measured and what
 came of the cloud call; `RemoteTimes` splits the call's round trip into the network's share and
@@ -47,6 +48,7 @@ EXTRA_FIELDS = (
     "phase",
     "stale",
     "dropped_stale",
+    "resends",
 )
 SERVED_BY_CLOUD = "cloud"
 SERVED_BY_ROBOT = "robot"
@@ -127,6 +129,7 @@ def frame_record(
         at=time.time(),
         stale=stale,
         dropped_stale=dropped_stale,
+        resends=len(result.resends) if result is not None else 0,
     )
 
 
@@ -150,6 +153,7 @@ def jsonl_object(
         phase=phase,
         stale=record.stale,
         dropped_stale=record.dropped_stale,
+        resends=record.resends,
     )
     return obj
 
@@ -195,6 +199,7 @@ class RunSummary:
         self.hedged = 0
         self.served_by_robot = 0
         self.stale_dropped = 0
+        self.resends = 0  # queries sent again within their frame's deadline, over all frames
         # Frames the source dropped unread (a newer one arrived first), and frames it could not
         # decode by error code: set from the source when the run ends.
         self.dropped_stale = 0
@@ -221,12 +226,13 @@ class RunSummary:
             self.served_by_robot += 1
         if record.stale:
             self.stale_dropped += 1
+        self.resends += record.resends
         if math.isfinite(record.latency_s):
             self.latencies.append(record.latency_s)
 
     def to_json(self) -> dict[str, Any]:
         """`{robot, frames, answered, fallbacks, fallback_reasons, by_deployment, actions, hedged,
-        served_by_robot, stale_dropped, dropped_stale, rejected_frames, mean_latency_s,
+        served_by_robot, stale_dropped, dropped_stale, rejected_frames, resends, mean_latency_s,
         p95_latency_s, fps}`."""
         lat = np.asarray(self.latencies, dtype=np.float64)
         mean = float(lat.mean()) if lat.size else None
@@ -250,6 +256,7 @@ class RunSummary:
             "stale_dropped": self.stale_dropped,
             "dropped_stale": self.dropped_stale,
             "rejected_frames": dict(sorted(self.rejected_frames.items())),
+            "resends": self.resends,
             "mean_latency_s": _round(mean),
             "p95_latency_s": _round(p95),
             "fps": _round(fps),
@@ -276,6 +283,11 @@ class RunSummary:
             *(
                 [f"  frames rejected: {_counts(s['rejected_frames'])}"]
                 if s["rejected_frames"]
+                else []
+            ),
+            *(
+                [f"  queries resent (no serving deployment found): {s['resends']}"]
+                if s["resends"]
                 else []
             ),
             f"  actions: {actions}",

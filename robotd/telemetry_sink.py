@@ -64,7 +64,9 @@ class TelemetrySink:
             )
         self.summary.add(record, hedged=f.hedged, served_by=f.served_by)
         if self.metrics is not None:
-            self.metrics.frame(record, f.served_by)
+            self.metrics.frame(
+                record, f.served_by, f.result.resends if f.result is not None else ()
+            )
 
     def probe(self, report: ProbeReport) -> None:
         """Publish one probe report (the prober's callback)."""

@@ -68,6 +68,17 @@ class FallbackReason(str, enum.Enum):
         return cls.OTHER if isinstance(value, str) else None
 
 
+class ResendReason(str, enum.Enum):
+    """Why the robot sent an offloaded frame's query again within its deadline (a move under
+    way, or a stale route: docs/registry.md, "A move and the robot's route")."""
+
+    NO_REPLY = "no_reply"  # the query finished without any reply
+    NOT_SERVING = "not_serving"  # the only replies were NOT_SERVING (a deployment in standby)
+
+    def __str__(self) -> str:
+        return self.value
+
+
 def fallback_reason(value: FallbackReason | str) -> FallbackReason:
     """The member for `value` (a member, or its wire string; unknown strings are OTHER);
     ValueError for a value of another type."""
@@ -135,7 +146,9 @@ class TelemetryRecord(Message):
     completed. `stale`: the frame's result was not applied, a newer frame's had been (a robot
     with frames in flight, `max_in_flight`). `dropped_stale`: frames the source dropped unread
     just before this one, a newer one having arrived (a source fed at its sender's rate, e.g.
-    `zenoh`). A `reason` given as its string is read as the wire
+    `zenoh`). `resends`: how many times its query was sent again within the deadline because
+    it found no serving deployment (0 for a frame answered first time, or not offloaded). A
+    `reason` given as its string is read as the wire
     reads it."""
 
     TYPE: ClassVar[str] = "telemetry"
@@ -159,6 +172,7 @@ class TelemetryRecord(Message):
     at: float = 0.0
     stale: bool = False
     dropped_stale: int = 0
+    resends: int = 0
 
     def __post_init__(self) -> None:
         if self.reason is not None:
@@ -167,7 +181,9 @@ class TelemetryRecord(Message):
             except ValueError as exc:
                 raise self._invalid("reason", str(exc)) from None
         self._check_ids("robot", "deployment")
-        self._check_non_negative("frame", "bytes_up", "bytes_down", "epoch", "dropped_stale")
+        self._check_non_negative(
+            "frame", "bytes_up", "bytes_down", "epoch", "dropped_stale", "resends"
+        )
         try:
             parse_action(self.action)
         except ValueError as exc:

@@ -10,7 +10,8 @@ With zenoh 1.10 the robot's BEST_MATCHING route then still points at the old dep
 every query finishes at once without a reply (`no_route`) until another declaration changes the
 key; `CloudCall` resends such a query within
 its deadline (target ALL, after waiting for a matching queryable), so every frame is answered by
-the deployment in service and only by it.
+the deployment in service and only by it. Each resend is counted, by why it was made, in the
+frame's telemetry record, the run summary and the robot's `resends_total` counter.
 """
 
 from __future__ import annotations
@@ -21,12 +22,15 @@ from typing import Any
 
 import numpy as np
 import zenoh
+from prometheus_client import CollectorRegistry
 
 from common import keys
 from common.wire import ErrorCode, ErrorReply
 from common.wire.cloud_to_robot import InferReply
-from common.wire.telemetry import FallbackReason
-from robotd.offload import CloudCall
+from common.wire.telemetry import FallbackReason, ResendReason
+from robotd.metrics import RobotMetrics
+from robotd.offload import NO_ROUTE_RESENDS, CallResult, CloudCall
+from robotd.telemetry import SERVED_BY_CLOUD, RunSummary, frame_record, jsonl_object
 
 FLEET = "moves"
 DEADLINE_S = 0.5
@@ -117,6 +121,31 @@ def _frame(robot: zenoh.Session, key: str, frame: int, served: Callable[[float],
     return call.result()
 
 
+def _count(results: list[CallResult]) -> tuple[list[int], dict[str, Any], dict[str, float]]:
+    """Each frame's `resends` in its JSONL object, the run summary, and the robot's
+    `resends_total` by reason, as the robot daemon's telemetry sink counts them."""
+    registry = CollectorRegistry()
+    metrics = RobotMetrics(registry, "robot-1", lambda: (None, 0))
+    summary = RunSummary("robot-1")
+    lines = []
+    for frame, result in enumerate(results):
+        record = frame_record(
+            "robot-1", frame, cut=0, codec="raw", result=result, bytes_up=1, prefix_s=0.0,
+            local_s=None, latency_s=0.01, cpu_s=0.0, energy_j=0.0, epoch=0,
+        )  # fmt: skip
+        lines.append(jsonl_object(record, entropy=0.0, hedged=False, served_by=SERVED_BY_CLOUD))
+        summary.add(record, hedged=False, served_by=SERVED_BY_CLOUD)
+        metrics.frame(record, SERVED_BY_CLOUD, result.resends)
+    counter = {
+        reason.value: registry.get_sample_value(
+            "elasticfog_robot_resends_total", {"robot": "robot-1", "reason": reason.value}
+        )
+        or 0.0
+        for reason in ResendReason
+    }
+    return [line["resends"] for line in lines], summary.to_json(), counter
+
+
 def test_frames_after_make_before_break_moves_reach_the_new_deployment(
     open_peer: Callable[..., zenoh.Session], wait_for_token: Callable[..., None]
 ) -> None:
@@ -144,8 +173,44 @@ def test_frames_after_make_before_break_moves_reach_the_new_deployment(
             assert result.reason is not FallbackReason.NO_ROUTE, (move, i, result.detail)
             results.append(result)
     assert all(r.reason is None for r in results), [r.detail for r in results if r.reason]
+    per_frame, summary, counter = _count(results)
+    # Answered first time before any move; after a move the stale route makes resends.
+    assert per_frame[:FRAMES_PER_MOVE] == [0] * FRAMES_PER_MOVE
+    assert per_frame == [len(r.resends) for r in results]
+    assert summary["resends"] == sum(per_frame) > 0
+    assert counter == {
+        reason.value: float(sum(r.resends.count(reason) for r in results))
+        for reason in ResendReason
+    }
+    assert counter[ResendReason.NO_REPLY.value] > 0
     # Each frame computed once, by the deployment in service when it was sent.
     assert sum(edge.computed for edge in edges) == len(results) + MOVES
     assert [r.deployment for r in results[FRAMES_PER_MOVE:]] == [
         edges[move % 2].name for move in range(1, MOVES + 1) for _ in range(FRAMES_PER_MOVE + 1)
     ]
+
+
+def test_resends_are_counted_by_reason(
+    open_peer: Callable[..., zenoh.Session], wait_for_token: Callable[..., None]
+) -> None:
+    """No deployment at all: every resend is `no_reply` (and the frame falls back, no_route);
+    one in standby that keeps the key: every resend is `not_serving`; one in service: none."""
+    key = keys.svc_infer(FLEET, "vision", "robot-1")
+    robot = open_peer()
+    served, _held = _served_waiter(robot, key)
+    nobody = _frame(robot, key, 0, served)
+    assert nobody.reason is FallbackReason.NO_ROUTE, nobody.detail
+    edge = Deployment(open_peer(), "edge-1", key)
+    wait_for_token(robot, edge.service("edge-1-in"))
+    answered = _frame(robot, key, 1, served)
+    assert answered.reason is None, answered.detail
+    edge.standby()
+    refused = _frame(robot, key, 2, served)
+    assert refused.reason is FallbackReason.ERROR, refused.detail  # NOT_SERVING is its answer
+    assert nobody.resends == (ResendReason.NO_REPLY,) * NO_ROUTE_RESENDS
+    assert answered.resends == ()
+    assert refused.resends == (ResendReason.NOT_SERVING,) * NO_ROUTE_RESENDS
+    per_frame, summary, counter = _count([nobody, answered, refused])
+    assert per_frame == [NO_ROUTE_RESENDS, 0, NO_ROUTE_RESENDS]
+    assert summary["resends"] == 2 * NO_ROUTE_RESENDS
+    assert counter == {"no_reply": NO_ROUTE_RESENDS, "not_serving": NO_ROUTE_RESENDS}

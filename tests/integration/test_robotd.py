@@ -298,7 +298,11 @@ def test_without_a_deployment_every_frame_is_finished_on_the_robot(
         np.testing.assert_allclose(
             result.outputs["logits"], split.run_full(result.feeds)["logits"], atol=TOLERANCE
         )
-    assert run.daemon.summary.to_json()["fallback_reasons"] == {"no_route": FRAMES}
+    summary = run.daemon.summary.to_json()
+    assert summary["fallback_reasons"] == {"no_route": FRAMES}
+    # Each frame's query was sent again while its deadline allowed, and counted.
+    assert all(result.record.resends > 0 for result in run.results)
+    assert summary["resends"] == sum(result.record.resends for result in run.results)
 
 
 def test_a_deployment_slower_than_the_deadline_times_out(
@@ -366,7 +370,9 @@ def test_telemetry_file_has_every_key_and_records_are_published(
         assert obj["action"] == "cut:0" and obj["deployment"] == DEPLOYMENT
         assert obj["bytes_up"] > 0 and obj["bytes_down"] > 0 and obj["latency_s"] > 0
         assert obj["robot_cpu_s"] > 0 and obj["energy_j"] > 0
+        assert obj["resends"] == 0  # answered first time
     assert sorted(r.frame for r in published) == list(range(FRAMES))
+    assert {r.resends for r in published} == {0}
     assert {r.robot for r in published} == {ROBOT}
 
 

@@ -41,6 +41,7 @@ def fields(**overrides: Any) -> dict[str, Any]:
         "at": 5.0,
         "stale": False,
         "dropped_stale": 0,
+        "resends": 0,
     }
     return {**base, **overrides}
 
@@ -87,6 +88,13 @@ def test_an_older_peers_record_without_detail_decodes() -> None:
     data = encode_raw({"v": SCHEMA_VERSION, "t": TelemetryRecord.TYPE, **body})
     record = decode(data, expect=TelemetryRecord)
     assert (record.reason, record.detail) == (FallbackReason.TIMEOUT, None)
+
+
+def test_an_older_peers_record_without_resends_decodes_with_none() -> None:
+    body = fields()
+    del body["resends"]
+    data = encode_raw({"v": SCHEMA_VERSION, "t": TelemetryRecord.TYPE, **body})
+    assert decode(data, expect=TelemetryRecord).resends == 0
 
 
 def test_a_reason_given_as_its_string_is_read_as_the_wire_reads_it() -> None:

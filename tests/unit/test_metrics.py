@@ -16,7 +16,7 @@ from cloudd.metrics import NOT_REQUESTS, REFUSAL_OUTCOMES, Outcome, error_outcom
 from cloudd.refusals import RefusalReason
 from common.metrics import new_registry
 from common.wire import ErrorCode
-from common.wire.telemetry import FallbackReason, TelemetryRecord
+from common.wire.telemetry import FallbackReason, ResendReason, TelemetryRecord
 from registry.metrics import RegistryMetrics
 from registry.scheduler import Reason
 from robotd.metrics import NO_DEPLOYMENT, RobotMetrics
@@ -63,19 +63,24 @@ def test_a_robots_frames_are_counted_by_action_served_by_and_reason() -> None:
     metrics.frame(record(1, fallback=True, deployment=None, reason=FallbackReason.TIMEOUT), "robot")
     metrics.frame(record(2, action="P", bytes_up=0, deployment=None), "robot")
     metrics.frame(record(3, stale=True), "cloud")
+    resent = (ResendReason.NO_REPLY, ResendReason.NO_REPLY)
+    metrics.frame(record(4, resends=2), "cloud", resent)
     frames = "elasticfog_robot_frames_total"
-    assert value(registry, frames, robot=ROBOT, action="cut:2", served_by="cloud") == 2
+    assert value(registry, frames, robot=ROBOT, action="cut:2", served_by="cloud") == 3
     assert value(registry, frames, robot=ROBOT, action="cut:2", served_by="robot") == 1
     assert value(registry, frames, robot=ROBOT, action="P", served_by="robot") == 1
     fallbacks = "elasticfog_robot_fallbacks_total"
     assert value(registry, fallbacks, robot=ROBOT, reason="timeout") == 1
     # Every reason is served from the start, at 0.
     assert registry.get_sample_value(fallbacks, {"robot": ROBOT, "reason": "busy"}) == 0
+    resends = "elasticfog_robot_resends_total"
+    assert value(registry, resends, robot=ROBOT, reason="no_reply") == 2
+    assert registry.get_sample_value(resends, {"robot": ROBOT, "reason": "not_serving"}) == 0
     answered = "elasticfog_robot_answered_frames_total"
-    assert value(registry, answered, robot=ROBOT, deployment="edge-1") == 2
-    assert value(registry, "elasticfog_robot_sent_bytes_total", robot=ROBOT) == 3000
+    assert value(registry, answered, robot=ROBOT, deployment="edge-1") == 3
+    assert value(registry, "elasticfog_robot_sent_bytes_total", robot=ROBOT) == 4000
     assert value(registry, "elasticfog_robot_stale_results_dropped_total", robot=ROBOT) == 1
-    assert value(registry, "elasticfog_robot_frame_latency_seconds_count", robot=ROBOT) == 4
+    assert value(registry, "elasticfog_robot_frame_latency_seconds_count", robot=ROBOT) == 5
     assert value(registry, "elasticfog_robot_route_epoch", robot=ROBOT) == 3
     held["deployment"] = None
     info = "elasticfog_robot_route_info"
