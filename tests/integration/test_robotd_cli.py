@@ -122,7 +122,9 @@ def test_sigint_stops_the_robot_within_two_seconds_with_a_summary(
     # No deployment and no registry: every offloaded frame was finished on the robot.
     assert f"registry at {zenoh_router.endpoint} not reachable" in err
     lines = [json.loads(line) for line in telemetry.read_text().splitlines()]
-    assert lines and [obj["frame"] for obj in lines] == list(range(len(lines)))
+    # One line per frame; a hedged frame whose request was still out is written when it
+    # settles, possibly after the next frame's (docs/robot.md).
+    assert lines and sorted(obj["frame"] for obj in lines) == list(range(len(lines)))
     for obj in lines:
         assert set(JSONL_FIELDS) <= set(obj)
         assert obj["fallback"] == (obj["action"] != "P")
