@@ -73,17 +73,17 @@ def test_uplink_glitch_moves_elastic_from_jpeg_offload_to_the_robot(
     jpeg_bytes = statistics.median(float(r["bytes_up"]) for r in pre if r["bytes_up"])
     offload_floor_s = jpeg_bytes * 8 / (low * 1e6)
     print(
-        f"before ({high:g} Mbit/s): {pre_s['actions']} mean {pre_s['mean_latency_s']:.3f} s; "
-        f"after {SETTLE_FRAMES} frames at {low:g} Mbit/s: {post_s['actions']} mean "
-        f"{post_s['mean_latency_s']:.3f} s (P frames median "
+        f"before ({high:g} Mbit/s): {pre_s.actions} mean {pre_s.mean_latency_s:.3f} s; "
+        f"after {SETTLE_FRAMES} frames at {low:g} Mbit/s: {post_s.actions} mean "
+        f"{post_s.mean_latency_s:.3f} s (P frames median "
         f"{statistics.median(robot_frames) if robot_frames else float('nan'):.3f} s); the JPEG "
         f"offload needs >= {offload_floor_s:.3f} s on the wire"
     )
-    assert str(pre_s["main_action"]).startswith("cut:0:"), "no coded offload at 20 Mbit/s"
-    assert post_s["main_action"] == "P", "elastic did not settle on the robot"
-    assert post_s["mean_latency_s"] < offload_floor_s
+    assert str(pre_s.main_action).startswith("cut:0:"), "no coded offload at 20 Mbit/s"
+    assert post_s.main_action == "P", "elastic did not settle on the robot"
+    assert post_s.mean_latency_s < offload_floor_s
     # Exploration after settling costs little: within 1.25x of the robot's own frames.
-    assert post_s["mean_latency_s"] <= 1.25 * statistics.median(robot_frames)
+    assert post_s.mean_latency_s <= 1.25 * statistics.median(robot_frames)
 
 
 def test_cpu_quota_drop_moves_work_to_the_cloud(fleet: Callable[..., TestbedFleet]) -> None:
@@ -108,9 +108,9 @@ def test_cpu_quota_drop_moves_work_to_the_cloud(fleet: Callable[..., TestbedFlee
     pre_s, tail_s = summary(pre), summary(tail)
     answered = [r for r in tail if mh._answered_by(r) == "edge-1"]
     print(
-        f"1 core: {pre_s['actions']} mean {pre_s['mean_latency_s']:.3f} s; 0.02 core: "
-        f"{summary(post)['actions']}, settled on {after_action}, mean "
-        f"{tail_s['mean_latency_s']:.3f} s, {len(answered)}/{len(tail)} answered by edge-1"
+        f"1 core: {pre_s.actions} mean {pre_s.mean_latency_s:.3f} s; 0.02 core: "
+        f"{summary(post).actions}, settled on {after_action}, mean "
+        f"{tail_s.mean_latency_s:.3f} s, {len(answered)}/{len(tail)} answered by edge-1"
     )
     assert before_action is not None and after_action is not None
     assert action_order(after_action) < action_order(before_action), "no work moved off the robot"
