@@ -63,7 +63,7 @@ import numpy as np
 import onnxruntime as ort
 import zenoh
 
-from common.wire import ErrorCode, ErrorReply, WireError, decode
+from common.wire import ErrorCode, ErrorReply, Message, WireError, decode
 from common.wire.cloud_to_robot import INFER_REPLIES, BusyReply, InferReply
 from common.wire.telemetry import FallbackReason, ResendReason
 
@@ -154,6 +154,9 @@ class CloudCall:
         self.resends: list[ResendReason] = []
         # A NOT_SERVING reply held back while the query may still be answered (resends only).
         self._not_serving: bytes | None = None
+        # The reply already decoded on arrival (a small one, looked at for NOT_SERVING), so that
+        # `result` does not decode it again.
+        self._decoded: Message | None = None
         self._pause_s = 0.0
         self._key = key
         self._payload = payload
@@ -232,11 +235,14 @@ class CloudCall:
                 return  # only the first reply counts (anycast: there is only one)
             if reply.ok is not None:
                 payload = reply.ok.payload.to_bytes()
-                if self._served is not None and _is_not_serving(payload, self._max_reply_bytes):
+                small = None
+                if self._served is not None:
+                    small = _decode_small(payload, self._max_reply_bytes)
+                if isinstance(small, ErrorReply) and small.error_code is ErrorCode.NOT_SERVING:
                     self._not_serving = payload  # settled (or resent) when the query finishes
                     return
                 self.replied_at = now
-                self._ok = payload
+                self._ok, self._decoded = payload, small
             else:
                 self.replied_at = now
                 self._err = reply.err.payload.to_bytes() if reply.err is not None else b""
@@ -372,10 +378,12 @@ class CloudCall:
         if err is not None:
             return self._classify_error(err, fail)
         assert ok is not None
-        try:
-            message = decode(ok, expect=INFER_REPLIES, max_bytes=self._max_reply_bytes)
-        except WireError as exc:
-            return fail(FallbackReason.DECODE_ERROR, f"bad reply: {exc}")
+        message = self._decoded
+        if message is None:
+            try:
+                message = decode(ok, expect=INFER_REPLIES, max_bytes=self._max_reply_bytes)
+            except WireError as exc:
+                return fail(FallbackReason.DECODE_ERROR, f"bad reply: {exc}")
         if isinstance(message, BusyReply):
             return fail(
                 FallbackReason.BUSY,
@@ -425,16 +433,16 @@ class CloudCall:
         return fail(FallbackReason.ERROR, f"{message.code}: {message.reason}")
 
 
-def _is_not_serving(payload: bytes, max_bytes: int) -> bool:
-    """Whether a reply is a deployment's NOT_SERVING (it crossed a switch and was not computed);
-    only small replies are decoded (on Zenoh's callback thread)."""
+def _decode_small(payload: bytes, max_bytes: int) -> Message | None:
+    """A small reply decoded on arrival (on Zenoh's callback thread), to tell a deployment's
+    NOT_SERVING (it crossed a switch and did not compute the frame); None for a large reply or
+    one that does not decode (`CloudCall.result` decodes it then, and names the problem)."""
     if len(payload) > SMALL_REPLY_BYTES:
-        return False
+        return None
     try:
-        message = decode(payload, expect=INFER_REPLIES, max_bytes=max_bytes)
+        return decode(payload, expect=INFER_REPLIES, max_bytes=max_bytes)
     except WireError:
-        return False
-    return isinstance(message, ErrorReply) and message.error_code is ErrorCode.NOT_SERVING
+        return None
 
 
 Outputs = dict[str, np.ndarray]
