@@ -76,6 +76,14 @@ def _ok_replies(session: zenoh.Session, key: str, **kwargs: Any) -> list[bytes]:
     return [r.ok.payload.to_bytes() for r in replies if r.ok is not None]
 
 
+def _answers(session: zenoh.Session, key: str, **kwargs: Any) -> list[bytes]:
+    """An allowed query's replies, asked again while none come: for a moment after a client's
+    routes change, zenoh may end its query at once with no reply and without sending it
+    (eclipse-zenoh/zenoh#2767; seen here on a loaded host right after the fixture's first
+    answer). A forbidden query is asked once, after an allowed one on the same link."""
+    return _wait(lambda: _ok_replies(session, key, **kwargs) or None, f"an answer on {key}")
+
+
 @pytest.fixture(scope="module")
 def fleet_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
     directory = tmp_path_factory.mktemp("tls-fleet")
@@ -112,9 +120,8 @@ def tls(fleet_file: Path) -> Iterator[TlsFleet]:
         edge.declare_queryable(keys.dep_probe(fleet, "edge-1"), _answer([], "probe"))
         robot1 = session(machine="robot-1")
         robot2 = session(machine="robot-2")
-        for robot, s in (("robot-1", robot1), ("robot-2", robot2)):
-            own = keys.svc_infer(fleet, service, robot)
-            _wait(lambda s=s, own=own: _ok_replies(s, own), f"{robot}'s first answer from edge-1")
+        for s, robot in ((robot1, "robot-1"), (robot2, "robot-2")):
+            _answers(s, keys.svc_infer(fleet, service, robot))
         svc_calls.clear()
         yield TlsFleet(
             cfg, fleet_file.parent / "certs", router, edge, robot1, robot2, ctl_calls, svc_calls
@@ -140,8 +147,8 @@ def _barrier_token(t: TlsFleet, observer: zenoh.Session) -> None:
 # -- robot-2 against robot-1's keys ----------------------------------------------------------------
 def test_robot2_gets_no_reply_from_robot1s_service_key(tls: TlsFleet) -> None:
     svc = tls.cfg.service
-    assert _ok_replies(tls.robot1, keys.svc_infer(tls.fleet, svc, "robot-1")) == [b"edge-1"]
-    assert _ok_replies(tls.robot2, keys.svc_infer(tls.fleet, svc, "robot-2")) == [b"edge-1"]
+    assert _answers(tls.robot1, keys.svc_infer(tls.fleet, svc, "robot-1")) == [b"edge-1"]
+    assert _answers(tls.robot2, keys.svc_infer(tls.fleet, svc, "robot-2")) == [b"edge-1"]
     calls_before = len(tls.svc_calls)
     assert _ok_replies(tls.robot2, keys.svc_infer(tls.fleet, svc, "robot-1")) == []
     # Refused on the way in: edge-1's handler never ran for it.
@@ -159,7 +166,7 @@ def test_robot2_cannot_declare_a_queryable_that_gets_queries(tls: TlsFleet) -> N
     _barrier_token(tls, tls.robot1)
     # Every queryable robot-1's session routes to answers; robot-2's are not among them.
     for _ in range(3):
-        replies = _ok_replies(tls.robot1, robot1_key, target=zenoh.QueryTarget.ALL)
+        replies = _answers(tls.robot1, robot1_key, target=zenoh.QueryTarget.ALL)
         assert replies == [b"edge-1"]
     assert stolen == []
 
@@ -168,7 +175,7 @@ def test_robot2_cannot_change_a_deployments_state(tls: TlsFleet) -> None:
     ctl = keys.dep_ctl(tls.fleet, "edge-1")
     assert _ok_replies(tls.robot2, ctl, payload=b"drain") == []
     assert tls.ctl_calls == []
-    assert _ok_replies(tls.router, ctl, payload=b"status") == [b"ctl"]  # the registry may
+    assert _answers(tls.router, ctl, payload=b"status") == [b"ctl"]  # the registry may
     assert tls.ctl_calls == [ctl]
 
 
@@ -235,7 +242,7 @@ def test_robot2_cannot_declare_another_hosts_token(tls: TlsFleet) -> None:
 # -- the CLI ---------------------------------------------------------------------------------------
 def test_the_cli_certificate_reads_views_not_ctl(tls: TlsFleet) -> None:
     with open_session(tls.cfg, identity="cli", mode="client", listen=[]) as cli:
-        assert _ok_replies(cli, keys.rib_routes(tls.fleet)) == [b"rib"]
+        assert _answers(cli, keys.rib_routes(tls.fleet)) == [b"rib"]
         assert _ok_replies(cli, keys.dep_ctl(tls.fleet, "edge-1"), payload=b"drain") == []
         assert _ok_replies(cli, keys.dep_probe(tls.fleet, "edge-1")) == []
         assert _ok_replies(cli, keys.svc_infer(tls.fleet, tls.cfg.service, "robot-1")) == []
