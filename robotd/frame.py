@@ -21,8 +21,10 @@ from robotd.telemetry import SERVED_BY_CLOUD, SERVED_BY_ROBOT, RemoteTimes, fram
 
 @dataclass(frozen=True)
 class FrameResult:
-    """A completed frame, handed to `on_result`: its input, its outputs (whichever path served
-    it) and its telemetry record."""
+    """An applied frame, handed to `on_result`: its input, its outputs (whichever path served
+    it) and its telemetry record as known then (a hedged frame the robot served while its reply
+    was out is handed on at once: its record has no reply's figures and is no fallback; the
+    telemetry gets the complete record when the reply settles)."""
 
     frame: int
     feeds: dict[str, np.ndarray]
@@ -62,6 +64,9 @@ class Frame:
     stale: bool | None = None
     # Frames the source dropped unread just before this one (a newer one had arrived).
     dropped_stale: int = 0
+    # Its result was handed to the consumers (a hedged frame served by the robot is handed on
+    # when served, before its reply completes its record).
+    delivered: bool = False
 
     @property
     def offloaded(self) -> bool:
@@ -104,8 +109,11 @@ class Frame:
             cpu_s=self.cpu_s,
         )
 
-    def record(self, robot: str, energy_j: float) -> TelemetryRecord:
-        """The served frame's telemetry record."""
+    def record(
+        self, robot: str, energy_j: float, *, reply_awaited: bool = False
+    ) -> TelemetryRecord:
+        """The served frame's telemetry record; `reply_awaited`: as known while its reply is out
+        (see `frame_record`)."""
         return frame_record(
             robot,
             self.n,
@@ -122,4 +130,5 @@ class Frame:
             epoch=self.epoch,
             stale=bool(self.stale),
             dropped_stale=self.dropped_stale,
+            reply_awaited=reply_awaited,
         )

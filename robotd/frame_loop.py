@@ -33,6 +33,7 @@ import numpy as np
 
 from common.partition.runtime import SplitModel
 from common.throttled_log import ThrottledLog
+from common.wire.telemetry import TelemetryRecord
 from common.wire.tensor_codecs import encode_tensor_as
 from robotd.emulation import Emulation, Slowdown
 from robotd.entropy import frame_entropy
@@ -320,9 +321,13 @@ class FrameLoop:
                 f.serve_local(outputs, local_done)
                 self._emit(f)
             return
-        # The robot's result is first: the frame is served (applied) now, its reply comes later.
+        # The robot's result is first: the frame is served (applied) and handed on now; its
+        # reply comes later and completes its telemetry. Held until then, its result reached
+        # the consumers late, after the next frame's when that one was answered first.
         f.serve_local(outputs, local_done)
         f.stale = not self._order.admit(f.n)
+        if not f.stale:
+            self._deliver(f, self._record(f, reply_awaited=True))
         self._settle_pending(block=True)  # at most one frame waits for its reply
         self._pending = f
 
@@ -357,32 +362,41 @@ class FrameLoop:
     # -- after a frame ---------------------------------------------------------------------
     def _emit(self, f: Frame) -> None:
         """Feed the policy, publish and record the frame, act on a run of cloud failures, and
-        hand an applied frame's result to `on_result`, the result sinks, then the source. A
-        stale frame (a newer one's result was applied first) reaches none of them: it is
+        hand an applied frame's result on (`_deliver`) unless that was done when it was served.
+        A stale frame (a newer one's result was applied first) is handed to none of them: it is
         counted in its record and the summary."""
         res = f.result
-        remote = RemoteTimes.of(res)
-        compute_s = f.prefix_s + (f.local_s or 0.0)
-        energy = self.objective.energy_j(f.latency_s, compute_s, remote.transfer_s)
         self.policy.observe(f.decision, f.outcome(self.deadline_s))
         if f.stale is None:  # applied now, unless a newer frame's result was
             f.stale = not self._order.admit(f.n)
-        record = f.record(self.robot, energy)
+        record = self._record(f)
         self.sink.frame(f, record, phase=self.emulation.phase_name(f.n))
         self.frames_done += 1
         if res is not None and res.reply is not None:
-            self.cloud_time.observe(remote.cloud_s)
+            self.cloud_time.observe(RemoteTimes.of(res).cloud_s)
         if f.offloaded and res is not None:
             reroute = self._failures.note(f.n, res)
             if reroute is not None:
                 self.link.request_reroute(reroute, self._failures.streak)
-        if not f.stale:
-            result = FrameResult(f.n, f.feeds, f.outputs, record, f.served_by, f.hedged, f.stamp_ns)
-            if self.on_result is not None:
-                self.on_result(result)
-            for sink in self.result_sinks:
-                self._publish(sink, result)
-            self.source.on_result(result)
+        if not f.stale and not f.delivered:
+            self._deliver(f, record)
+
+    def _record(self, f: Frame, *, reply_awaited: bool = False) -> TelemetryRecord:
+        """Frame `f`'s telemetry record; `reply_awaited`: as known while its reply is out."""
+        remote = RemoteTimes.of(f.result)
+        compute_s = f.prefix_s + (f.local_s or 0.0)
+        energy = self.objective.energy_j(f.latency_s, compute_s, remote.transfer_s)
+        return f.record(self.robot, energy, reply_awaited=reply_awaited)
+
+    def _deliver(self, f: Frame, record: TelemetryRecord) -> None:
+        """Hand applied frame `f`'s result to `on_result`, the result sinks, then the source."""
+        f.delivered = True
+        result = FrameResult(f.n, f.feeds, f.outputs, record, f.served_by, f.hedged, f.stamp_ns)
+        if self.on_result is not None:
+            self.on_result(result)
+        for sink in self.result_sinks:
+            self._publish(sink, result)
+        self.source.on_result(result)
 
     def _publish(self, sink: ResultSink, result: FrameResult) -> None:
         """Hand `result` to `sink`; a sink that fails is a throttled line, never the loop's end."""

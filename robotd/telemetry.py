@@ -93,6 +93,7 @@ def frame_record(
     stale: bool = False,
     end: int | None = None,
     dropped_stale: int = 0,
+    reply_awaited: bool = False,
 ) -> TelemetryRecord:
     """The telemetry record of a completed frame.
 
@@ -103,10 +104,12 @@ def frame_record(
     `local_s`: the robot's own suffix run, if one ran. `epoch`: the route epoch the robot held
     when the frame started; an answered frame reports its reply's instead. `stale`: its result
     was dropped, a newer frame's having been applied. `dropped_stale`: frames the source
-    dropped unread just before this one.
+    dropped unread just before this one. `reply_awaited`: the record of a hedged frame that the
+    robot served while its reply was still out, for its consumers: not a fallback (the robot's
+    run won the race; whether the cloud answers is not known yet) and no reply's figures.
     """
     reply = result.reply if result is not None else None
-    fallback = cut is not None and reply is None
+    fallback = cut is not None and reply is None and not reply_awaited
     remote = RemoteTimes.of(result)
     return TelemetryRecord(
         robot=robot,

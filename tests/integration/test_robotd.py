@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import logging
 import threading
+import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -145,6 +146,7 @@ class FakeDeployment:
         self.model = model
         self.script = script or (lambda frame: "ok")
         self.requests: list[InferRequest] = []
+        self.replied_at: dict[int, float] = {}  # frame -> time.perf_counter() of its reply
         self.release = threading.Event()
         self.answered = threading.Event()
         self._pool = ThreadPoolExecutor(max_workers=2, thread_name_prefix="fake-deployment")
@@ -190,6 +192,7 @@ class FakeDeployment:
                 compute_s=0.001,
             )
             query.reply(key, reply.to_wire())
+            self.replied_at[request.frame] = time.perf_counter()
         self.answered.set()
 
     def close(self) -> None:
@@ -239,17 +242,25 @@ def run_robot(
     frames: int = FRAMES,
     *,
     policy: Policy | str | None = None,
+    on_result: Callable[[FrameResult], None] | None = None,
     **options: Any,
 ) -> Run:
-    """Run the daemon in this thread for `frames` frames; every frame's result is kept. A
-    policy given by name goes through the daemon's own `make_policy`."""
+    """Run the daemon in this thread for `frames` frames; every frame's result is kept (and
+    handed to `on_result` too). A policy given by name goes through the daemon's own
+    `make_policy`."""
     if isinstance(policy, str):
         options["policy"], policy = policy, None
     options.setdefault("registry_wait_s", WAIT_S)
     options.setdefault("route_wait_s", WAIT_S)
     results: list[FrameResult] = []
+
+    def keep(result: FrameResult) -> None:
+        results.append(result)
+        if on_result is not None:
+            on_result(result)
+
     daemon = RobotDaemon(
-        cfg, ROBOT, RobotOptions(frames=frames, **options), policy=policy, on_result=results.append
+        cfg, ROBOT, RobotOptions(frames=frames, **options), policy=policy, on_result=keep
     )
     assert daemon.run() == 0
     return Run(daemon, results)
@@ -422,7 +433,10 @@ def test_hedged_frames_serve_the_first_result_and_feed_the_cloud_reply_to_the_po
         # A reply that comes first cancels the local run: it then reports no robot time.
         assert (outcome.local_s is not None and outcome.local_s > 0) or result.served_by == "cloud"
         assert outcome.cloud_s is not None  # the reply came within the deadline
-        assert not result.record.fallback and result.record.deployment == DEPLOYMENT
+        # One the robot served was handed on before its reply: no deployment in its record yet.
+        served_by_cloud = result.served_by == "cloud"
+        assert not result.record.fallback
+        assert result.record.deployment == (DEPLOYMENT if served_by_cloud else None)
         np.testing.assert_allclose(
             result.outputs["logits"], split.run_full(result.feeds)["logits"], atol=TOLERANCE
         )
@@ -434,21 +448,57 @@ def test_hedged_frame_with_a_slow_cloud_is_served_by_the_robot_without_waiting(
     split: SplitModel,
     deployment: Callable[..., FakeDeployment],
     fake_registry: zenoh.Session,
+    tmp_path: Path,
 ) -> None:
     deployment(lambda frame: "slow")
     policy = HedgeAlways(_cut_table(split))
     frames = 2
+    telemetry = tmp_path / "robot-1.jsonl"
     run = run_robot(
         fleet_config(zenoh_router.endpoint, model_file, deadline_s=SHORT_DEADLINE_S),
         frames,
         policy=policy,
+        telemetry=telemetry,
     )
     assert_no_frame_lost(run, frames)
     for result, outcome in zip(run.results, policy.outcomes, strict=True):
         assert result.served_by == "robot"
         assert result.record.latency_s < SHORT_DEADLINE_S  # served by the robot, not the wait
-        assert result.record.reason == "timeout" and outcome.cloud_s is None
-        assert outcome.waited_s == SHORT_DEADLINE_S
+        # Handed on when served: the reply's fate was not known then.
+        assert not result.record.fallback and result.record.reason is None
+        assert outcome.cloud_s is None and outcome.waited_s == SHORT_DEADLINE_S
+    # The telemetry has the complete records: the cloud timed out.
+    lines = [json.loads(line) for line in telemetry.read_text().splitlines()]
+    assert [(obj["frame"], obj["reason"]) for obj in lines] == [(0, "timeout"), (1, "timeout")]
+    assert run.daemon.summary.reasons == {"timeout": frames}
+
+
+def test_a_hedged_frame_served_by_the_robot_is_handed_on_before_its_reply(
+    zenoh_router: Router,
+    model_file: Path,
+    split: SplitModel,
+    deployment: Callable[..., FakeDeployment],
+    fake_registry: zenoh.Session,
+) -> None:
+    """The reply comes within the deadline but after the robot's own result: the result goes
+    to its consumers when served, not when the reply settles (then it came after the next
+    frame's), and its telemetry still gets the reply's figures."""
+    dep = deployment(lambda frame: "delayed")
+    policy = HedgeAlways(_cut_table(split))
+    handed_at: dict[int, float] = {}
+    frames = 3
+    run = run_robot(
+        fleet_config(zenoh_router.endpoint, model_file),
+        frames,
+        policy=policy,
+        on_result=lambda result: handed_at.setdefault(result.frame, time.perf_counter()),
+    )
+    assert_no_frame_lost(run, frames)
+    assert [r.frame for r in run.results] == list(range(frames))  # in frame order
+    for result in run.results:
+        assert result.served_by == "robot" and not result.record.fallback
+        assert handed_at[result.frame] < dep.replied_at[result.frame]
+    assert all(outcome.cloud_s is not None for outcome in policy.outcomes)  # replies were fed
 
 
 def test_unreachable_registry_is_named_and_frames_are_computed_locally(
