@@ -250,6 +250,13 @@ def table1(
         "--policies",
         help="Policies, comma-separated (elastic-nohedge: elastic without hedged exploration).",
     ),
+    repeat: int = typer.Option(
+        1,
+        "--repeat",
+        min=1,
+        help="Runs per cell, the policies alternated in each round; a cell reports its run "
+        "with the median mean latency (a shared host's noise moves one run by a tenth).",
+    ),
 ) -> None:
     """ElasticROS Table I: latency, robot CPU and energy per frame at each uplink cap."""
     from deploy.experiments import table1 as t1
@@ -259,7 +266,7 @@ def table1(
     names = _policies(policies)
     _run(
         options,
-        lambda: t1.run(options, caps, names),
+        lambda: t1.run(options, caps, names, repeat),
         t1.markdown,
         t1.plot,
         as_json,

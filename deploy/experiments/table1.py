@@ -6,6 +6,11 @@ host held at `robot_cpu` of a core. The first frames of each run (start-up, and 
 policies' first explorations) are left out; the rest give the mean latency, robot CPU seconds and
 energy per frame. "cloud" is node-level full offload (FogROS's way), "robot" computes everything
 locally, the others choose a cut per frame.
+
+A shared host's noise moves one run's mean by a tenth or more (the cloud's compute time, and on a
+robot of a tenth of a core the phase of its quota), as much as two policies differ. `repeat` runs
+each cell that many times, the policies alternated within each round, and reports the run with
+the median mean latency, beside every run's mean (`runs_mean_latency_s`).
 """
 
 from __future__ import annotations
@@ -14,6 +19,8 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
+
+from common.errors import UserError
 
 from .options import BenchOptions, open_fleet
 from .report import fmt, md_table, save_plot, use_agg
@@ -36,6 +43,7 @@ class Table1Settings:
     frames: int
     warmup_frames: int
     deadline_s: float = DEADLINE_S
+    repeat: int = 1
 
     def to_json(self) -> dict[str, Any]:
         return asdict(self)
@@ -43,21 +51,42 @@ class Table1Settings:
 
 @dataclass(frozen=True)
 class Table1Row:
-    """One robot run: its uplink cap and policy, the measured window's figures, frames lost."""
+    """One cell: its uplink cap and policy, the measured window's figures, frames lost. Of
+    repeated runs, the median run's window, the frames lost in all of them and each run's mean
+    latency in the order they ran."""
 
     uplink_mbit: float
     policy: str
     window: WindowSummary
     lost: int
+    runs_mean_latency_s: tuple[float | None, ...] = ()
 
     def to_json(self) -> dict[str, Any]:
-        """{"uplink_mbit", "policy", the window's keys, "lost"}."""
-        return {
+        """{"uplink_mbit", "policy", the window's keys, "lost"}, and "runs_mean_latency_s"
+        when the cell was run more than once."""
+        out = {
             "uplink_mbit": self.uplink_mbit,
             "policy": self.policy,
             **self.window.to_json(),
             "lost": self.lost,
         }
+        if len(self.runs_mean_latency_s) > 1:
+            out["runs_mean_latency_s"] = list(self.runs_mean_latency_s)
+        return out
+
+
+def median_run(runs: list[Table1Row]) -> Table1Row:
+    """The run with the median mean latency (the lower one of an even count; runs without a
+    measured frame count as slowest), with every run's frames lost and mean latency."""
+    ranked = sorted(runs, key=lambda r: (r.window.mean_latency_s is None, r.window.mean_latency_s))
+    middle = ranked[(len(ranked) - 1) // 2]
+    return Table1Row(
+        middle.uplink_mbit,
+        middle.policy,
+        middle.window,
+        sum(r.lost for r in runs),
+        tuple(r.window.mean_latency_s for r in runs),
+    )
 
 
 Table1Result = SingleEdgeResult[Table1Settings, Table1Row]
@@ -67,9 +96,12 @@ def run(
     options: BenchOptions,
     uplinks: tuple[float, ...] | list[float] = UPLINKS_MBIT,
     policies: tuple[str, ...] | list[str] = POLICIES,
+    repeat: int = 1,
 ) -> Table1Result:
-    """Run the grid: one row per (uplink, policy)."""
+    """Run the grid: one row per (uplink, policy), the median of `repeat` alternated runs."""
     options.check()
+    if repeat < 1:
+        raise UserError(f"--repeat must be at least 1, got {repeat}")
     frames = options.frames_or(FULL_FRAMES, QUICK_FRAMES)
     warmup = min(FULL_WARMUP if not options.quick else QUICK_WARMUP, max(0, frames - 3))
     results: list[Table1Row] = []
@@ -77,19 +109,24 @@ def run(
         tf.launch(fleet_spec(tf, options, "t1-"))
         for uplink in uplinks:
             tf.shape_robot(uplink)
-            for policy in policies:
-                options.log(f"uplink {uplink:g} Mbit/s, policy {policy}")
-                tf.start_robot(policy, frames=frames, cpu_fraction=options.robot_cpu)
-                records = by_frame(tf.finish_robot(run_timeout_s(frames)))
-                window = between(records, tf.measure_from + warmup)
-                lost = len(lost_frames(records, frames))
-                results.append(Table1Row(uplink, policy, summary(window), lost))
+            runs: dict[str, list[Table1Row]] = {policy: [] for policy in policies}
+            for turn in range(repeat):
+                for policy in runs:
+                    of = f", run {turn + 1} of {repeat}" if repeat > 1 else ""
+                    options.log(f"uplink {uplink:g} Mbit/s, policy {policy}{of}")
+                    tf.start_robot(policy, frames=frames, cpu_fraction=options.robot_cpu)
+                    records = by_frame(tf.finish_robot(run_timeout_s(frames)))
+                    window = between(records, tf.measure_from + warmup)
+                    lost = len(lost_frames(records, frames))
+                    runs[policy].append(Table1Row(uplink, policy, summary(window), lost))
+            results.extend(median_run(cell) for cell in runs.values())
     settings = Table1Settings(
         model=options.model,
         input_shape=list(options.input_shape),
         robot_cpu=options.robot_cpu,
         frames=frames,
         warmup_frames=warmup,
+        repeat=repeat,
     )
     return SingleEdgeResult(settings, results)
 
@@ -120,7 +157,18 @@ def markdown(result: Table1Result) -> str:
     out.append(
         "**most frequent action (frames lost)**\n\n" + md_table(["uplink", *policies], choices)
     )
+    if result.settings.repeat > 1:
+        table = [[f"{u:g}", *(_runs(_row(result, u, p)) for p in policies)] for u in uplinks]
+        out.append(
+            f"**mean latency of each of the {result.settings.repeat} alternated runs (s); the "
+            "tables above give the median run's figures**\n\n"
+            + md_table(["uplink (Mbit/s)", *policies], table)
+        )
     return "\n\n".join(out) + "\n"
+
+
+def _runs(row: Table1Row | None) -> str:
+    return "n/a" if row is None else " / ".join(fmt(m, 3) for m in row.runs_mean_latency_s)
 
 
 def _figure(row: Table1Row | None, figure: Callable[[WindowSummary], float | None]) -> float | None:
