@@ -36,7 +36,8 @@ update the regression.
   confirmed by a probe on the next frame.
 - exploration's robot time: on a robot that reports its CPU (`Outcome.cpu_s`), a lost hedged
   probe is priced at `robot_rate` times the time its local run kept the robot busy and the
-  probes are spaced to cost at most `PROBE_COST_SHARE` of the frames (`robot_probes`), a stopped
+  probes are spaced to cost at most `PROBE_COST_SHARE` of the frames (the latency a probe adds
+  to its frame included) and by how far P is from winning (`robot_probes`), a stopped
   local run bounds the robot's time from below, and an insurance local run is started only
   where overdue replies come late enough for it to pay (`robotd.policies.insurance`).
 - take-up and hint (`robotd.policies.take_up`): an offloading action seen to cost less than
@@ -187,7 +188,10 @@ class ElasticPolicy(Policy):
             j, forced = challenger, True
         if regular_p and not forced:
             return Decision(PURE_ROBOT, updating=updating, predicted_cost=p_cost)
-        probe = self._probes.due(j)
+        # P's distance spaces the probes of a robot that reports its CPU (they cost it there).
+        cheapest_cost = self._cheapest[0]
+        distance = p_cost / cheapest_cost if self._cpu_counted and cheapest_cost > 0 else 1.0
+        probe = self._probes.due(j, distance)
         if probe and p_allowed and not forced and (not params.hedge or self._probes.wants_p):
             # Without hedging, or when stopped local runs only bounded the robot's time, the
             # robot is timed by serving the frame on it.
@@ -275,6 +279,14 @@ class ElasticPolicy(Policy):
             self._probes.timed(robot.observe(outcome.local_s, self._suffix_s[j]))
         if outcome.cpu_s is not None:
             self._count_cpu(j, outcome)
+        if outcome.cloud_s is not None:
+            target = cloud_cost(
+                self._wait_rate, self._radio_rate, outcome.cloud_s, outcome.cloud_compute_s
+            )
+        elif outcome.waited_s is not None:
+            target = cloud_cost(self._wait_rate, self._radio_rate, outcome.waited_s, None)
+        else:
+            target = UNKNOWN_WAIT_FACTOR * max(self._pred[j], MIN_PREDICTION)
         if decision.hedge:
             busy_s = (outcome.cloud_s or 0.0) - decision.hedge_after_s
             if outcome.local_s is None and outcome.cpu_s is not None:
@@ -286,15 +298,8 @@ class ElasticPolicy(Policy):
                 busy_s=busy_s,
                 cpu_known=outcome.cpu_s is not None,
                 frame_cost=self._current()[0],
+                excess=target - self._pred[j],
             )
-        if outcome.cloud_s is not None:
-            target = cloud_cost(
-                self._wait_rate, self._radio_rate, outcome.cloud_s, outcome.cloud_compute_s
-            )
-        elif outcome.waited_s is not None:
-            target = cloud_cost(self._wait_rate, self._radio_rate, outcome.waited_s, None)
-        else:
-            target = UNKNOWN_WAIT_FACTOR * max(self._pred[j], MIN_PREDICTION)
         if self._take_up.observe(j, target, self._base[j] - self._pred[j], self._current):
             pass  # the observation started an update period on this action's evidence
         elif self.params.change_detection:

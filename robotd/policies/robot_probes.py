@@ -19,7 +19,18 @@ keeps what lost probes cost within `PROBE_COST_SHARE` of what the frames between
 current choice's estimate), up to `PROBE_COST_MAX_FACTOR` times `robot_probe_frames`; a probe that
 wins its race (P may be worth it) brings the interval back. Only a robot that reports its CPU
 (`Outcome.cpu_s`, the robot daemon) is charged: the simulator models no CPU contention, and its
-robot is probed every `robot_probe_frames` as before.
+robot is probed every `robot_probe_frames` as before. A lost probe also costs the latency it
+added to its own frame: on a 0.1-core robot the local run spends the quota whenever the
+offload's threads wait, and each step of the offload then waits for the next CFS period (a
+probe frame took 76-155 ms against 40 ms; docs/experiments.md, "A weak robot"). What the frame
+cost beyond the prediction counts in the price.
+
+A probe looks for a robot that got fast enough to change the choice: while P costs `r` times
+the cheapest offloading action, only a robot `r` times faster would make P (or a cut with more
+robot work) win. On a robot that reports its CPU, probes are spaced by that distance too
+(`spacing`: `r` x `robot_probe_frames`, within the same cap), so a robot far from winning is
+probed rarely from the start, before any probe was lost and priced; a measurement that surprised
+is still confirmed on the next frame.
 """
 
 from __future__ import annotations
@@ -69,14 +80,26 @@ class RobotProbes:
         """A frame begins."""
         self._since += 1
 
-    def due(self, j: int) -> bool:
+    def due(self, j: int, p_ratio: float = 1.0) -> bool:
         """Time the robot: cut j runs nothing measurable there, and the robot's speed is stale
-        (or, when hedging, a surprising measurement awaits confirmation)."""
+        (or a surprising measurement awaits confirmation). `p_ratio`: P's estimated cost over
+        the cheapest offloading action's (`spacing`)."""
         if not self._untimed[j] or self._params.robot_probe_frames == 0:
             return False
-        if self._params.hedge and self._robot.suspect and not self._suspect_probed:
-            return True
-        return self._since >= self._interval
+        if self._robot.suspect:  # confirm the surprise now, whatever the spacing
+            if self._params.hedge and not self._suspect_probed:
+                return True
+            return self._since >= self._interval
+        return self._since >= max(self._interval, self.spacing(p_ratio))
+
+    def spacing(self, p_ratio: float) -> int:
+        """Frames between probes while P costs `p_ratio` times the cheapest offloading action:
+        a robot needs to get that much faster for a probe to find something that changes the
+        choice (module docstring)."""
+        base = self._params.robot_probe_frames
+        if not p_ratio > 1.0:  # P wins or ties (or nothing offloads: the ratio is nan)
+            return base
+        return math.ceil(base * min(p_ratio, PROBE_COST_MAX_FACTOR))
 
     def tried(self, *, on_p: bool = False) -> None:
         """The robot may be timed this frame: a hedged frame, or a probe served on the robot
@@ -116,11 +139,13 @@ class RobotProbes:
         busy_s: float,
         cpu_known: bool,
         frame_cost: float,
+        excess: float = 0.0,
     ) -> None:
         """After hedged frame `decision`: whether its local run finished (`timed`), how long
         it kept the robot computing before the reply stopped it (`busy_s`), whether the robot
-        reports its CPU (`cpu_known`) and the current choice's estimated cost per frame
-        (objective units). Prices a lost probe (module docstring)."""
+        reports its CPU (`cpu_known`), the current choice's estimated cost per frame and what
+        the frame's cloud part cost beyond its prediction (`excess`; objective units). Prices a
+        lost probe (module docstring)."""
         if decision is not self._awaited:
             return
         self._awaited = None
@@ -131,7 +156,7 @@ class RobotProbes:
         self.lost += 1
         if not cpu_known:
             return
-        cost = self._rate * max(busy_s, 0.0)
+        cost = self._rate * max(busy_s, 0.0) + max(excess, 0.0)
         budget = PROBE_COST_SHARE * max(frame_cost, 1e-9)
         frames = math.ceil(cost / budget) if cost > 0 else base
         self._interval = min(max(base, frames), PROBE_COST_MAX_FACTOR * base)

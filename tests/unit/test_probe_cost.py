@@ -38,6 +38,7 @@ def run(
     *,
     report_cpu: bool,
     reply_s: float | Callable[[int], float] = REPLY_S,
+    p_s: Callable[[int], float] = lambda t: P_S,
     **params: object,
 ) -> list:
     """Frames of `elastic` on the weak robot: (frame, decision) of every frame."""
@@ -50,14 +51,15 @@ def run(
         d = policy.decide(FrameContext(t, 0.5))
         out.append((t, d))
         cpu = None
+        whole_s = p_s(t)
         if d.action == PURE_ROBOT:
             if report_cpu:
-                cpu = 0.1 * P_S
-            policy.observe(d, Outcome(prefix_s=P_S, latency_s=P_S, cpu_s=cpu))
+                cpu = 0.1 * whole_s
+            policy.observe(d, Outcome(prefix_s=whole_s, latency_s=whole_s, cpu_s=cpu))
             continue
         y = reply_s(t) if callable(reply_s) else reply_s
         # A hedged run starting at once loses to the reply: stopped, it reports no time.
-        local = P_S if d.hedge and d.hedge_after_s + P_S <= y else None
+        local = whole_s if d.hedge and d.hedge_after_s + whole_s <= y else None
         if report_cpu:
             cpu = CPU_S + (0.1 * max(0.0, y - d.hedge_after_s) if d.hedge else 0.0)
         policy.observe(d, Outcome(prefix_s=0.0, cloud_s=y, local_s=local, cpu_s=cpu))
@@ -81,6 +83,26 @@ def test_lost_probes_are_priced_and_spaced_on_a_robot_that_reports_its_cpu() -> 
     assert len(late) <= 400 / 35, late
     gaps = [b - a for a, b in itertools.pairwise(late)]
     assert all(g >= 35 for g in gaps), gaps
+
+
+def test_a_robot_far_from_winning_is_probed_rarely_from_the_start() -> None:
+    # P costs 8x cut 0's reply (0.4 against 0.05 s): a probe finds something that changes the
+    # choice only on a robot several times faster, so they are spaced by that distance before
+    # any was lost and priced (the simulator's robot, which reports no CPU, keeps its interval).
+    spaced = probes(run(400, report_cpu=True, reply_s=0.05))
+    assert len(spaced) >= 400 // (8 * PROBE), spaced  # they keep coming
+    assert all(b - a >= 4 * PROBE for a, b in itertools.pairwise(spaced)), spaced
+    unspaced = probes(run(400, report_cpu=False, reply_s=0.05))
+    assert [b - a for a, b in itertools.pairwise(unspaced)][1:] == [PROBE] * (len(unspaced) - 2)
+
+
+def test_a_spaced_robot_that_gets_its_cpu_back_is_noticed() -> None:
+    # From frame 200 the whole model takes 10 ms: the next probe's local run beats the 50 ms
+    # reply, and from then on P serves (the longest spacing is 8 x robot_probe_frames).
+    frames = run(400, report_cpu=True, reply_s=0.05, p_s=lambda t: P_S if t < 200 else 0.01)
+    p_frames = [t for t, d in frames if d.action == PURE_ROBOT and t >= 200]
+    assert p_frames and p_frames[0] <= 200 + 8 * PROBE + 2, p_frames
+    assert len(p_frames) >= 0.9 * (400 - p_frames[0]), p_frames
 
 
 def test_without_a_cpu_report_probes_keep_their_interval() -> None:
