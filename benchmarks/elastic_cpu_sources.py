@@ -206,9 +206,9 @@ def _replay(sim: Simulator, cuts: CutTable, costs: CpuCosts, report_cpu: bool) -
             extra[t] = cpu - static_cpu
             source.append("P frame")
             continue
-        j = position[(int(d.action), d.codec)]
+        j = position[(int(d.action), d.codec, d.end)]
         cpu += costs.encode_s.get(str(d.codec), 0.0)
-        y = seg.uplink_s[j] * fu[t] + seg.compute_s[j] * fc[t] + seg.downlink_s * fd[t]
+        y = seg.uplink_s[j] * fu[t] + seg.compute_s[j] * fc[t] + seg.downlink_s[j] * fd[t]
         local = seg.local_s[j] * fr[t]
         local_s = None
         why = "other action" if label != "0:jpeg50" else "none"
