@@ -27,6 +27,7 @@ from common.partition import load_partition, sample_feeds
 from common.partition.runtime import SplitModel
 from robotd.policies import Decision, FrameContext, Outcome, Policy
 from robotd.policies.base import CutTable
+from tests.helpers.observed import ObservedByFrame
 from tests.helpers.onnx_graphs import make_model, node, save, vi
 from tests.integration.conftest import Router
 from tests.integration.test_robotd import (
@@ -106,7 +107,7 @@ class InstantOutputs:
 
 
 class Hedged(Policy):
-    """Cut 1, hedged, the local run deferred by `after_s`; keeps what it observes."""
+    """Cut 1, hedged, the local run deferred by `after_s`; keeps what it observes, by frame."""
 
     name = "hedged"
 
@@ -114,15 +115,16 @@ class Hedged(Policy):
         super().__init__(cuts)
         self.after_s = after_s
         self.local_expected = local_expected
-        self.outcomes: list[Outcome] = []
+        self.seen = ObservedByFrame()
 
     def decide(self, ctx: FrameContext) -> Decision:
-        return Decision(
+        decision = Decision(
             1, hedge=True, hedge_after_s=self.after_s, local_expected=self.local_expected
         )
+        return self.seen.decided(decision, ctx.index)
 
     def observe(self, decision: Decision, outcome: Outcome) -> None:
-        self.outcomes.append(outcome)
+        self.seen.observed(decision, outcome)
 
 
 class Offloaded(Hedged):
@@ -131,7 +133,7 @@ class Offloaded(Hedged):
     name = "offloaded"
 
     def decide(self, ctx: FrameContext) -> Decision:
-        return Decision(1)
+        return self.seen.decided(Decision(1), ctx.index)
 
 
 def cut_table() -> CutTable:
@@ -185,7 +187,7 @@ def test_a_reply_first_stops_the_local_run(
     run = run_robot(config(zenoh_router, heavy_model), FRAMES, policy=policy)
     assert_no_frame_lost(run, FRAMES)
     assert len(dep.requests) == FRAMES
-    for result, outcome in zip(run.results, policy.outcomes, strict=True):
+    for result, outcome in zip(run.results, policy.seen.of(run.results), strict=True):
         assert result.served_by == "cloud" and result.record.deployment == DEPLOYMENT
         assert outcome.local_s is None and result.record.suffix_local_s == 0.0
     # Each frame's local run was started and stopped: together they cost far less than the
@@ -214,7 +216,7 @@ def test_a_deferred_local_run_is_not_started_when_the_reply_comes_first(
     policy = Hedged(cut_table(), after_s=DEFER_LONG_S)
     run = run_robot(config(zenoh_router, heavy_model), FRAMES, policy=policy)
     assert_no_frame_lost(run, FRAMES)
-    for result, outcome in zip(run.results, policy.outcomes, strict=True):
+    for result, outcome in zip(run.results, policy.seen.of(run.results), strict=True):
         assert result.served_by == "cloud" and outcome.local_s is None
         assert result.record.latency_s < DEFER_LONG_S  # served by the reply, not the deferral
     assert sum(r.record.robot_cpu_s for r in run.results) < 0.5 * FRAMES * local_suffix_cpu_s
@@ -235,7 +237,7 @@ def test_a_deferred_local_run_serves_the_frame_when_the_cloud_is_too_slow(
         config(zenoh_router, heavy_model, deadline_s=SHORT_DEADLINE_S), frames, policy=policy
     )
     assert_no_frame_lost(run, frames)
-    for result, outcome in zip(run.results, policy.outcomes, strict=True):
+    for result, outcome in zip(run.results, policy.seen.of(run.results), strict=True):
         record = result.record
         assert result.served_by == "robot"
         assert outcome.local_s is not None and outcome.local_s > 0
@@ -262,7 +264,7 @@ def test_a_sample_taken_while_the_robot_is_best_is_served_locally_and_still_lear
     run = run_robot(config(zenoh_router, heavy_model, deadline_s=2.0), frames, policy=policy)
     assert_no_frame_lost(run, frames)
     assert len(dep.requests) == frames
-    for result, outcome in zip(run.results, policy.outcomes, strict=True):
+    for result, outcome in zip(run.results, policy.seen.of(run.results), strict=True):
         assert result.served_by == "robot", (
             f"local run {outcome.local_s} s, reply {outcome.cloud_s} s"
         )

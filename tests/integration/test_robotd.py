@@ -43,6 +43,7 @@ from robotd.pacing import BITS_PER_BYTE
 from robotd.policies import Decision, FrameContext, Outcome, Policy
 from robotd.policies.base import CutTable
 from robotd.telemetry import EXTRA_FIELDS
+from tests.helpers.observed import ObservedByFrame
 from tests.helpers.onnx_graphs import make_model, node, save, vi
 from tests.integration.conftest import Router
 
@@ -242,7 +243,7 @@ def run_robot(
     frames: int = FRAMES,
     *,
     policy: Policy | str | None = None,
-    on_result: Callable[[FrameResult], None] | None = None,
+    on_result: Callable[[FrameResult], object] | None = None,
     **options: Any,
 ) -> Run:
     """Run the daemon in this thread for `frames` frames; every frame's result is kept (and
@@ -388,19 +389,19 @@ def test_telemetry_file_has_every_key_and_records_are_published(
 
 
 class HedgeAlways(Policy):
-    """Cut 1, hedged, every frame; keeps what it observes."""
+    """Cut 1, hedged, every frame; keeps what it observes, by frame."""
 
     name = "hedge-always"
 
     def __init__(self, cuts: CutTable) -> None:
         super().__init__(cuts)
-        self.outcomes: list[Outcome] = []
+        self.seen = ObservedByFrame()
 
     def decide(self, ctx: FrameContext) -> Decision:
-        return Decision(1, hedge=True)
+        return self.seen.decided(Decision(1, hedge=True), ctx.index)
 
     def observe(self, decision: Decision, outcome: Outcome) -> None:
-        self.outcomes.append(outcome)
+        self.seen.observed(decision, outcome)
 
 
 def _cut_table(split: SplitModel) -> CutTable:
@@ -427,16 +428,17 @@ def test_hedged_frames_serve_the_first_result_and_feed_the_cloud_reply_to_the_po
     run = run_robot(fleet_config(zenoh_router.endpoint, model_file), policy=policy)
     assert_no_frame_lost(run, FRAMES)
     assert len(dep.requests) == FRAMES
-    assert len(policy.outcomes) == FRAMES
-    for result, outcome in zip(run.results, policy.outcomes, strict=True):
+    assert len(policy.seen.outcomes) == FRAMES
+    for result, outcome in zip(run.results, policy.seen.of(run.results), strict=True):
         assert result.hedged and result.served_by in ("cloud", "robot")
         # A reply that comes first cancels the local run: it then reports no robot time.
         assert (outcome.local_s is not None and outcome.local_s > 0) or result.served_by == "cloud"
         assert outcome.cloud_s is not None  # the reply came within the deadline
-        # One the robot served was handed on before its reply: no deployment in its record yet.
-        served_by_cloud = result.served_by == "cloud"
+        # One the robot served while its reply was out was handed on with no deployment yet.
         assert not result.record.fallback
-        assert result.record.deployment == (DEPLOYMENT if served_by_cloud else None)
+        assert result.record.deployment == DEPLOYMENT or (
+            result.served_by == "robot" and result.record.deployment is None
+        )
         np.testing.assert_allclose(
             result.outputs["logits"], split.run_full(result.feeds)["logits"], atol=TOLERANCE
         )
@@ -461,7 +463,7 @@ def test_hedged_frame_with_a_slow_cloud_is_served_by_the_robot_without_waiting(
         telemetry=telemetry,
     )
     assert_no_frame_lost(run, frames)
-    for result, outcome in zip(run.results, policy.outcomes, strict=True):
+    for result, outcome in zip(run.results, policy.seen.of(run.results), strict=True):
         assert result.served_by == "robot"
         assert result.record.latency_s < SHORT_DEADLINE_S  # served by the robot, not the wait
         # Handed on when served: the reply's fate was not known then.
@@ -498,7 +500,8 @@ def test_a_hedged_frame_served_by_the_robot_is_handed_on_before_its_reply(
     for result in run.results:
         assert result.served_by == "robot" and not result.record.fallback
         assert handed_at[result.frame] < dep.replied_at[result.frame]
-    assert all(outcome.cloud_s is not None for outcome in policy.outcomes)  # replies were fed
+    # The replies still reached the learner.
+    assert all(outcome.cloud_s is not None for outcome in policy.seen.outcomes.values())
 
 
 def test_unreachable_registry_is_named_and_frames_are_computed_locally(
