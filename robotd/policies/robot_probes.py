@@ -46,7 +46,8 @@ from robotd.policies.robotcost import RobotCostModel
 ROBOT_PROBE_MAX_FACTOR = 4
 # Lost hedged probes may cost at most this share of what the frames between them cost.
 PROBE_COST_SHARE = 0.025
-# ... which may stretch the interval up to this multiple of robot_probe_frames.
+# ... which may stretch the interval up to this multiple of robot_probe_frames (P's distance
+# too, `RobotProbes.spacing`).
 PROBE_COST_MAX_FACTOR = 8
 
 
