@@ -18,13 +18,13 @@ import json
 import statistics
 import sys
 import tempfile
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from deploy.demo import answered_by, read_telemetry, summarize
+from deploy.demo_summary import answered_since
 from deploy.local_fleet import LocalFleet, write_local_fleet
 
 ROBOT = "robot-1"
@@ -32,21 +32,6 @@ CLOUDS = ("edge-1", "edge-2")
 WAIT_S = 30.0
 FRAMES_BEFORE_KILL = 10
 TARGET_MEDIAN_MS = 300.0
-
-
-def _answered(
-    deployment: str, *, from_frame: int = 0, after: float = 0.0
-) -> Callable[[dict[str, Any]], bool]:
-    """A telemetry predicate: a frame answered by `deployment` (from a frame, after an instant)."""
-
-    def pred(rec: dict[str, Any]) -> bool:
-        return (
-            answered_by(rec) == deployment
-            and int(rec["frame"]) >= from_frame
-            and float(rec["at"]) >= after
-        )
-
-    return pred
 
 
 def run(runs: int, fps: float, input_shape: list[int], model: str, workdir: Path) -> dict[str, Any]:
@@ -69,17 +54,17 @@ def run(runs: int, fps: float, input_shape: list[int], model: str, workdir: Path
         for i in range(runs):
             standby = CLOUDS[1] if serving == CLOUDS[0] else CLOUDS[0]
             first = tap.wait_for(
-                _answered(serving), timeout_s=WAIT_S, what=f"{serving} serving", procs=[robot]
+                answered_since(serving), timeout_s=WAIT_S, what=f"{serving} serving", procs=[robot]
             )
             tap.wait_for(
-                _answered(serving, from_frame=int(first["frame"]) + FRAMES_BEFORE_KILL),
+                answered_since(serving, from_frame=int(first["frame"]) + FRAMES_BEFORE_KILL),
                 timeout_s=WAIT_S,
                 what=f"{FRAMES_BEFORE_KILL} frames answered by {serving}",
                 procs=[robot],
             )
             killed_at = lf.kill(serving)
             took_over = tap.wait_for(
-                _answered(standby, after=killed_at),
+                answered_since(standby, after=killed_at),
                 timeout_s=WAIT_S,
                 what=f"{standby} answering after {serving} was killed",
                 procs=[robot],

@@ -28,6 +28,7 @@ from typing import Any
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from deploy.demo import answered_by
+from deploy.demo_summary import answered_since
 from deploy.local_fleet import LocalFleet, write_local_fleet
 from deploy.procs import DaemonError
 
@@ -37,13 +38,6 @@ WAIT_S = 3.0
 FRAMES_BEFORE_MOVE = 5
 # As many consecutive timeouts as force a move at once (registry.scheduler).
 FORCED_TIMEOUTS = 3
-
-
-def _answered(deployment: str, after: float) -> Any:
-    def pred(rec: dict[str, Any]) -> bool:
-        return answered_by(rec) == deployment and float(rec["at"]) >= after
-
-    return pred
 
 
 def _reroute(lf: LocalFleet, deployment: str) -> None:
@@ -90,13 +84,19 @@ def run(
             start = time.time()
             for _ in range(FRAMES_BEFORE_MOVE):  # bounded: FRAMES_BEFORE_MOVE answered frames
                 tap.wait_for(
-                    _answered(serving, time.time()), timeout_s=WAIT_S, what=serving, procs=[robot]
+                    answered_since(serving, after=time.time()),
+                    timeout_s=WAIT_S,
+                    what=serving,
+                    procs=[robot],
                 )
             asked_at = time.time()
             _reroute(lf, serving)
             try:
                 moved = tap.wait_for(
-                    _answered(other, asked_at), timeout_s=WAIT_S, what=other, procs=[robot]
+                    answered_since(other, after=asked_at),
+                    timeout_s=WAIT_S,
+                    what=other,
+                    procs=[robot],
                 )
                 done_at, stuck = float(moved["at"]), False
             except DaemonError:  # no frame answered by the other deployment: the move not taken

@@ -11,7 +11,7 @@ from __future__ import annotations
 import json
 import math
 from collections import Counter
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -76,6 +76,22 @@ def answered_by(record: Mapping[str, Any]) -> str | None:
     if deployment and not record.get("fallback"):
         return str(deployment)
     return None
+
+
+def answered_since(
+    deployment: str, *, from_frame: int = 0, after: float = 0.0
+) -> Callable[[Mapping[str, Any]], bool]:
+    """A telemetry predicate: a frame answered by `deployment`, from frame `from_frame` on and
+    completed at `after` (the record's wall-clock `at`) or later."""
+
+    def answered(record: Mapping[str, Any]) -> bool:
+        return (
+            answered_by(record) == deployment
+            and int(record["frame"]) >= from_frame
+            and float(record["at"]) >= after
+        )
+
+    return answered
 
 
 def by_frame(records: Iterable[Mapping[str, Any]]) -> list[Mapping[str, Any]]:

@@ -11,6 +11,7 @@ import pytest
 
 from deploy.demo_summary import (
     action_kind,
+    answered_since,
     compare_verdict,
     summarize,
     summarize_phases,
@@ -31,6 +32,15 @@ def rec(frame: int, action: str, latency_s: float, **extra: Any) -> dict[str, An
         "fallback": extra.pop("fallback", False),
         **extra,
     }
+
+
+def test_answered_since_wants_the_deployment_the_frame_and_the_instant() -> None:
+    answered = answered_since("edge-2", from_frame=3, after=100.0)
+    assert answered(rec(3, "cut:0", 0.04, deployment="edge-2", at=100.0))
+    assert not answered(rec(3, "cut:0", 0.04, deployment="edge-1", at=100.0))
+    assert not answered(rec(2, "cut:0", 0.04, deployment="edge-2", at=100.0))
+    assert not answered(rec(3, "cut:0", 0.04, deployment="edge-2", at=99.9))
+    assert not answered(rec(3, "cut:0", 0.04, deployment="edge-2", at=100.0, fallback=True))
 
 
 def test_phase_rows_place_frames_by_number_and_pick_the_main_action() -> None:
