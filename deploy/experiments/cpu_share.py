@@ -31,7 +31,8 @@ class CpuReading:
 
     at: float
     processes: dict[str, float]
-    zenoh_threads: dict[str, float]
+    zenoh_threads: dict[str, dict[int, float]]
+    """Per process, the CPU seconds of each Zenoh thread alive at the reading, by thread id."""
     busy: dict[int, float]
     steal: dict[int, float]
 
@@ -45,8 +46,8 @@ def _busy_and_steal() -> tuple[dict[int, float], dict[int, float]]:
     return busy, steal
 
 
-def _zenoh_thread_s(proc: psutil.Process) -> float:
-    total = 0.0
+def _zenoh_thread_s(proc: psutil.Process) -> dict[int, float]:
+    seconds = {}
     for thread in proc.threads():
         try:
             with open(f"/proc/{proc.pid}/task/{thread.id}/comm") as comm:
@@ -54,8 +55,17 @@ def _zenoh_thread_s(proc: psutil.Process) -> float:
         except OSError:
             continue  # the thread ended
         if ZENOH_THREAD.fullmatch(name):
-            total += thread.user_time + thread.system_time
-    return total
+            seconds[thread.id] = thread.user_time + thread.system_time
+    return seconds
+
+
+def _zenoh_thread_delta_s(before: Mapping[int, float], after: Mapping[int, float]) -> float:
+    """CPU seconds the Zenoh threads used between two readings, thread by thread: a thread alive
+    at both counts its difference, one born in between its whole life, and one that ended in
+    between is left out (its last seconds cannot be read). Never the difference of two sums over
+    different sets of threads, which goes negative when a thread ends between the readings."""
+    # max(0, ...): a thread id reused by a newer thread with less time so far.
+    return sum(max(0.0, s - before.get(tid, 0.0)) for tid, s in after.items())
 
 
 class CpuMeter:
@@ -111,8 +121,11 @@ class CpuMeter:
         busy = {cpu: cores(start.busy[cpu], end.busy[cpu]) for cpu in end.busy}
         out["others_cores"] = max(0.0, sum(busy.values()) - sum(out.values()))
         if self._cloud is not None:
-            out[f"{self._cloud}_zenoh_cores"] = cores(
-                start.zenoh_threads[self._cloud], end.zenoh_threads[self._cloud]
+            out[f"{self._cloud}_zenoh_cores"] = (
+                _zenoh_thread_delta_s(
+                    start.zenoh_threads[self._cloud], end.zenoh_threads[self._cloud]
+                )
+                / seconds
             )
             if self._cloud_cpus is not None:
                 on_cloud_cpus = sum(busy[cpu] for cpu in self._cloud_cpus)

@@ -5,6 +5,7 @@ phases, and the report's tables (pinned or not, with CPU figures missing)."""
 from __future__ import annotations
 
 import os
+import threading
 import time
 
 import pytest
@@ -39,6 +40,45 @@ def test_the_meter_sees_this_process_use_a_core() -> None:
     assert all(value >= 0 for value in used.values()), used
     with pytest.raises(ValueError, match="time order"):
         meter.usage(meter.read(), start)
+
+
+def zenoh_named_thread(burn_s: float, done: threading.Event) -> threading.Thread:
+    """A thread named like a Zenoh runtime thread that has used `burn_s` of CPU when this
+    returns, and ends once `done` is set."""
+    burnt = threading.Event()
+
+    def run() -> None:
+        with open(f"/proc/self/task/{threading.get_native_id()}/comm", "w") as comm:
+            comm.write("rx-99")
+        burn(burn_s)
+        burnt.set()
+        done.wait(10)
+
+    thread = threading.Thread(target=run)
+    thread.start()
+    assert burnt.wait(10), "the named thread did not finish its burn"
+    return thread
+
+
+def test_a_zenoh_thread_that_ends_between_readings_takes_no_seconds_away() -> None:
+    """Regression: the share was the difference of two sums over the threads alive at each
+    reading, so a thread that ended in between (a session an earlier test closed) made it
+    negative (-2.5 cores in a CI run)."""
+    meter = CpuMeter({"cloud": os.getpid()}, cloud="cloud")
+    first_done, second_done = threading.Event(), threading.Event()
+    ending = zenoh_named_thread(BURN_S, first_done)
+    start = meter.read()
+    assert start.zenoh_threads["cloud"][ending.native_id] >= BURN_S / 2, start
+    first_done.set()
+    ending.join()
+    born = zenoh_named_thread(BURN_S, second_done)  # born in between: its whole life counts
+    end = meter.read()
+    second_done.set()
+    born.join()
+    used = meter.usage(start, end)
+    assert ending.native_id not in end.zenoh_threads["cloud"]
+    assert used["cloud_zenoh_cores"] >= 0, used
+    assert used["cloud_zenoh_cores"] * (end.at - start.at) == pytest.approx(BURN_S, abs=0.05)
 
 
 def test_an_unpinned_meter_does_not_claim_the_clouds_cpus() -> None:
