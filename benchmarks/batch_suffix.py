@@ -25,7 +25,7 @@ from common.partition import load_partition
 from common.partition.runtime import SplitModel
 from common.photos import still_views
 from common.zoo import parse_shape
-from deploy.experiments.report import md_table
+from experiments.report import md_table
 
 SIZES = (1, 2, 4, 8)
 DEFAULT_ROUNDS = 9

@@ -44,8 +44,8 @@ from common.wire.tensor_codecs import encode_tensor_as
 from common.zoo import export
 from robotd.policies import PURE_ROBOT, FrameContext, Outcome, make_policy
 from robotd.policies.base import CutTable
-from robotd.sim import Simulator
-from robotd.trace import trace_from_dict
+from robotd.sim.simulator import Simulator
+from robotd.sim.trace import trace_from_dict
 
 MODEL = "mobilenet_v2"
 FRAMES = 3000

@@ -343,7 +343,7 @@ memory left in the heap); `after`: as `elasticfog robot` starts now (`open_split
 
 def nav_fleet(directory: Path, size: tuple[int, int]) -> Path:
     """The navigation benchmark's fleet at `size` (WxH): zoo:stereo split with segments, the
-    robot on `stereo:world` frames with one onnxruntime thread (`deploy.experiments.nav`)."""
+    robot on `stereo:world` frames with one onnxruntime thread (`experiments.nav`)."""
     return write_local_fleet(
         directory,
         model=ROBOT_MODEL,
@@ -597,7 +597,7 @@ def main() -> None:
         print(json.dumps(result))
         return
     if args.robot is not None:
-        from deploy.experiments.nav_rows import parse_resolutions
+        from experiments.nav_rows import parse_resolutions
 
         fleet = None if args.robot == NAV_FLEET else args.robot
         with tempfile.TemporaryDirectory(prefix="memory-bench-") as tmp:

@@ -23,7 +23,7 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any
 
-from deploy.experiments.report import fmt, md_table
+from experiments.report import fmt, md_table
 
 # 1-2 minutes on two cores, one of each kind of graph: residual, depthwise, squeeze-excitation,
 # fire modules, channel shuffle, dense concatenation, channels-last blocks, attention.

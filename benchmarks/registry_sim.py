@@ -46,7 +46,7 @@ from registry_sim_fleet import (
     simulate,
 )
 
-from robotd.probes import PROBE_INTERVAL_S
+from robotd.frame_path.probes import PROBE_INTERVAL_S
 
 DEFAULT_ROBOTS = (10, 30, 100, 300, 1000)
 DEFAULT_DEPLOYMENTS = 100

@@ -78,7 +78,7 @@ try:
     from registry.profile_saver import PacedSaver
 except ImportError:  # a --baseline-src revision from before paced saves: a whole save per interval
     PacedSaver = None  # type: ignore[assignment,misc]
-from robotd.probes import PROBE_INTERVAL_S
+from robotd.frame_path.probes import PROBE_INTERVAL_S
 
 # A baseline's registry/ (--baseline-src) may be found beside this one's profile_saver module,
 # while its Measurements cannot save in slices.

@@ -1,9 +1,10 @@
 """Frames in, results out: what the zenoh in/out path costs, and how a camera-rate sender fares.
 
 A registry (the fleet's router) and one robot with `--source zenoh --policy robot` run as real
-subprocesses on loopback; this process is the application, through `robotd.client.RobotClient`
-(a Zenoh client of the router, as an application on another host would be). The robot's
-telemetry (`tele/<robot>`) gives each frame's model time (`prefix_s`: the whole model, P).
+subprocesses on loopback; this process is the application, through
+`robotd.results.client.RobotClient` (a Zenoh client of the router, as an application on another host
+would be). The robot's telemetry (`tele/<robot>`) gives each frame's model time (`prefix_s`: the
+whole model, P).
 
 1. Overhead at 640×480: one frame at a time, a 640×480 camera frame from a real photograph sent
    as JPEG (encoded by the client, quality 90), the clock running from before the encoding to
@@ -81,7 +82,7 @@ def summary_of(robot: Any) -> dict[str, Any]:
 def overhead(config: Path, workdir: Path, frames: int, mode: str = "client") -> dict[str, Any]:
     """Part 1: one frame at a time, JPEG 640×480, end to end minus the model's own time."""
     from common.wire.app_to_robot import FrameIn, image_in
-    from robotd.client import RobotClient
+    from robotd.results.client import RobotClient
 
     images = camera_frames(20)
     with LocalFleet(config, workdir, startup_timeout_s=WAIT_S) as lf:
@@ -140,7 +141,7 @@ def overhead(config: Path, workdir: Path, frames: int, mode: str = "client") -> 
 def camera_rate(config: Path, workdir: Path, seconds: float, slowdown: float) -> dict[str, Any]:
     """Part 2: a 30 fps sender against a robot serving about 10 fps."""
     from common.wire.app_to_robot import FrameIn, image_in
-    from robotd.client import RobotClient
+    from robotd.results.client import RobotClient
 
     period_s = 1.0 / SENDER_FPS
     payloads = [image_in(f, "jpeg", quality=90) for f in camera_frames(30)]

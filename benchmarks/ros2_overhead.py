@@ -4,9 +4,9 @@
    (rgb8, a real photograph) from the moment a ROS 2 publisher puts it on its rmw_zenoh key to
    the moment a ROS 2 subscriber has the frame's result, minus the model's own time. The parts
    are the runtime's own, on real Zenoh sessions on loopback (a router, the robot's peer session,
-   the camera's and the planner's): the `ros2:` source (`robotd.ros2_source`: take the newest
+   the camera's and the planner's): the `ros2:` source (`robotd.sources.ros2`: take the newest
    message, CDR -> BGR), the model's input made from the frame (`common.image_input`: resize
-   to the model's input, layout), and the results sink (`robotd.ros2_results`: outputs ->
+   to the model's input, layout), and the results sink (`robotd.results.ros2`: outputs ->
    Float32MultiArray, a 32FC1 Image for an H×W output, rmw_zenoh attachment, put) up to the
    subscriber's callback. The model is not run: its outputs (of the model's shapes) are given, so
    what is measured is the path alone. Frames go one at a time (the next once the result came),
@@ -48,12 +48,12 @@ from common.image_input import ImageInputs
 from common.partition.manifest import TensorSpec
 from common.ros2_messages import MessageType, typestore
 from common.session import init_runtime
+from common.source_spec import parse_ros2_source
 from deploy.procs import LocalFleet, free_tcp_port, write_local_fleet
-from robotd.frame import FrameResult
-from robotd.ros2_results import Ros2ResultSink, results_topic
-from robotd.ros2_source import Ros2Source
-from robotd.source_names import parse_ros2_source
-from robotd.sources import SourceSession
+from robotd.frame_path.frame import FrameResult
+from robotd.results.ros2 import Ros2ResultSink, results_topic
+from robotd.sources.frame_sources import SourceSession
+from robotd.sources.ros2 import Ros2Source
 
 HEIGHT, WIDTH = 480, 640
 CAMERA = "/camera/image_raw"

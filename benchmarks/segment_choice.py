@@ -29,8 +29,8 @@ from typing import Any
 import numpy as np
 
 from robotd.policies.base import CutTable
-from robotd.sim import Simulator
-from robotd.trace import trace_from_dict
+from robotd.sim.simulator import Simulator
+from robotd.sim.trace import trace_from_dict
 
 POINTS = 4
 D_COLL_BYTES = 164

@@ -1,6 +1,6 @@
 """What each image codec does to zoo:stereo's answers (d_coll, the disparity map) on rendered
 frames and the Motorcycle pair, and whether the default fidelity bound admits it
-(`deploy.experiments.nav_fidelity`; `elasticfog bench nav --json` carries the same rows).
+(`experiments.nav_fidelity`; `elasticfog bench nav --json` carries the same rows).
 
     python benchmarks/stereo_codec_fidelity.py [--size 320x240]... [--frames 8] [--json]
 """
@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 import json
 
-from deploy.experiments.nav_fidelity import markdown, measure, summary
+from experiments.nav_fidelity import markdown, measure, summary
 
 
 def main() -> None:

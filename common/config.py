@@ -16,9 +16,12 @@ Reading the YAML and wording the errors is `common.yaml_files`.
 from __future__ import annotations
 
 import enum
+import functools
 import math
 import re
 import typing
+from collections.abc import Callable
+from importlib.metadata import entry_points
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -55,9 +58,9 @@ from common.providers import (
     check_list,
     parse_provider,
 )
+from common.source_spec import SourceError, parse_source
 from common.wire.codec import DEFAULT_MAX_PAYLOAD_BYTES
 from common.yaml_files import format_validation_error, read_yaml
-from robotd.source_names import SourceError, parse_source
 
 DEFAULT_REGISTRY_ENDPOINT = f"tcp/127.0.0.1:{DEFAULT_REGISTRY_PORT}"
 DEFAULT_LEASE_MS = 1000
@@ -503,7 +506,7 @@ class MachineConfig(_Model):
     source: str = Field(
         default="synthetic",
         description=(
-            "Robot: frame source, a spec of robotd.source_names: synthetic[:OPTIONS], "
+            "Robot: frame source, a spec of common.source_spec: synthetic[:OPTIONS], "
             "photo[:NAME], video:PATH[,loop=false], bag:PATH[:TOPIC] (a rosbag2 recording), "
             "camera:INDEX, stereo:world|motorcycle|LEFT,RIGHT[,OPTIONS] or zenoh (frames an "
             "application publishes on ef/<fleet>/in/<robot>)."
@@ -591,6 +594,19 @@ class LatencyBoundConfig(_Model):
         return data
 
 
+POLICY_CHECK_ENTRY_POINT_GROUP = "elasticfog.policies"
+"""Where the robot daemon registers its check of a policy name and parameters (`common` never
+imports the daemons; loaded when a policy is read, so numpy waits until then)."""
+
+
+@functools.cache
+def _registered_policy_check() -> Callable[..., object] | None:
+    for ep in entry_points(group=POLICY_CHECK_ENTRY_POINT_GROUP, name="check"):
+        check: Callable[..., object] = ep.load()
+        return check
+    return None
+
+
 class PolicyConfig(_Model):
     """The split policy a robot runs."""
 
@@ -606,9 +622,9 @@ class PolicyConfig(_Model):
 
     @model_validator(mode="after")
     def _known_policy(self) -> PolicyConfig:
-        # Imported here: the policies (numpy) are not needed to read the rest of the file.
-        from robotd.policies import check_policy
-
+        check_policy = _registered_policy_check()
+        if check_policy is None:  # no robot daemon installed: nothing here runs a policy
+            return self
         try:
             check_policy(self.kind, self.params, real_time=True)
         except UserError as exc:

@@ -7,6 +7,10 @@ without importing pydantic and the wire codec.
 from __future__ import annotations
 
 DEFAULT_REGISTRY_PORT = 7447
+DEFAULT_FLEET = "default"
+"""The fleet name (in every key) of a fleet file that names none."""
+DEFAULT_CAMERA_SOURCE = "photo"
+"""The frame source of a robot that names none: a camera panning over a real photograph."""
 # Frames the (cut, codec) pairs are measured on (fleet.yaml `fidelity.calibration_frames`).
 DEFAULT_CALIBRATION_FRAMES = 8
 # The fidelity bound's defaults (fleet.yaml `fidelity:`), chosen from the measurements in

@@ -18,10 +18,9 @@ from pathlib import Path
 
 import typer
 
-from common.defaults import DEFAULT_REGISTRY_PORT
+from common.defaults import DEFAULT_FLEET, DEFAULT_REGISTRY_PORT
 from common.errors import UserError
 from common.fleet_tls import CERTS_DIR, ca_path, host_tls, write_certs
-from common.keys import DEFAULT_FLEET, validate_id
 
 FLEET_FILE = "fleet.yaml"
 REGISTRY_ID = "registry"
@@ -208,6 +207,7 @@ def write_fleet(
     import yaml
 
     from common.config import ZOO_PREFIX, fleet_from_dict
+    from common.keys import validate_id
 
     validate_id(fleet, "fleet name")
     if not 1 <= port <= 65535:

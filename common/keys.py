@@ -16,10 +16,10 @@ import enum
 import re
 from dataclasses import dataclass
 
+from common.defaults import DEFAULT_FLEET as DEFAULT_FLEET  # re-exported
 from common.errors import UserError
 
 ROOT = "ef"
-DEFAULT_FLEET = "default"
 MAX_ID_CHARS = 128
 FORBIDDEN_ID_CHARS = "/*$#?"
 

@@ -14,14 +14,16 @@ import json
 import sys
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import typer
 from rich.console import Console
-from rich.table import Table
 
 from common.defaults import DEFAULT_CALIBRATION_FRAMES
 from common.errors import UserError
+
+if TYPE_CHECKING:
+    from rich.table import Table
 
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -104,6 +106,8 @@ def _console() -> Console:
 
 
 def _cuts_table(manifest: dict[str, Any], title: str) -> Table:
+    from rich.table import Table
+
     table = Table(title=title, title_justify="left")
     table.add_column("cut", justify="right")
     table.add_column("bytes", justify="right", no_wrap=True)
@@ -285,6 +289,8 @@ def profile_cmd(
     if as_json:
         _print_json(profile)
         return
+    from rich.table import Table
+
     table = Table(
         title=f"{model}  sha256 {profile['digest'][:12]}  full model {profile['full_ms']:.2f} ms",
         title_justify="left",
@@ -368,6 +374,8 @@ def _measure_codecs(
 
 
 def _codec_table(profile: dict[str, Any], frames: int) -> Table:
+    from rich.table import Table
+
     table = Table(
         title=f"(cut, codec) on {frames} photographs: action = admitted by the fidelity bound",
         title_justify="left",
@@ -499,6 +507,8 @@ def zoo_list_cmd(
     if as_json:
         _print_json(rows)
         return
+    from rich.table import Table
+
     table = Table(
         title=f"model zoo (default image {format_shape(DEFAULT_INPUT_SHAPE)}: input "
         f"{ZOO_INPUT_DTYPE} {format_shape(file_input_shape(DEFAULT_INPUT_SHAPE))}, "

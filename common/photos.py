@@ -1,8 +1,8 @@
 """Real photographs shipped in the scikit-image wheel (nothing is downloaded), as camera frames.
 
-The robot's `photo` source moves a virtual camera over them (`robotd.sources.PhotoSource`); the
-codec profiler measures JPEG sizes and fidelity on still views of them (`still_views`), as a
-camera's frames of ordinary scenes, not noise.
+The robot's `photo` source moves a virtual camera over them
+(`robotd.sources.frame_sources.PhotoSource`); the codec profiler measures JPEG sizes and fidelity on
+still views of them (`still_views`), as a camera's frames of ordinary scenes, not noise.
 """
 
 from __future__ import annotations

@@ -46,31 +46,57 @@ from pathlib import Path
 from typing import Any
 
 from common.errors import UserError
+from common.zoo_format import (
+    CAMERA_ORDER as CAMERA_ORDER,
+)
+from common.zoo_format import (
+    GREY_MEAN as GREY_MEAN,
+)
+from common.zoo_format import (
+    GREY_STD as GREY_STD,
+)
+from common.zoo_format import (
+    IMAGENET_MEAN as IMAGENET_MEAN,
+)
+from common.zoo_format import (
+    IMAGENET_STD as IMAGENET_STD,
+)
+from common.zoo_format import (
+    NUM_CLASSES as NUM_CLASSES,
+)
+from common.zoo_format import (
+    PIXEL_MAX as PIXEL_MAX,
+)
+from common.zoo_format import (
+    ZOO_FORMAT as ZOO_FORMAT,
+)
+from common.zoo_format import (
+    ZOO_INPUT_DTYPE as ZOO_INPUT_DTYPE,
+)
+from common.zoo_format import (  # re-exported: the zoo's conventions
+    ZOO_INPUT_NAME as ZOO_INPUT_NAME,
+)
+from common.zoo_format import (
+    ZOO_OPSET as ZOO_OPSET,
+)
+from common.zoo_format import (
+    ZOO_OUTPUT_NAME as ZOO_OUTPUT_NAME,
+)
+from common.zoo_format import (
+    ZOO_SEED as ZOO_SEED,
+)
+from common.zoo_format import (
+    file_input_shape as file_input_shape,
+)
+from common.zoo_format import (
+    zoo_normalization as zoo_normalization,
+)
 
 DEFAULT_INPUT_SHAPE: tuple[int, int, int] = (3, 240, 320)
 # Chosen for the demo: its cuts halve the bytes sent for every quarter of the FLOPs moved to
 # the robot (stem + max pool already halve the input), so the best cut moves visibly with the
 # uplink bandwidth and robot CPU (figures in docs/partitioning.md).
 DEFAULT_ZOO_MODEL = "resnet"
-ZOO_INPUT_NAME = "input"
-ZOO_OUTPUT_NAME = "logits"
-ZOO_OPSET = 17
-# Bumped whenever a built model changes for the same name and shape (2: uint8 image input;
-# 3: written with onnx.helper instead of exported from torch: new weights and tensor names).
-ZOO_FORMAT = 3
-ZOO_SEED = 0
-NUM_CLASSES = 1000
-ZOO_INPUT_DTYPE = "uint8"
-# What the robot feeds a 3-channel uint8 input (common.image_input.InputAdapter): RGB. "bgr" would
-# reorder the channels in the front end.
-CAMERA_ORDER = "rgb"
-# ImageNet statistics in RGB order (torchvision's), for 3 channels; other channel counts use
-# their averages for every channel (a grey image, typically).
-IMAGENET_MEAN: tuple[float, float, float] = (0.485, 0.456, 0.406)
-IMAGENET_STD: tuple[float, float, float] = (0.229, 0.224, 0.225)
-GREY_MEAN = 0.449
-GREY_STD = 0.226
-PIXEL_MAX = 255.0
 # The spatial dimensions are divided by 32 in every zoo model; smaller inputs would vanish.
 MIN_SPATIAL_PX = 32
 MAX_SPATIAL_PX = 4096
@@ -102,13 +128,6 @@ def _network(name: str, description: str) -> ZooGraph:
     return ZooGraph(name, description, functools.partial(_build_network, name), ZOO_FORMAT)
 
 
-def zoo_normalization(channels: int) -> tuple[tuple[float, ...], tuple[float, ...]]:
-    """Per-channel (mean, std) of the zoo's front end, in the model's channel order (RGB)."""
-    if channels == 3:
-        return IMAGENET_MEAN, IMAGENET_STD
-    return (GREY_MEAN,) * channels, (GREY_STD,) * channels
-
-
 # The zoo's own networks (common.zoo_nets).
 ZOO_MODELS: dict[str, ZooGraph] = {
     m.name: m
@@ -137,12 +156,6 @@ def check_input_shape(input_shape: tuple[int, ...]) -> tuple[int, int, int]:
                 f"zoo input shape: {label} must be {MIN_SPATIAL_PX}..{MAX_SPATIAL_PX} px, got {px}"
             )
     return (c, h, w)
-
-
-def file_input_shape(shape: tuple[int, int, int]) -> tuple[int, int, int, int]:
-    """The exported file's input shape for zoo shape (C, H, W): the camera image, 1×H×W×C."""
-    c, h, w = shape
-    return (1, h, w, c)
 
 
 def format_shape(shape: tuple[int, ...]) -> str:

@@ -42,7 +42,7 @@ import numpy as np
 import onnx
 from onnx import TensorProto, helper, numpy_helper
 
-from common.zoo import (
+from common.zoo_format import (
     CAMERA_ORDER,
     NUM_CLASSES,
     PIXEL_MAX,

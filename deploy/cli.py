@@ -11,13 +11,15 @@ import json
 import subprocess
 from collections.abc import Iterator
 from contextlib import contextmanager
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import typer
 from rich.console import Console
-from rich.table import Table
 
 from common.errors import UserError
+
+if TYPE_CHECKING:
+    pass
 from deploy.testbed_defaults import DEFAULT_HOSTS, DEFAULT_NAME, DEFAULT_SUBNET, NAME_ENV
 
 testbed_app = typer.Typer(
@@ -82,6 +84,8 @@ def up(
     if as_json:
         typer.echo(json.dumps({"name": name, "subnet": subnet, "hosts": addresses}))
         return
+    from rich.table import Table
+
     table = Table(title=f"testbed {name} is up ({subnet})")
     for column in ("host", "address", "namespace"):
         table.add_column(column)
@@ -193,6 +197,8 @@ def status(name: str = NAME_OPTION, as_json: bool = JSON_OPTION) -> None:
     if as_json:
         typer.echo(json.dumps(info))
         return
+    from rich.table import Table
+
     table = Table(title=f"testbed {info['name']} ({info['subnet']})")
     for column in ("host", "address", "uplink", "downlink", "cpu", "processes", "tx", "rx"):
         table.add_column(column)

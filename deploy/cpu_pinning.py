@@ -10,7 +10,7 @@ Why affinity and not a cpuset cgroup: a cpuset needs root and a mounted cpuset h
 would not keep anyone else off the cores either (that takes moving every other process of the
 host into a narrower set, which a bench must not do to processes it does not own). Affinity needs
 neither, and pins exactly what the bench started. Other processes of the host may still run on
-the pinned cores; `deploy.experiments.cpu_share` measures how much they did.
+the pinned cores; `experiments.cpu_share` measures how much they did.
 """
 
 from __future__ import annotations

@@ -44,6 +44,7 @@ from typing import TYPE_CHECKING, Any
 import typer
 from rich.console import Console
 
+from common.defaults import DEFAULT_CAMERA_SOURCE
 from common.errors import UserError
 from common.path_options import model_path
 from deploy.demo_summary import (
@@ -55,7 +56,6 @@ from deploy.demo_summary import (
     summarize,
     summarize_phases,
 )
-from robotd.source_names import DEFAULT_CAMERA_SOURCE
 
 if TYPE_CHECKING:
     from deploy.demo_script import DemoScript

@@ -146,8 +146,8 @@ class AssistNode:
         params: AssistantParams | None = None,
         bins: CurvatureBins | None = None,
     ) -> None:
+        from robotd.results.ros2 import results_topic
         from robotd.ros2_node import acquire_node
-        from robotd.ros2_results import results_topic
 
         self.cmd_in, self.cmd_out = rmw_zenoh.topic_name(cmd_in), rmw_zenoh.topic_name(cmd_out)
         if self.cmd_in == self.cmd_out:

@@ -5,7 +5,7 @@ latency; here the latency is whatever the real runtime takes. A :class:`Maneuver
 the maneuver's state (the unicycle, shared control, collisions and clearance) and is advanced to
 clock times by its caller; a :class:`LiveDrive` advances it from a control thread of its own
 every ``CONTROL_PERIOD_S`` of the clock, and is what a frame source uses
-(`robotd.stereo_sources`, ``stereo:maneuver:N``): the source renders each frame at
+(`nav.stereo_sources`, ``stereo:maneuver:N``): the source renders each frame at
 :meth:`LiveDrive.capture`'s pose and hands each d_coll the daemon computed to
 :meth:`LiveDrive.observe` with the frame's capture time, so the assistant's correction
 (``t_now − t_frame``) sees the real age.

@@ -30,6 +30,7 @@ from common.keys import Role
 from common.membership import MemberChange
 from common.throttled_log import ThrottledLog
 from common.wire import registry as msg
+from registry.deployment_table import deployment_table
 from registry.measurements import Measurements
 from registry.metrics import RESTORE, RegistryMetrics
 from registry.pool_keeper import PoolKeeper
@@ -38,7 +39,7 @@ from registry.registration import Registrar, RegistrationState
 from registry.replies import answer, error_payload
 from registry.requests import QueuedRequest, drain, reroute, route_change
 from registry.rib import Rib, RobotRow, RouteRow
-from registry.round_inputs import deployment_table, prefer_initial, robot_view, waiting_for
+from registry.round_inputs import prefer_initial, robot_view, waiting_for
 from registry.scheduler import DeploymentTable, Reason, RouteDecision, Scheduler
 from registry.switch import Switcher, SwitchOutcome, SwitchResult, TransportError, carry_out
 from registry.transport import ZenohTransport

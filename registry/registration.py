@@ -33,6 +33,7 @@ from common.defaults import DEFAULT_MAX_REQUEST_BYTES
 from common.keys import Role
 from common.models import file_digest
 from common.wire import registry as msg
+from registry.deployment_table import deployment_table
 from registry.replies import answer, decode_query
 from registry.rib import EventKind, Rib, RouteRow
 from registry.scheduler import Reason, RobotView, no_room_for
@@ -248,9 +249,6 @@ class Registrar:
         """A robot not placed yet, when every deployment that could serve it is full: no route,
         `no_capacity`, told in its registration reply instead of by the next round's route
         change (which says the same under a newer epoch). None otherwise."""
-        # The round's inputs read the registrar: imported here, not with the module.
-        from registry.round_inputs import deployment_table
-
         robot = RobotView(
             id=request.id,
             service=request.service,

@@ -7,7 +7,8 @@ whose robots are all in service on one deployment spreads to the others once it 
 spare (docs/registry.md, "Choice").
 
 The scheduler (`registry.scheduler`) is pure: it sees `RobotView`s and a `DeploymentTable`, never
-the RIB. A scheduling round reads the deployments once as one table (`deployment_table`) and
+the RIB. A scheduling round reads the deployments once as one table
+(`registry.deployment_table`) and
 each live robot's row and route with them; reading and converting every deployment per robot
 made a round grow with robots x deployments (docs/scale.md). `waiting_for` says when a decision
 about a robot should wait instead (a registration in flight, or a restored route whose deployment
@@ -17,40 +18,17 @@ has not reconnected yet).
 from __future__ import annotations
 
 import time
-from collections.abc import Iterable
 from dataclasses import replace
 
 from common.config import FleetConfig
 from registry.measurements import RobotMeasures
 from registry.registration import Registrar, RegistrationState
-from registry.rib import DeploymentRow, RobotRow
+from registry.rib import RobotRow
 from registry.scheduler import (
-    DeploymentTable,
-    DeploymentView,
     Reason,
     RobotView,
     RouteDecision,
 )
-
-
-def deployment_table(
-    rows: Iterable[DeploymentRow], unusable: frozenset[str] = frozenset()
-) -> DeploymentTable:
-    """The scheduler's view of the RIB's deployments; those `unusable` count as dead."""
-    return DeploymentTable(
-        [
-            DeploymentView(
-                id=row.id,
-                service=row.service,
-                alive=row.alive and row.id not in unusable,
-                draining=row.draining,
-                load=row.load,
-                capacity=row.capacity,
-                model_digest=row.model_digest or None,
-            )
-            for row in rows
-        ]
-    )
 
 
 def robot_view(

@@ -17,19 +17,15 @@ import json
 import signal
 import threading
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
-from datetime import datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import typer
-from rich.console import Console, Group
-from rich.table import Table
-from rich.text import Text
+from rich.console import Console
 
-from common import keys
 from common.errors import UserError
 
 if TYPE_CHECKING:
@@ -37,12 +33,7 @@ if TYPE_CHECKING:
 
     from common.config import FleetConfig
     from common.wire.registry import (
-        DeploymentRow,
-        EventRow,
-        ProfileRow,
         RibQuery,
-        RobotRow,
-        RouteRow,
     )
 
 VIEW_TIMEOUT_S = 3.0
@@ -52,7 +43,6 @@ CONNECT_TIMEOUT_S = 1.0
 WATCH_INTERVAL_S = 1.0
 DEFAULT_EVENTS = 50
 MAX_VIEW_BYTES = 16 * 1024 * 1024
-DIGEST_SHOWN_CHARS = 12
 
 
 @dataclass(frozen=True)
@@ -84,6 +74,8 @@ def resolve_target(config: Path | None, connect: str | None, fleet: str | None =
         endpoint = cfg.registry.endpoint
     else:
         raise UserError("give --config FILE (the fleet file) or --connect ENDPOINT")
+    from common import keys
+
     name = fleet if fleet is not None else (cfg.fleet if cfg is not None else keys.DEFAULT_FLEET)
     keys.validate_id(name, "--fleet")
     return Target(endpoint=endpoint, fleet=name, cfg=cfg)
@@ -130,6 +122,7 @@ class RegistryClient:
         registry answers in time or it refuses."""
         import zenoh
 
+        from common import keys
         from common.session import zenoh_error_text
         from common.wire import ErrorReply, WireError, decode
         from common.wire.registry import RIB_VIEW_REPLIES
@@ -168,184 +161,6 @@ def fetch_view(
     """One view's rows through a short-lived client session (see `RegistryClient.view`)."""
     with RegistryClient(target, timeout_s=timeout_s) as client:
         return client.view(name, query)
-
-
-# -- rendering -------------------------------------------------------------------------------------
-def _clock(ts: float | None) -> str:
-    if ts is None:
-        return "-"
-    return datetime.fromtimestamp(ts).strftime("%H:%M:%S")
-
-
-def _ago(ts: float | None, now: float) -> str:
-    if ts is None:
-        return "-"
-    age = max(0.0, now - ts)
-    if age < 120:
-        return f"{age:.0f} s ago"
-    if age < 7200:
-        return f"{age / 60:.0f} min ago"
-    return f"{age / 3600:.0f} h ago"
-
-
-def _ms(seconds: float | None) -> str:
-    return "-" if seconds is None else f"{seconds * 1000:.1f} ms"
-
-
-def _window(row: RobotRow) -> Text:
-    """`<stat> of the window / bound`, red when the bound is broken."""
-    if row.window_stat_s is None or row.bound_s is None:
-        bound = _ms(row.bound_s)
-        return Text(f"- / {bound} {row.bound_stat}", style="dim")
-    broken = row.window_stat_s > row.bound_s
-    text = f"{_ms(row.window_stat_s)} / {_ms(row.bound_s)} {row.bound_stat} (n={row.window_len})"
-    return Text(text, style="red" if broken else "green")
-
-
-def _table(title: str, *columns: str) -> Table:
-    table = Table(title=title, title_justify="left", header_style="bold")
-    for column in columns:
-        table.add_column(column)
-    return table
-
-
-def routes_table(rows: Sequence[RouteRow], now: float) -> Table:
-    """Robot → deployment (and its round-robin pool, if any), epoch, since when and why."""
-    pooled = any(len(r.pool) > 1 for r in rows)
-    columns = ["robot", "deployment", *(["pool"] if pooled else []), "epoch", "since", "reason"]
-    table = _table("routes", *columns)
-    for r in rows:
-        pool = [", ".join(r.pool) or "-"] if pooled else []
-        table.add_row(
-            r.robot,
-            r.deployment or Text("local", style="yellow"),
-            *pool,
-            str(r.epoch),
-            f"{_clock(r.since)} ({_ago(r.since, now)})",
-            r.reason,
-        )
-    return table
-
-
-def deployments_table(rows: Sequence[DeploymentRow], now: float) -> Table:
-    """Deployments: alive, load against capacity, per-robot states, model."""
-    table = _table(
-        "deployments",
-        "deployment",
-        "alive",
-        "service",
-        "load",
-        "capacity",
-        "robots",
-        "model",
-        "last seen",
-    )
-    for d in rows:
-        refused = d.extra.get("refused")
-        if refused:
-            alive: str | Text = Text(f"refused: {refused}", style="red")
-        elif d.alive:
-            alive = Text("draining" if d.extra.get("draining") else "yes", style="green")
-        else:
-            alive = Text("no", style="dim")
-        full = d.capacity > 0 and d.load >= d.capacity
-        epochs = d.extra.get("epochs", {})
-        states = ", ".join(
-            f"{robot}: {state.value}@{epochs.get(robot, '?')}"
-            for robot, state in sorted(d.states.items())
-        )
-        table.add_row(
-            d.id,
-            alive,
-            d.service or "-",
-            Text(str(d.load), style="red") if full else str(d.load),
-            str(d.capacity) if d.capacity else "-",  # 0: not reported, never counted full
-            states or "-",
-            (d.model_digest or "-")[:DIGEST_SHOWN_CHARS],
-            _ago(d.last_seen, now),
-        )
-    return table
-
-
-def robots_table(rows: Sequence[RobotRow], now: float, title: str = "robots") -> Table:
-    """Robots: deployment, its state, epoch, latency window against the bound, cut chosen, and
-    the reason of the robot's last route change."""
-    table = _table(
-        title,
-        "robot",
-        "alive",
-        "deployment",
-        "state",
-        "epoch",
-        "window vs bound",
-        "cut",
-        "timeouts",
-        "reason",
-    )
-    for r in rows:
-        state = str(r.extra.get("state", "-"))
-        style = {"service": "green", "draining": "yellow", "local": "yellow"}.get(state, "")
-        table.add_row(
-            r.id,
-            Text("yes", style="green") if r.alive else Text("no", style="dim"),
-            r.deployment or Text("local", style="yellow"),
-            Text(state, style=style),
-            str(r.epoch),
-            _window(r),
-            r.action or "-",
-            str(r.extra.get("consecutive_timeouts", 0)),
-            r.reason or "-",
-        )
-    return table
-
-
-def events_table(rows: Sequence[EventRow], now: float) -> Table:
-    """The event log, oldest first."""
-    table = _table("events", "seq", "time", "kind", "robot", "deployment", "epoch", "reason")
-    for e in rows:
-        table.add_row(
-            str(e.seq),
-            _clock(e.at),
-            e.kind,
-            e.robot or "-",
-            e.deployment or "-",
-            "-" if e.epoch is None else str(e.epoch),
-            e.reason,
-        )
-    return table
-
-
-def profiles_table(rows: Sequence[ProfileRow], now: float) -> Table:
-    """Probe profiles per robot × deployment."""
-    table = _table("profiles", "robot", "deployment", "n", "median", "p95", "max", "updated")
-    for p in rows:
-        table.add_row(
-            p.robot,
-            p.deployment,
-            str(p.samples),
-            _ms(p.median_s),
-            _ms(p.p95_s),
-            _ms(p.max_s),
-            _ago(p.updated_at, now),
-        )
-    return table
-
-
-def watch_screen(target: Target, rows: Sequence[RobotRow], error: str | None, now: float) -> Group:
-    """The `watch` screen: a title line and the robots table."""
-    head = Text(f"fleet {target.fleet} at {target.endpoint}  {_clock(now)}", style="bold")
-    if error is not None:
-        head.append(f"  {error}", style="red")
-    return Group(head, robots_table(rows, now, title=""))
-
-
-_TABLES: dict[str, Callable[[Sequence[Any], float], Table]] = {
-    "routes": routes_table,
-    "deployments": deployments_table,
-    "robots": robots_table,
-    "events": events_table,
-    "profiles": profiles_table,
-}
 
 
 # -- commands --------------------------------------------------------------------------------------
@@ -388,7 +203,9 @@ def _show(
     if not rows:
         console.print(f"no {name} known to the registry of fleet {target.fleet}")
         return
-    console.print(_TABLES[name](rows, time.time()))
+    from registry.views_render import TABLES
+
+    console.print(TABLES[name](rows, time.time()))
 
 
 def routes(
@@ -477,6 +294,8 @@ def watch(
 ) -> None:
     """A live table of the robots: deployment, state, epoch, latency window vs bound, cut."""
     from rich.live import Live
+
+    from registry.views_render import watch_screen
 
     stop = threading.Event()
     try:

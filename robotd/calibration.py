@@ -29,12 +29,12 @@ from common.codec_profile import Fidelity, profile_codecs
 from common.image_input import ImageInputs
 from common.models import cache_dir, read_cached_json, write_cached_json
 from common.partition.runtime import SplitModel
+from common.source_spec import CameraSpec, SourceError, SourceSpec, calibration_source
 from robotd.policies import RAW_CODEC, fixed_action
 from robotd.policies.nav_options import nav_option
-from robotd.source_names import CameraSpec, SourceError, SourceSpec, calibration_source
-from robotd.source_open import open_source_for
-from robotd.sources import EndOfStream
-from robotd.stereo_frame import StereoFrame
+from robotd.sources.frame_sources import EndOfStream
+from robotd.sources.opening import open_source_for
+from robotd.sources.stereo_frame import StereoFrame
 
 log = logging.getLogger(__name__)
 
@@ -62,7 +62,7 @@ def calibration_frames(
 ) -> list[dict[str, np.ndarray]]:
     """`count` model feeds from a fresh instance of `source` (every CALIBRATION_STRIDE-th
     frame, except for a camera, whose frames are taken as they come; a source fed over Zenoh
-    is measured on photographs, `robotd.source_names.calibration_source`); a stereo source's
+    is measured on photographs, `common.source_spec.calibration_source`); a stereo source's
     views feed the model's inputs of their names."""
     source = calibration_source(source)
     stride = 1 if isinstance(source, CameraSpec) else CALIBRATION_STRIDE

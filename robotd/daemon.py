@@ -7,15 +7,15 @@ Lifecycle (`common.daemon.Daemon`: startup -> main loop -> shutdown, in reverse 
    the heap memory those runs freed to the system (`common.heap`), open the `--telemetry` file.
 2. Open a Zenoh *peer* session connected to the registry endpoint only (the robot's config names
    no cloud host: it finds deployments through the registry's router and queries its anycast
-   service key). Make the result sinks (`robotd.result_sinks`) and open the frame source on it
-   (`robotd.sources.SourceSession`: a source fed over Zenoh needs the session; every source is
-   opened here, so each is released before the session). Declare the telemetry and probe
+   service key). Make the result sinks (`robotd.results.sinks`) and open the frame source on it
+   (`robotd.sources.frame_sources.SourceSession`: a source fed over Zenoh needs the session; every
+   source is opened here, so each is released before the session). Declare the telemetry and probe
    publishers, the route subscriber (handled by the registry link), one membership view of the
    registry and the clouds (`common.membership`), and a querier on the service key whose
    matching listener says when a deployment serves it.
 3. Start the prober, then announce the liveliness token `alive/robot/<id>`.
 4. Wait (bounded, cut short by a signal) for the registry, start the registry link's watcher
-   (`robotd.registry_link`), then wait for a deployment serving the robot.
+   (`robotd.frame_path.registry_link`), then wait for a deployment serving the robot.
 
 Each step hands what it made to the lifecycle (`Daemon.hold`, `on_release`, `announce`), which
 releases it all at shutdown in reverse order, the token first, also after a failed startup; the
@@ -23,18 +23,19 @@ session is closed explicitly (a session still holding callbacks at exit hangs th
 Every Zenoh callback is `guarded`: bad input is one throttled line, never a traceback into Zenoh.
 `main_loop` runs frames until `--frames`, the source's end or a signal.
 
-A frame's life, from the source to its applied result, is `robotd.frame_loop.FrameLoop`'s (the
-frame and hedging loop); the daemon makes its parts at startup and calls it.
+A frame's life, from the source to its applied result, is `robotd.frame_path.frame_loop.FrameLoop`'s
+(the frame and hedging loop); the daemon makes its parts at startup and calls it.
 
-Beside the daemon: `robotd.registry_link.RegistryLink` (registration, the route and its epoch,
-reroute requests, the "registry unreachable" reports), `robotd.robot_model` (the split model
+Beside the daemon: `robotd.frame_path.registry_link.RegistryLink` (registration, the route and its
+epoch, reroute requests, the "registry unreachable" reports), `robotd.robot_model` (the split model
 loaded at startup, its camera input, cut positions, replies checked against its outputs),
-`robotd.service_match` (whether a deployment serves the service key), `robotd.request_sender`
-(the request on the service key, through the emulated uplink), `robotd.frame` (a frame's
-accounting), `robotd.telemetry_sink` (where each frame's record and each probe report go),
-`robotd.result_sinks` (where each applied frame's result goes: the sinks the robot's config
-asks for, made on the session, and any an embedder adds), `robotd.failure_runs` (runs of cloud
-failures, and when they call for a reroute),
+`robotd.frame_path.service_match` (whether a deployment serves the service key),
+`robotd.frame_path.request_sender` (the request on the service key, through the emulated uplink),
+`robotd.frame_path.frame` (a frame's accounting), `robotd.telemetry_sink` (where each frame's record
+and each probe report go),
+`robotd.results.sinks` (where each applied frame's result goes: the sinks the robot's config
+asks for, made on the session, and any an embedder adds), `robotd.frame_path.failure_runs` (runs of
+cloud failures, and when they call for a reroute),
 `robotd.robot_profile` (the startup profile and policy) and `robotd.emulation` (on one host: a
 robot `--robot-slowdown` times slower than the host, every robot-side model run stretched by a
 wait, and `--phases` that change it and the emulated uplink at frame boundaries; the telemetry
@@ -61,6 +62,7 @@ from common.membership import MemberChange, MembershipView
 from common.metrics import MetricsEndpoint, check_port, serve
 from common.partition.runtime import SplitModel
 from common.session import open_session
+from common.source_spec import SourceSpec, check_results_topics, parse_source
 from robotd.emulation import (
     Emulation,
     Phase,
@@ -69,22 +71,21 @@ from robotd.emulation import (
     emulation_note,
     scaled_profile,
 )
-from robotd.frame import FrameResult
-from robotd.frame_loop import FrameLoop
+from robotd.frame_path.frame import FrameResult
+from robotd.frame_path.frame_loop import FrameLoop
+from robotd.frame_path.local_runs import LocalRunner
+from robotd.frame_path.model_runs import ModelRuns
+from robotd.frame_path.pacing import FramePacer, TimelinePacer, TokenBucket
+from robotd.frame_path.probes import PROBE_INTERVAL_S, CloudTime, Prober, probe_padding_bytes
+from robotd.frame_path.registry_link import REGISTRY_RETRY_INITIAL_S, RegistryLink
+from robotd.frame_path.request_sender import RequestSender
+from robotd.frame_path.service_match import ServiceMatch
 from robotd.metrics import RobotMetrics
-from robotd.model_runs import ModelRuns
-from robotd.offload import LocalRunner
-from robotd.pacing import FramePacer, TimelinePacer, TokenBucket
 from robotd.policies import Objective, Policy
-from robotd.probes import PROBE_INTERVAL_S, CloudTime, Prober, probe_padding_bytes
-from robotd.registry_link import REGISTRY_RETRY_INITIAL_S, RegistryLink
-from robotd.request_sender import RequestSender
-from robotd.result_sinks import ResultSink, open_result_sinks
+from robotd.results.sinks import ResultSink, open_result_sinks
 from robotd.robot_model import RobotModel, open_split_model
 from robotd.robot_profile import build_policy, robot_profile, warm_up
-from robotd.service_match import ServiceMatch
-from robotd.source_names import SourceSpec, check_results_topics, parse_source
-from robotd.sources import FrameSource, SourceSession
+from robotd.sources.frame_sources import FrameSource, SourceSession
 from robotd.telemetry import RunSummary, TelemetryFile
 from robotd.telemetry_sink import TelemetrySink
 
@@ -145,7 +146,7 @@ class RobotOptions:
         check_slowdown(self.robot_slowdown)
         check_port(self.metrics_port)
         if self.record is not None:
-            from robotd.recorder import check_record_path
+            from robotd.results.recorder import check_record_path
 
             check_record_path(self.record)
 
@@ -199,11 +200,11 @@ class RobotDaemon(Daemon):
         self._svc_key = keys.svc_infer(self.fleet, config.service, robot_id)
         self._served = ServiceMatch()
         self._cloud_time = CloudTime()
-        # Offloaded frames in flight at once (`robotd.pipeline`).
+        # Offloaded frames in flight at once (`robotd.frame_path.pipeline`).
         self.max_in_flight = self.options.max_in_flight or self.machine.max_in_flight
         # Publications, file and summary of the frames; what they go to is made in startup.
         self._sink = TelemetrySink(robot_id, self.summary)
-        # Where each applied frame's result goes (`robotd.result_sinks`), in the lifecycle.
+        # Where each applied frame's result goes (`robotd.results.sinks`), in the lifecycle.
         self._result_sinks: list[ResultSink] = []
         # Emulation (`robotd.emulation`): every robot-side model run goes through the slowdown;
         # phases switch it and the uplink at frame boundaries.
@@ -376,12 +377,12 @@ class RobotDaemon(Daemon):
         for sink, what in open_result_sinks(cfg, self.robot, session):
             self.add_result_sink(sink, what)
         if self.results_ros2 is not None:
-            from robotd.ros2_results import Ros2ResultSink  # rosbags only where it is used
+            from robotd.results.ros2 import Ros2ResultSink  # rosbags only where it is used
 
             ros2_sink = Ros2ResultSink(session, cfg.ros2.domain(), self.robot, self.results_ros2)
             self.add_result_sink(ros2_sink, f"ROS 2 results {self.results_ros2}")
         if self.options.record is not None:
-            from robotd.recorder import McapRecorder  # rosbags only where it is used
+            from robotd.results.recorder import McapRecorder  # rosbags only where it is used
 
             recorder = McapRecorder(
                 self.options.record,
@@ -496,7 +497,8 @@ class RobotDaemon(Daemon):
         if change.role == Role.REGISTRY:
             link.registry_changed(bool(change.alive_ids))
 
-    # -- the frame loop (`robotd.frame_loop`) ---------------------------------------------
+    # -- the frame loop (`robotd.frame_path.frame_loop`)
+    # ---------------------------------------------
     def main_loop(self) -> None:
         self.loop.run(frames=self.options.frames, fps=self.fps, pacer=self._pacer())
 

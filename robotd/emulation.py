@@ -11,7 +11,8 @@ behave like a real one, and both are *emulation*, printed as such:
   `robot_class(F)` names, roughly, what kind of robot computer F stands for. The robot's
   startup profile is scaled the same way (`scaled_profile`), as if it had been timed on the
   emulated robot: the policies start from the emulated speed and follow it online.
-- the uplink: the application token bucket of `robotd.pacing`, its rate set per phase. Phase
+- the uplink: the application token bucket of `robotd.frame_path.pacing`, its rate set per phase.
+Phase
   links serialise every request (`EMULATED_LINK_BURST_BYTES`, one Ethernet frame, passes at
   once), like a real link of that rate; a bigger burst would let a small JPEG through for free.
 
@@ -45,7 +46,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from common.errors import UserError
 from common.yaml_files import YAML_ESCAPES, yaml_escape_problem
-from robotd.pacing import BITS_PER_BYTE, BITS_PER_MBIT, TokenBucket
+from robotd.frame_path.pacing import BITS_PER_BYTE, BITS_PER_MBIT, TokenBucket
 from robotd.policies.base import one_line_validation_error
 
 if TYPE_CHECKING:

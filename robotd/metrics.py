@@ -26,7 +26,7 @@ from common.metrics import LATENCY_BUCKETS_S, NAMESPACE, ReadCollector
 from common.wire.telemetry import FallbackReason, ResendReason, TelemetryRecord
 
 if TYPE_CHECKING:
-    from robotd.sources import FrameSource
+    from robotd.sources.frame_sources import FrameSource
 
 NO_DEPLOYMENT = "none"
 """The route's deployment label when the registry routes the robot to no deployment (local)."""

@@ -25,14 +25,14 @@ from common.image_input import ImageInputs
 from common.partition import sample_feeds
 from common.partition.runtime import SplitModel
 from common.providers import enforce, ort_providers, prepare
+from common.source_spec import SourceSpec
 from common.wire.telemetry import FallbackReason
-from robotd.offload import CallResult
+from robotd.frame_path.offload import CallResult
 from robotd.policies import Decision
 from robotd.robot_profile import measured_profile
-from robotd.source_names import SourceSpec
-from robotd.source_open import open_source_for
-from robotd.sources import FrameSource, SourceSession
-from robotd.stereo_frame import CameraFrame, StereoFrame
+from robotd.sources.frame_sources import FrameSource, SourceSession
+from robotd.sources.opening import open_source_for
+from robotd.sources.stereo_frame import CameraFrame, StereoFrame
 
 
 def open_split_model(

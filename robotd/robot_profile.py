@@ -21,10 +21,10 @@ from common.image_input import ImageInputs
 from common.partition.named_cuts import named_cuts
 from common.partition.runtime import SplitModel
 from common.profiler import median_ms
+from common.source_spec import SourceSpec
 from robotd.calibration import calibration_frames, codec_table, required_codecs
 from robotd.policies import Objective, Policy, make_policy
 from robotd.policies.nav_options import NAMED_CUTS_KEY, SEGMENTS_KEY
-from robotd.source_names import SourceSpec
 
 # Whole-model runs timed at startup for the robot-side profile (after the profiler's warm-up).
 PROFILE_RUNS = 3

@@ -9,11 +9,11 @@ knew), `entropy` (the frame's normalized grey-level entropy), `hedged` (the loca
 alongside the cloud), `served_by` (`cloud` or `robot`: which result the frame used), `detail`
 (why the cloud failed, for a person: the record's `detail`), `phase` (the emulation phase the
 frame ran in, `robotd.emulation`; null without `--phases`), `stale` (the frame's result was
-dropped, not applied: a newer frame's had been, `robotd.pipeline`), `dropped_stale` (frames
-the source dropped unread just before this one: a newer one had arrived,
-`robotd.zenoh_source`) and `resends` (how many times the frame's query was sent again within its
-deadline, having found no serving deployment: `robotd.offload`). Lines are flushed as they are
-written, so a reader can follow the file while the robot runs.
+dropped, not applied: a newer frame's had been, `robotd.frame_path.pipeline`), `dropped_stale`
+(frames the source dropped unread just before this one: a newer one had arrived,
+`robotd.sources.zenoh_in`) and `resends` (how many times the frame's query was sent again within its
+deadline, having found no serving deployment: `robotd.frame_path.offload`). Lines are flushed as
+they are written, so a reader can follow the file while the robot runs.
 
 The record itself is built here too (`frame_record`), from what the frame loop measured and what
 came of the cloud call; `RemoteTimes` splits the call's round trip into the network's share and
@@ -36,7 +36,7 @@ from common.errors import UserError
 from common.wire.telemetry import JSONL_FIELDS, TelemetryRecord, action_label, parse_action
 
 if TYPE_CHECKING:  # only read here; importing it would load onnxruntime and zenoh
-    from robotd.offload import CallResult
+    from robotd.frame_path.offload import CallResult
 
 EXTRA_FIELDS = (
     "at",

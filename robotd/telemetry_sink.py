@@ -18,7 +18,7 @@ import zenoh
 from common import keys
 from common.daemon import Daemon
 from common.wire.telemetry import ProbeReport, TelemetryRecord
-from robotd.frame import Frame
+from robotd.frame_path.frame import Frame
 from robotd.metrics import RobotMetrics
 from robotd.telemetry import RunSummary, TelemetryFile, jsonl_object
 

@@ -56,10 +56,10 @@ def action_label(action: Action, codec: str = RAW_CODEC, end: int | None = None)
 class FrameContext:
     """What a policy knows about a frame before deciding.
 
-    `entropy` is the frame's normalized grey-level entropy in [0, 1] (`robotd.entropy`); the
-    policy turns it into its key-frame weight σ itself. `expected_costs` is filled by the simulator
-    only: the true expected objective cost of each action, in the policy's action order (cuts in
-    profile order, then P). Real frames leave it `None`.
+    `entropy` is the frame's normalized grey-level entropy in [0, 1] (`robotd.frame_path.entropy`);
+    the policy turns it into its key-frame weight σ itself. `expected_costs` is filled by the
+    simulator only: the true expected objective cost of each action, in the policy's action order
+    (cuts in profile order, then P). Real frames leave it `None`.
     """
 
     index: int

@@ -22,7 +22,7 @@ import pytest
 from deploy.demo import read_telemetry
 from deploy.procs import elasticfog_argv
 from robotd.emulation import EMULATED_LINK_BURST_BYTES
-from robotd.pacing import BITS_PER_BYTE, BITS_PER_MBIT
+from robotd.frame_path.pacing import BITS_PER_BYTE, BITS_PER_MBIT
 from tests.e2e.test_runtime_lifecycle import DEMO_KEYS
 
 pytestmark = [pytest.mark.e2e, pytest.mark.usefixtures("e2e_watchdog")]

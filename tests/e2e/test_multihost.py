@@ -1,7 +1,7 @@
 """e2e across real network stacks: the daemons in the namespace testbed, with real link caps,
 CPU quotas, a pulled cable and SIGKILLed hosts (root only).
 
-Every test brings up a testbed of its own (`deploy.experiments.runner.TestbedFleet`): the
+Every test brings up a testbed of its own (`experiments.runner.TestbedFleet`): the
 registry and its router on `registry`, cloud daemons on `edge-1`/`edge-2`, the robot on `robot`,
 an observer on `bench`; peers with gossip, shared memory off, endpoints only. Conditions change
 while the robot streams; what is asserted comes from the robot's own telemetry file and from the
@@ -18,9 +18,9 @@ from typing import Any
 
 import pytest
 
-from deploy.experiments.fleet import FleetSpec
-from deploy.experiments.runner import TestbedFleet
-from deploy.experiments.stats import between, by_frame
+from experiments.fleet import FleetSpec
+from experiments.runner import TestbedFleet
+from experiments.stats import between, by_frame
 from tests.e2e.conftest import (
     TEST_INPUT_SHAPE,
     TEST_MODEL,

@@ -3,7 +3,7 @@ exploration on), adapts to a real uplink glitch and to a real CPU quota drop whi
 streams (root only; each test takes under a minute: 40-50 s and about 30 s measured here).
 
 Same fixture as `test_multihost.py` (a testbed of its own per test, checked to leave nothing
-behind). The glitch test runs the bench's robot (deploy/experiments/defaults.py: MobileNetV2 on a
+behind). The glitch test runs the bench's robot (experiments/defaults.py: MobileNetV2 on a
 320x240 camera image at 0.5 core), whose JPEG offload and own run are close, as on a real robot;
 the CPU test keeps frames of 120x160 raw: the model's ~9 ms of CPU per frame, not the runtime's
 ~2 ms per offloaded frame, must dominate what the robot computes, or a CPU quota would slow every
@@ -18,10 +18,10 @@ from collections.abc import Callable
 
 import pytest
 
-from deploy.experiments.defaults import DEFAULT_INPUT_SHAPE, DEFAULT_MODEL, DEFAULT_ROBOT_CPU
-from deploy.experiments.runner import TestbedFleet
-from deploy.experiments.stats import action_order, between, by_frame, final_action, summary
 from deploy.procs import DaemonError
+from experiments.defaults import DEFAULT_INPUT_SHAPE, DEFAULT_MODEL, DEFAULT_ROBOT_CPU
+from experiments.runner import TestbedFleet
+from experiments.stats import action_order, between, by_frame, final_action, summary
 from tests.e2e import test_multihost as mh
 from tests.helpers.gates import root_only
 

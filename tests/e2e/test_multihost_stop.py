@@ -1,6 +1,6 @@
 """A daemon stops within 2 s of SIGTERM or SIGINT whatever the network does (root only).
 
-In the namespace testbed (`deploy.experiments.runner.TestbedFleet`: registry and its router on
+In the namespace testbed (`experiments.runner.TestbedFleet`: registry and its router on
 `registry`, cloud daemons on `edge-1`/`edge-2`, the robot on `robot`), while the robot streams
 to edge-1:
 
@@ -28,9 +28,9 @@ from typing import Any
 
 import pytest
 
-from deploy.experiments.fleet import FleetSpec
-from deploy.experiments.runner import TestbedFleet
 from deploy.procs import DaemonProc, StopResult
+from experiments.fleet import FleetSpec
+from experiments.runner import TestbedFleet
 from tests.e2e.conftest import TEST_INPUT_SHAPE, TEST_MODEL, processes_under, remains_of_testbed
 from tests.helpers.gates import root_only
 

@@ -1,5 +1,5 @@
 """Frames in, results out, end to end: registry, two cloud daemons and a robot with `source:
-zenoh` as real subprocesses; the application client (`robotd.client.RobotClient`) in this
+zenoh` as real subprocesses; the application client (`robotd.results.client.RobotClient`) in this
 process feeds frames from a real photograph; `elasticfog results --json` runs as a subprocess
 beside it.
 
@@ -26,9 +26,9 @@ from common.photos import photo_bgr
 from common.wire.app_to_robot import FrameIn, ImageIn, decode_image, image_in
 from common.wire.robot_to_app import FP16_RELATIVE_ERROR, ServedBy
 from deploy.readiness import wait_until
-from robotd.client import Result, RobotClient
-from robotd.results_cli import top_k
-from robotd.sources import MAX_SOURCE_SIDE_PX, fit_frame
+from robotd.results.cli import top_k
+from robotd.results.client import Result, RobotClient
+from robotd.sources.frame_sources import MAX_SOURCE_SIDE_PX, fit_frame
 from tests.e2e.conftest import TEST_INPUT_SHAPE, TEST_MODEL
 
 pytestmark = [pytest.mark.e2e, pytest.mark.usefixtures("e2e_watchdog")]

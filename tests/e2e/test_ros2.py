@@ -31,7 +31,7 @@ from common.image_input import ImageInputs
 from common.partition import load_partition
 from common.partition.runtime import SplitModel
 from deploy.procs import wait_until
-from robotd.sources import fit_frame
+from robotd.sources.frame_sources import fit_frame
 from tests.e2e.conftest import TEST_INPUT_SHAPE, TEST_MODEL
 
 pytestmark = [pytest.mark.e2e, pytest.mark.usefixtures("e2e_watchdog")]
@@ -144,7 +144,8 @@ def reference(bgr: np.ndarray) -> dict[str, np.ndarray]:
     inputs = ImageInputs(SplitModel(partition).input_specs())
     session = ort.InferenceSession(str(partition.full), providers=["CPUExecutionProvider"])
     names = [o.name for o in session.get_outputs()]
-    # The source fits a frame to the model's input as the photo source does (robotd.sources).
+    # The source fits a frame to the model's input as the photo source does
+    # (robotd.sources.frame_sources).
     fitted = fit_frame(bgr, inputs.height, inputs.width)
     return dict(zip(names, session.run(names, inputs.feeds(fitted)), strict=True))
 

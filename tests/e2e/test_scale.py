@@ -21,9 +21,9 @@ from typing import Any
 
 import pytest
 
-from deploy.experiments.fairness import measure_fairness
-from deploy.load_generator import FrameOutcome, LoadGenerator, summarize
 from deploy.procs import elasticfog_argv
+from experiments.fairness import measure_fairness
+from experiments.load_generator import FrameOutcome, LoadGenerator, summarize
 from tests.e2e.conftest import TEST_DEADLINE_S, TEST_INPUT_SHAPE, TEST_MODEL
 
 pytestmark = [pytest.mark.e2e, pytest.mark.usefixtures("e2e_watchdog")]

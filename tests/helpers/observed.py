@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from robotd.frame import FrameResult
+from robotd.frame_path.frame import FrameResult
 from robotd.policies import Decision, Outcome
 
 

@@ -1,5 +1,5 @@
 """A maneuver of the navigation circuit driven live by the real robot daemon, over Zenoh on
-loopback (`stereo:maneuver:N`, `robotd.maneuver_source`).
+loopback (`stereo:maneuver:N`, `nav.maneuver_source`).
 
 A registry, a cloud daemon serving zoo:stereo at 160×120 (D = 32) and a robot daemon running
 option 1 (the pair to the cloud, d_coll back) at the paper's 10 fps camera, with no frame limit:

@@ -28,8 +28,8 @@ from common import keys
 from common.wire import ErrorCode, ErrorReply
 from common.wire.cloud_to_robot import InferReply
 from common.wire.telemetry import FallbackReason, ResendReason
+from robotd.frame_path.offload import NO_ROUTE_RESENDS, CallResult, CloudCall
 from robotd.metrics import RobotMetrics
-from robotd.offload import NO_ROUTE_RESENDS, CallResult, CloudCall
 from robotd.telemetry import SERVED_BY_CLOUD, RunSummary, frame_record, jsonl_object
 
 FLEET = "moves"

@@ -39,7 +39,7 @@ from common.wire.registry import (
     RouteChange,
 )
 from common.wire.telemetry import FallbackReason
-from robotd.registry_link import RegistryLink
+from robotd.frame_path.registry_link import RegistryLink
 from tests.integration.conftest import Router
 from tests.integration.test_robotd import fleet_config
 

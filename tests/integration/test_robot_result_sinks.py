@@ -1,4 +1,4 @@
-"""Result sinks of the robot daemon (`robotd.result_sinks`) on a real run over loopback Zenoh:
+"""Result sinks of the robot daemon (`robotd.results.sinks`) on a real run over loopback Zenoh:
 every applied frame reaches every sink once, in frame order, with its capture stamp; a sink that
 fails does not stop the frame loop (regression guard: a publisher's error must never end a run);
 every sink is closed at shutdown and taken off the daemon's list."""
@@ -13,7 +13,7 @@ import zenoh
 
 from common import keys
 from robotd.daemon import FrameResult, RobotDaemon, RobotOptions
-from robotd.result_sinks import ResultSink
+from robotd.results.sinks import ResultSink
 from tests.helpers.onnx_graphs import save
 from tests.integration.conftest import Router
 from tests.integration.test_robotd import (

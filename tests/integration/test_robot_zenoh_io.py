@@ -1,6 +1,6 @@
 """Frames in and results out over real Zenoh on loopback: a robot daemon (in a thread) with
-`source: zenoh`, fed and read by the application client (`robotd.client.RobotClient`, a Zenoh
-client of the router, as an application on another host would be).
+`source: zenoh`, fed and read by the application client (`robotd.results.client.RobotClient`, a
+Zenoh client of the router, as an application on another host would be).
 
 What must hold: each result carries the stamp its frame was sent with, and outputs equal to the
 whole model run on the decoded, fitted image; the robot works on the newest frame, and every
@@ -27,9 +27,9 @@ from common.wire import encode_raw
 from common.wire.app_to_robot import FrameIn, ImageEncoding, ImageIn, decode_image, image_in
 from common.wire.robot_to_app import ServedBy
 from deploy import readiness
-from robotd.client import RobotClient
 from robotd.daemon import RobotDaemon, RobotOptions
-from robotd.sources import MAX_SOURCE_SIDE_PX, fit_frame
+from robotd.results.client import RobotClient
+from robotd.sources.frame_sources import MAX_SOURCE_SIDE_PX, fit_frame
 from tests.helpers.onnx_graphs import save
 from tests.integration.conftest import Router
 from tests.integration.test_robotd import (

@@ -39,7 +39,7 @@ from common.wire.robot_to_cloud import InferRequest
 from common.wire.telemetry import JSONL_FIELDS, ProbeReport, TelemetryRecord
 from common.wire.tensor_codecs import decode_tensors
 from robotd.daemon import FrameResult, RobotDaemon, RobotOptions
-from robotd.pacing import BITS_PER_BYTE
+from robotd.frame_path.pacing import BITS_PER_BYTE
 from robotd.policies import Decision, FrameContext, Outcome, Policy
 from robotd.policies.base import CutTable
 from robotd.telemetry import EXTRA_FIELDS

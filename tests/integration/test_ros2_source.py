@@ -14,10 +14,10 @@ import zenoh
 from common import rmw_zenoh
 from common.config import load_fleet
 from common.ros2_messages import typestore
+from common.source_spec import parse_ros2_source
 from deploy.procs import wait_until, write_local_fleet
-from robotd.ros2_source import Ros2Source
-from robotd.source_names import parse_ros2_source
-from robotd.sources import SourceSession
+from robotd.sources.frame_sources import SourceSession
+from robotd.sources.ros2 import Ros2Source
 
 WAIT_S = 10.0
 TOPIC = "/camera/image_raw"

@@ -8,8 +8,8 @@ import statistics
 import pytest
 
 from common.errors import UserError
-from deploy.experiments.scale import ScaleOptions
-from deploy.load_generator import LoadGenerator, frame_gap_s
+from experiments.load_generator import LoadGenerator, frame_gap_s
+from experiments.scale import ScaleOptions
 
 
 def test_periodic_gaps_are_the_period() -> None:

@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 
 from common import ros2_messages as rm
-from robotd.bag_source import BagSource, BagTopicError, NotABag
-from robotd.source_names import BagSpec, SourceError, parse_source
-from robotd.source_open import open_source
-from robotd.sources import EndOfStream, FrameSource
+from common.source_spec import BagSpec, SourceError, parse_source
+from robotd.sources.bag import BagSource, BagTopicError, NotABag
+from robotd.sources.frame_sources import EndOfStream, FrameSource
+from robotd.sources.opening import open_source
 from tests.unit.bag_support import (
     START_NS,
     STORAGES,

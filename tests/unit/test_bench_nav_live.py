@@ -10,12 +10,12 @@ from typing import Any
 import pytest
 
 from common.errors import UserError
-from deploy.experiments.nav_live import figures, maneuver_spec
-from deploy.experiments.nav_rows import TABLE5_LIVE, TABLE5_SIM, parse_table5
+from common.source_spec import SourceError
+from experiments.nav_live import figures, maneuver_spec
+from experiments.nav_rows import TABLE5_LIVE, TABLE5_SIM, parse_table5
+from nav.maneuver_source import StereoManeuverSource
 from nav.shared_control import DEFAULT_DEADLINE_S
-from robotd.maneuver_source import StereoManeuverSource
-from robotd.source_names import SourceError
-from robotd.source_open import open_source
+from robotd.sources.opening import open_source
 
 
 def outcome(collided: bool, clearance: float, distance: float) -> dict[str, Any]:

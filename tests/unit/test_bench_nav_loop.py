@@ -12,9 +12,9 @@ from pathlib import Path
 import pytest
 
 from common.errors import UserError
-from deploy.experiments.nav import RESULT_FILE, keep_result
-from deploy.experiments.nav_loop import LoopResult, table5
-from deploy.experiments.nav_rows import OFF
+from experiments.nav import RESULT_FILE, keep_result
+from experiments.nav_loop import LoopResult, table5
+from experiments.nav_rows import OFF
 
 SIZE = (64, 48)
 LABEL = "64x48"

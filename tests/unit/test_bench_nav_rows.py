@@ -12,8 +12,8 @@ from typer.testing import CliRunner
 
 from common.cli import app
 from common.errors import UserError
-from deploy.experiments.fleet import POLICY_VARIANTS
-from deploy.experiments.nav_rows import (
+from experiments.fleet import POLICY_VARIANTS
+from experiments.nav_rows import (
     DEFAULT_T_DEAD_S,
     NO_TIMING,
     ROW_KEYS,

@@ -16,8 +16,8 @@ import pytest
 from onnx import TensorProto, helper
 
 from common.errors import UserError
-from deploy.experiments.defaults import DEFAULT_INPUT_SHAPE
-from deploy.experiments.options import BenchOptions, default_input_shape
+from experiments.defaults import DEFAULT_INPUT_SHAPE
+from experiments.options import BenchOptions, default_input_shape
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -68,7 +68,7 @@ def test_defaults_take_the_fleet_payload_limit_and_sane_caps() -> None:
         tensor_bytes=DEFAULT_MAX_TENSOR_BYTES,
         echo_bytes=DEFAULT_MAX_ECHO_BYTES,
     )
-    # Robots ask for 4 KiB of echo (robotd.probes): the default cap must let them.
+    # Robots ask for 4 KiB of echo (robotd.frame_path.probes): the default cap must let them.
     assert DEFAULT_MAX_ECHO_BYTES >= 4096
 
 

@@ -13,7 +13,7 @@ import pytest
 
 from common.errors import UserError
 from deploy.cpu_pinning import off_set_threads, pin_process, split_for_cloud, usable_cpus
-from deploy.experiments.scale import ScaleOptions
+from experiments.scale import ScaleOptions
 
 ROOT = Path(__file__).resolve().parents[2]
 # A child with three threads besides its main one; on a line from the parent it starts one more
@@ -58,11 +58,11 @@ def test_scale_options_check_the_split_before_any_daemon_starts(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     ScaleOptions(pin_cloud=False).check()
-    monkeypatch.setattr("deploy.experiments.scale.usable_cpus", lambda: [0])
+    monkeypatch.setattr("experiments.scale.usable_cpus", lambda: [0])
     ScaleOptions(pin_cloud=False).check()  # not asked for: no refusal
     with pytest.raises(UserError, match="--pin-cloud needs at least 2 CPUs"):
         ScaleOptions(pin_cloud=True).check()
-    monkeypatch.setattr("deploy.experiments.scale.usable_cpus", lambda: [0, 1, 2])
+    monkeypatch.setattr("experiments.scale.usable_cpus", lambda: [0, 1, 2])
     options = ScaleOptions(pin_cloud=True, workers=2, deployments=(1,))
     options.check()
     assert options.cpu_split(1).cloud == (1, 2)

@@ -21,7 +21,7 @@ from robotd.emulation import (
     robot_class,
     scaled_profile,
 )
-from robotd.pacing import TokenBucket
+from robotd.frame_path.pacing import TokenBucket
 
 
 class FakeTime:

@@ -1,4 +1,4 @@
-"""Normalized grey-level entropy of frames (robotd.entropy)."""
+"""Normalized grey-level entropy of frames (robotd.frame_path.entropy)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from common.errors import UserError
-from robotd.entropy import frame_entropy
+from robotd.frame_path.entropy import frame_entropy
 
 
 def test_flat_frame_has_zero_entropy() -> None:

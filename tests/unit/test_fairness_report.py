@@ -10,9 +10,9 @@ import time
 
 import pytest
 
-from deploy.experiments.cpu_share import CpuMeter
-from deploy.experiments.fairness import KINDS, fairness_markdown, phase_medians, transport_p95_s
-from deploy.load_generator import FrameOutcome, FrameRecord
+from experiments.cpu_share import CpuMeter
+from experiments.fairness import KINDS, fairness_markdown, phase_medians, transport_p95_s
+from experiments.load_generator import FrameOutcome, FrameRecord
 
 BURN_S = 0.2
 

@@ -18,7 +18,7 @@ from common.fleet_tls import tls_settings
 from common.init_cli import CLOUD_IDS, render_fleet, robot_ids
 from common.session import zenoh_settings
 from common.tls_preflight import check_session
-from deploy.experiments.fleet import FleetSpec, cert_ips, write_fleet
+from experiments.fleet import FleetSpec, cert_ips, write_fleet
 
 ADDRESSES = {
     "registry": "10.77.0.1",

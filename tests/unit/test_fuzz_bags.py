@@ -1,4 +1,4 @@
-"""Fuzzing the `bag:` source (robotd/bag_source.py): damaged bag files and damaged records.
+"""Fuzzing the `bag:` source (robotd/sources/bag.py): damaged bag files and damaged records.
 
 Inputs: the storage file of a small recording (MCAP, sqlite3) with its bytes overwritten, inserted,
 deleted or cut; recordings whose records hold any bytes (valid CDR corrupted, cut, another
@@ -22,9 +22,9 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from common import ros2_messages as rm
-from robotd.bag_source import BagSource
-from robotd.source_names import SourceError
-from robotd.sources import EndOfStream
+from common.source_spec import SourceError
+from robotd.sources.bag import BagSource
+from robotd.sources.frame_sources import EndOfStream
 from tests.unit.bag_support import (
     STORAGES,
     Record,

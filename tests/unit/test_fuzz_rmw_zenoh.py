@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 from common import rmw_zenoh
 from common.errors import UserError
 from common.rmw_zenoh import Attachment, AttachmentError, TopicType
-from robotd.source_names import SourceError, parse_source
+from common.source_spec import SourceError, parse_source
 from tests.unit.fuzz_support import budget, byte_edits, mutate, run_decoder
 
 _IMAGE = TopicType.of("sensor_msgs/msg/Image")

@@ -1,4 +1,4 @@
-"""Fuzzing the simulator's file loaders (`robotd.trace`): `load_trace` (YAML) and `load_profile`
+"""Fuzzing the simulator's file loaders (`robotd.sim.trace`): `load_trace` (YAML) and `load_profile`
 (the partitioner's profile JSON). Whatever the text, the result is a valid trace or profile (every
 number finite, at least one segment or cut) or a UserError on one line, within a time and memory
 bound.
@@ -22,7 +22,7 @@ from hypothesis import strategies as st
 
 from common.errors import UserError
 from robotd.policies.base import CutTable
-from robotd.trace import Trace, load_profile, load_trace
+from robotd.sim.trace import Trace, load_profile, load_trace
 from tests.unit.fuzz_support import (
     JSON_FRAGMENTS,
     YAML_FRAGMENTS,

@@ -61,7 +61,7 @@ from common.wire.robot_to_app import FrameResultMessage
 from common.wire.robot_to_cloud import InferRequest
 from common.wire.telemetry import ProbeReport, TelemetryRecord
 from common.wire.tensor_codecs import CODECS
-from robotd.sources import MAX_SOURCE_SIDE_PX
+from robotd.sources.frame_sources import MAX_SOURCE_SIDE_PX
 from tests.unit.fuzz_support import budget, byte_edits, mutate, run_decoder
 from tests.unit.test_wire import SAMPLES, assert_same
 

@@ -1,4 +1,4 @@
-"""The speculative local run of a hedged frame (`robotd.offload.LocalRunner`), on real
+"""The speculative local run of a hedged frame (`robotd.frame_path.local_runs.LocalRunner`), on real
 onnxruntime sessions: it runs on a thread of the lowest CPU priority (the caller's stays as it
 was), a cancelled run stops within a node instead of running to its end, a queued one never
 starts, and a failure is handed back instead of killing the thread.
@@ -20,7 +20,7 @@ from onnx import TensorProto, helper, numpy_helper
 
 from common.partition import sample_feeds, split_model
 from common.partition.runtime import SplitModel
-from robotd.offload import SPECULATIVE_NICE, LocalRunner
+from robotd.frame_path.local_runs import SPECULATIVE_NICE, LocalRunner
 from tests.helpers.onnx_graphs import diamond, make_model, save
 
 WAIT_S = 10.0

@@ -20,8 +20,8 @@ from common.wire.telemetry import FallbackReason, ResendReason, TelemetryRecord
 from registry.metrics import RegistryMetrics
 from registry.scheduler import Reason
 from robotd.metrics import NO_DEPLOYMENT, RobotMetrics
-from robotd.sources import FrameSource
-from robotd.stereo_frame import CameraFrame
+from robotd.sources.frame_sources import FrameSource
+from robotd.sources.stereo_frame import CameraFrame
 
 ROBOT = "robot-1"
 

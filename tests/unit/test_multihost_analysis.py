@@ -11,8 +11,8 @@ import yaml
 
 from common.config import load_fleet
 from common.session import zenoh_settings
-from deploy.experiments.fleet import FleetSpec, fleet_dict, write_fleet, write_robot_variant
-from deploy.experiments.stats import lost_frames, phases, settle_frames, summary
+from experiments.fleet import FleetSpec, fleet_dict, write_fleet, write_robot_variant
+from experiments.stats import lost_frames, phases, settle_frames, summary
 
 ADDRESSES = {
     "registry": "10.77.0.1",

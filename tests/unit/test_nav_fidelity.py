@@ -8,7 +8,7 @@ from __future__ import annotations
 import pytest
 
 from common.codec_profile import Fidelity
-from deploy.experiments.nav_fidelity import (
+from experiments.nav_fidelity import (
     CODECS,
     TOLERATED_BIN_REL_ERR,
     markdown,

@@ -1,5 +1,5 @@
 """A maneuver driven in clock time (`nav.live_drive`) and its frame source
-(`stereo:maneuver:N`, `robotd.maneuver_source`), fed by a fake result feeder instead of a daemon.
+(`stereo:maneuver:N`, `nav.maneuver_source`), fed by a fake result feeder instead of a daemon.
 
 The deterministic parts: the drive stepped by hand at chosen clock times (the unicycle's
 kinematics, a late controller caught up in sub-steps, the start at the first d_coll, collisions,
@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 from common.errors import UserError
+from common.source_spec import SourceError
 from nav.closed_loop import Maneuver
 from nav.curvature import CurvatureBins, DcollProfile
 from nav.live_drive import (
@@ -27,16 +28,15 @@ from nav.live_drive import (
     read_outcome,
     write_outcome,
 )
+from nav.maneuver_source import DCOLL_OUTPUT, StereoManeuverSource
 from nav.maneuvers import circuit_lap
 from nav.render import Pose
 from nav.shared_control import AssistantParams, Command
 from nav.world import corridor_with_wall
-from robotd.frame import FrameResult
-from robotd.maneuver_source import DCOLL_OUTPUT, StereoManeuverSource
-from robotd.source_names import SourceError
-from robotd.source_open import open_source
-from robotd.sources import EndOfStream
-from robotd.stereo_frame import STEREO_VIEWS, StereoFrame
+from robotd.frame_path.frame import FrameResult
+from robotd.sources.frame_sources import EndOfStream
+from robotd.sources.opening import open_source
+from robotd.sources.stereo_frame import STEREO_VIEWS, StereoFrame
 
 NORTH = math.pi / 2
 FULL_SPEED_MPS = 0.4

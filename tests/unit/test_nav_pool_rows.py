@@ -10,7 +10,7 @@ from typing import Any
 import pytest
 
 from common.errors import UserError
-from deploy.experiments.nav_pool_rows import (
+from experiments.nav_pool_rows import (
     ROW_KEYS,
     KillEvent,
     PoolRun,
@@ -22,7 +22,7 @@ from deploy.experiments.nav_pool_rows import (
     pool_row,
     reference_t_p,
 )
-from deploy.experiments.nav_rows import parse_resolution
+from experiments.nav_rows import parse_resolution
 
 
 def record(

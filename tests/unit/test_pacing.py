@@ -8,7 +8,7 @@ import threading
 
 import pytest
 
-from robotd.pacing import BITS_PER_BYTE, FramePacer, TimelinePacer, TokenBucket
+from robotd.frame_path.pacing import BITS_PER_BYTE, FramePacer, TimelinePacer, TokenBucket
 
 
 class FakeClock:

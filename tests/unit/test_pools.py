@@ -18,7 +18,7 @@ from registry.pool_keeper import PoolKeeper
 from registry.pools import PoolPlanner, pool_planner
 from registry.rib import SCHEMA_VERSION, Rib
 from registry.switch import Switcher
-from robotd.pool_turns import PoolTurns
+from robotd.frame_path.pool_turns import PoolTurns
 from tests.unit.test_switch import ROBOT, FakeTransport, _fleet
 
 SERVICE = "detect"

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from robotd.probes import (
+from robotd.frame_path.probes import (
     PROBE_INTERVAL_S,
     PROBE_MAX_PADDING_BYTES,
     PROBE_MIN_PADDING_BYTES,

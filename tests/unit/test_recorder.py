@@ -1,5 +1,5 @@
-"""The `--record` sink on its own (robotd/recorder.py): a stereo model's views on topics of their
-names, a queue far shorter than the run loses no frame (the loop waits), an output no ROS 2
+"""The `--record` sink on its own (robotd/results/recorder.py): a stereo model's views on topics of
+their names, a queue far shorter than the run loses no frame (the loop waits), an output no ROS 2
 message carries is counted and the others recorded, names made ROS 2 tokens; read back with
 rosbags."""
 
@@ -14,8 +14,8 @@ from rosbags.rosbag2 import Reader
 from common import ros2_messages as rm
 from common.image_input import ImageInputs
 from common.partition import TensorSpec
-from robotd.frame import FrameResult
-from robotd.recorder import McapRecorder, name_token, record_prefix
+from robotd.frame_path.frame import FrameResult
+from robotd.results.recorder import McapRecorder, name_token, record_prefix
 from tests.unit.bag_support import photo_frames
 
 H, W = 24, 32

@@ -29,8 +29,8 @@ from common.wire.robot_to_app import (
     encode_output,
     result_codec,
 )
-from robotd.results_cli import top_k
-from robotd.sources import fit_frame
+from robotd.results.cli import top_k
+from robotd.sources.frame_sources import fit_frame
 
 MAX_SIDE_PX = 8192
 LIMIT_BYTES = 1 << 24
@@ -180,8 +180,8 @@ def test_top5_of_a_vector_and_of_each_row() -> None:
 
 
 def test_a_result_line_names_the_frame_its_path_and_each_outputs_top5() -> None:
-    from robotd.client import Result
-    from robotd.results_cli import result_json, result_line
+    from robotd.results.cli import result_json, result_line
+    from robotd.results.client import Result
 
     logits = np.array([[0.1, 5.0, 3.0, 4.0, -1.0, 2.0, 1.0]], dtype=np.float32)
     disparity = np.zeros((1, 1, 4, 6), np.float32)

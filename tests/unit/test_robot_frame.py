@@ -1,7 +1,7 @@
 """A robot frame's accounting, without a network: how a cloud call's round trip splits into
 transfer and cloud time (`RemoteTimes`), the telemetry record and the policy's `Outcome` a served
-frame hands on (`robotd.frame.Frame`), and runs of cloud failures (`FailureRuns`): logged at
-their start and end only, a reroute asked after consecutive timeouts or missing routes.
+frame hands on (`robotd.frame_path.frame.Frame`), and runs of cloud failures (`FailureRuns`): logged
+at their start and end only, a reroute asked after consecutive timeouts or missing routes.
 """
 
 from __future__ import annotations
@@ -13,9 +13,9 @@ import pytest
 
 from common.wire.cloud_to_robot import InferReply
 from common.wire.telemetry import FallbackReason
-from robotd.failure_runs import LOG_FAILURE_EVERY, REROUTE_AFTER_FAILURES, FailureRuns
-from robotd.frame import Frame
-from robotd.offload import CallResult
+from robotd.frame_path.failure_runs import LOG_FAILURE_EVERY, REROUTE_AFTER_FAILURES, FailureRuns
+from robotd.frame_path.frame import Frame
+from robotd.frame_path.offload import CallResult
 from robotd.policies import PURE_ROBOT, Decision
 from robotd.telemetry import SERVED_BY_CLOUD, SERVED_BY_ROBOT, RemoteTimes
 

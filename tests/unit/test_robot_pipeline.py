@@ -1,6 +1,7 @@
-"""The robot's in-flight window (`robotd.pipeline`): at most N frames in flight, frames finished
-oldest first when ready together, each at its own reply or deadline, stale results dropped and
-counted, and with N = 1 the loop without pipelining (each frame finished before the next starts).
+"""The robot's in-flight window (`robotd.frame_path.pipeline`): at most N frames in flight, frames
+finished oldest first when ready together, each at its own reply or deadline, stale results dropped
+and counted, and with N = 1 the loop without pipelining (each frame finished before the next
+starts).
 
 Calls are scripted: the test settles them (from its own thread, or from a timer thread where a
 wait must be woken); deadlines are real perf_counter times only where a deadline is what is tested.
@@ -14,7 +15,7 @@ from dataclasses import dataclass, field
 
 import pytest
 
-from robotd.pipeline import FramePipeline, InFlight, ResultOrder
+from robotd.frame_path.pipeline import FramePipeline, InFlight, ResultOrder
 from robotd.telemetry import EXTRA_FIELDS, RunSummary, jsonl_object
 
 FAR_S = 60.0

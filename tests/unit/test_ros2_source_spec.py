@@ -8,13 +8,13 @@ import threading
 import pytest
 
 from common.errors import UserError
-from robotd.newest_frame import NewestFrame
-from robotd.source_names import (
+from common.source_spec import (
     Ros2FrameType,
     Ros2Spec,
     check_results_topics,
     parse_ros2_source,
 )
+from robotd.sources.newest_frame import NewestFrame
 
 
 def test_topic_type_and_domain() -> None:

@@ -8,7 +8,8 @@ service on edge-1, so any spread is the registry's placement, not the fleet file
 
 from __future__ import annotations
 
-from deploy.experiments.scale import (
+from experiments.load_generator import FrameOutcome, FrameRecord
+from experiments.scale import (
     SPREAD_WITHIN_S,
     TIMELINE_BIN_S,
     ScaleOptions,
@@ -17,7 +18,6 @@ from deploy.experiments.scale import (
     spread,
     timeline,
 )
-from deploy.load_generator import FrameOutcome, FrameRecord
 
 START_S = 100.0
 

@@ -21,8 +21,8 @@ from robotd.policies.base import CutTable
 from robotd.policies.elastic import ElasticPolicy
 from robotd.policies.objective import Objective
 from robotd.policies.segment_actions import action_contexts, actions_table
-from robotd.sim import Simulator, segment_costs
-from robotd.trace import Segment, trace_from_dict
+from robotd.sim.simulator import Simulator, segment_costs
+from robotd.sim.trace import Segment, trace_from_dict
 
 DECISION_COST = Path(__file__).resolve().parents[2] / "benchmarks" / "decision_cost.py"
 POINTS = 4

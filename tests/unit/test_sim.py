@@ -13,8 +13,8 @@ import pytest
 from common.errors import UserError
 from robotd.policies import Objective
 from robotd.policies.base import CutTable
-from robotd.sim import SimResult, Simulator, regret_slope, segment_costs, simulate
-from robotd.trace import Segment, load_profile, load_trace, trace_from_dict
+from robotd.sim.simulator import SimResult, Simulator, regret_slope, segment_costs, simulate
+from robotd.sim.trace import Segment, load_profile, load_trace, trace_from_dict
 
 ROOT = Path(__file__).resolve().parents[2]
 PROFILES = ROOT / "tests" / "data" / "profiles"

@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 
 from robotd.policies import PURE_ROBOT
-from robotd.sim import Simulator
-from robotd.trace import load_profile, load_trace
+from robotd.sim.simulator import Simulator
+from robotd.sim.trace import load_profile, load_trace
 
 ROOT = Path(__file__).resolve().parents[2]
 TRACE = ROOT / "deploy" / "traces" / "demo-phases.yaml"

@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 
 from robotd.policies.base import CutTable
-from robotd.sim import SimResult, Simulator, regret_slope
-from robotd.trace import Trace, load_profile, load_trace
+from robotd.sim.simulator import SimResult, Simulator, regret_slope
+from robotd.sim.trace import Trace, load_profile, load_trace
 
 ROOT = Path(__file__).resolve().parents[2]
 PROFILES = ["vgg-like-3x240x320", "mobilenet-like-3x240x320"]

@@ -6,14 +6,14 @@ from __future__ import annotations
 
 import pytest
 
-from robotd.source_names import (
+from common.source_spec import (
     DEFAULT_CAMERA_SOURCE,
     SourceError,
     calibration_source,
     needs_session,
     parse_source,
 )
-from robotd.source_open import open_source
+from robotd.sources.opening import open_source
 
 
 @pytest.mark.parametrize(

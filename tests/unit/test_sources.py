@@ -17,8 +17,7 @@ from common.errors import UserError
 from common.image_input import InputAdapter
 from common.partition import TensorSpec
 from common.photos import PHOTOS
-from robotd.entropy import frame_entropy
-from robotd.source_names import (
+from common.source_spec import (
     DEFAULT_CAMERA_SOURCE,
     KINDS,
     CameraMotion,
@@ -28,8 +27,8 @@ from robotd.source_names import (
     VideoSpec,
     parse_source,
 )
-from robotd.source_open import open_source
-from robotd.sources import (
+from robotd.frame_path.entropy import frame_entropy
+from robotd.sources.frame_sources import (
     PHOTO_SCENE_FRAMES,
     CameraSource,
     EndOfStream,
@@ -37,6 +36,7 @@ from robotd.sources import (
     SyntheticSource,
     VideoSource,
 )
+from robotd.sources.opening import open_source
 
 H, W = 48, 64
 KEY_ENTROPY_MIN = 0.9  # textured frames fill most of the 256 grey levels

@@ -18,15 +18,15 @@ from common.errors import UserError
 from common.image_input import ImageInputs
 from common.partition import TensorSpec, load_partition
 from common.partition.runtime import SplitModel
+from common.source_spec import SourceError
 from common.wire.robot_to_cloud import InferRequest
 from common.wire.tensor_codecs import encode_tensor_as
 from nav.stereo_graph import LEFT_INPUT, RIGHT_INPUT
-from robotd.entropy import frame_entropy
+from nav.stereo_sources import LOOP_RADIUS_M, StereoPairSource, StereoWorldSource
+from robotd.frame_path.entropy import frame_entropy
 from robotd.robot_model import RobotModel
-from robotd.source_names import SourceError
-from robotd.source_open import open_source
-from robotd.stereo_frame import STEREO_VIEWS, StereoFrame, first_view
-from robotd.stereo_sources import LOOP_RADIUS_M, StereoPairSource, StereoWorldSource
+from robotd.sources.opening import open_source
+from robotd.sources.stereo_frame import STEREO_VIEWS, StereoFrame, first_view
 
 H, W = 120, 160
 ROBOT_RADIUS_M = 0.2  # the closed loop's robot (nav.closed_loop.DEFAULT_ROBOT_RADIUS_M)

@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-from deploy.experiments.single_edge import SingleEdgeResult
-from deploy.experiments.stats import summary
-from deploy.experiments.table1 import Table1Row, Table1Settings, markdown, median_run
+from experiments.single_edge import SingleEdgeResult
+from experiments.stats import summary
+from experiments.table1 import Table1Row, Table1Settings, markdown, median_run
 
 
 def _run(latencies_s: list[float], lost: int = 0, policy: str = "elastic") -> Table1Row:

@@ -1,0 +1,1 @@
+"""The offline simulator: traces and profiles, the trace-driven replay and `elasticfog sim`."""
