@@ -25,7 +25,7 @@ import zenoh
 from cloudd.batch_queue import FairQueue, Pending, Refusal
 from cloudd.faults import FaultInjector
 from cloudd.limits import CloudLimits
-from cloudd.metrics import CloudMetrics, Outcome
+from cloudd.metrics import CloudMetrics, RequestOutcome
 from cloudd.refusals import RefusalReason, Refusals, check_refusal, decode_refusal
 from cloudd.replies import Replier, query_payload
 from cloudd.robot_book import RobotBook
@@ -90,7 +90,7 @@ class Admission:
         arrived = time.monotonic()
         fault = self._faults.get()
         if fault.stall:
-            self._outcome(robot, Outcome.DROPPED)
+            self._outcome(robot, RequestOutcome.DROPPED)
             self._replies.hold(query)
             return
         delay_s = fault.delay_ms / 1000.0
@@ -111,7 +111,7 @@ class Admission:
             self._refuse(query, robot, key, request, too_large, reason, delay_s)
             return
         if self._faults.drop_now(fault):
-            self._outcome(robot, Outcome.DROPPED)
+            self._outcome(robot, RequestOutcome.DROPPED)
             self._replies.hold(query)
             return
         error = check_request(request, robot=robot, digest=self._digest, cut_specs=self._cut_specs)
@@ -124,7 +124,7 @@ class Admission:
             reply = ErrorReply.make(
                 ErrorCode.NOT_SERVING, f"{self.deployment} does not serve {robot} now"
             )
-            self._outcome(robot, Outcome.NOT_SERVING)
+            self._outcome(robot, RequestOutcome.NOT_SERVING)
             self._replies.send(query, key, reply.to_wire(), delay_s)
             return
         item = Pending(
@@ -169,6 +169,6 @@ class Admission:
         if self._metrics is not None:
             self._metrics.refused(robot, reason)
 
-    def _outcome(self, robot: str, outcome: Outcome) -> None:
+    def _outcome(self, robot: str, outcome: RequestOutcome) -> None:
         if self._metrics is not None:
             self._metrics.request(robot, outcome)

@@ -77,7 +77,7 @@ from cloudd.registry_link import DRAIN_TIMEOUT_S, RegistryLink
 from cloudd.replies import Replier
 from cloudd.robot_book import RobotBook
 from cloudd.service_keys import ServiceKeys
-from cloudd.state import RobotState
+from cloudd.state import RobotServiceState
 from cloudd.suffixes import open_split_model, warm_suffixes
 from cloudd.workers import BatchWorkers
 from common import keys
@@ -228,7 +228,7 @@ class CloudDaemon(Daemon):
             self._drain_on_exit = True
         super().stop()
 
-    def states(self) -> dict[str, RobotState]:
+    def states(self) -> dict[str, RobotServiceState]:
         """Every known robot's state and epoch here."""
         return self._book.states()
 
@@ -298,7 +298,9 @@ class CloudDaemon(Daemon):
             "registry membership",
         )
         self.announce(
-            session.liveliness().declare_token(keys.alive_cloud(self.cfg.fleet, self.deployment))
+            session.liveliness().declare_token(
+                keys.alive_deployment(self.cfg.fleet, self.deployment)
+            )
         )
         log.info(
             "%s: ready: service %r, %d cuts warm, %d workers, %d slots, at most %d per robot, "

@@ -21,13 +21,13 @@ from prometheus_client import CollectorRegistry, Counter, Histogram
 from prometheus_client.core import GaugeMetricFamily, InfoMetricFamily, Metric
 
 from cloudd.refusals import RefusalReason
-from cloudd.state import RobotState
+from cloudd.state import RobotServiceState
 from common.metrics import BATCH_SIZE_BUCKETS, LATENCY_BUCKETS_S, NAMESPACE, ReadCollector
 from common.wire import ErrorCode
 from common.wire.registry import DeploymentState
 
 
-class Outcome(str, enum.Enum):
+class RequestOutcome(str, enum.Enum):
     """What became of an inference request (the `outcome` label)."""
 
     OK = "ok"  # answered with its outputs
@@ -45,14 +45,14 @@ class Outcome(str, enum.Enum):
 
 
 REFUSAL_OUTCOMES = {
-    RefusalReason.REQUEST_TOO_LARGE: Outcome.TOO_LARGE,
-    RefusalReason.TENSOR_TOO_LARGE: Outcome.TOO_LARGE,
-    RefusalReason.ECHO_TOO_LARGE: Outcome.TOO_LARGE,
-    RefusalReason.WRONG_ROBOT: Outcome.WRONG_ROBOT,
-    RefusalReason.ROBOT_IN_FLIGHT: Outcome.BUSY,
-    RefusalReason.QUEUE_FULL: Outcome.BUSY,
-    RefusalReason.STOPPING: Outcome.BUSY,
-    RefusalReason.BAD_REQUEST: Outcome.BAD_REQUEST,
+    RefusalReason.REQUEST_TOO_LARGE: RequestOutcome.TOO_LARGE,
+    RefusalReason.TENSOR_TOO_LARGE: RequestOutcome.TOO_LARGE,
+    RefusalReason.ECHO_TOO_LARGE: RequestOutcome.TOO_LARGE,
+    RefusalReason.WRONG_ROBOT: RequestOutcome.WRONG_ROBOT,
+    RefusalReason.ROBOT_IN_FLIGHT: RequestOutcome.BUSY,
+    RefusalReason.QUEUE_FULL: RequestOutcome.BUSY,
+    RefusalReason.STOPPING: RequestOutcome.BUSY,
+    RefusalReason.BAD_REQUEST: RequestOutcome.BAD_REQUEST,
 }
 """The outcome of a request refused for each counted reason."""
 
@@ -62,16 +62,18 @@ in flight than the cap is counted once at its service ctl (`cloudd.control`); it
 the cap are then refused one by one as `robot_in_flight` (`busy`)."""
 
 ERROR_OUTCOMES = {
-    ErrorCode.DEADLINE_EXPIRED: Outcome.EXPIRED,
-    ErrorCode.NOT_SERVING: Outcome.NOT_SERVING,
+    ErrorCode.DEADLINE_EXPIRED: RequestOutcome.EXPIRED,
+    ErrorCode.NOT_SERVING: RequestOutcome.NOT_SERVING,
 }
 """The outcome of an error reply by its code; any other code a worker answers is `error`."""
 
 
-def error_outcome(code: ErrorCode | None) -> Outcome:
+def error_outcome(code: ErrorCode | None) -> RequestOutcome:
     """The outcome of a request a worker answered with error `code` (None: a code this build
     does not know)."""
-    return ERROR_OUTCOMES.get(code, Outcome.ERROR) if code is not None else Outcome.ERROR
+    return (
+        ERROR_OUTCOMES.get(code, RequestOutcome.ERROR) if code is not None else RequestOutcome.ERROR
+    )
 
 
 class CloudMetrics:
@@ -87,7 +89,7 @@ class CloudMetrics:
         registry: CollectorRegistry,
         deployment: str,
         *,
-        states: Callable[[], dict[str, RobotState]],
+        states: Callable[[], dict[str, RobotServiceState]],
         queue: Callable[[], tuple[int, int, int] | None],
         providers: Callable[[], Sequence[str]],
         model: Callable[[], tuple[str, str]],
@@ -133,11 +135,11 @@ class CloudMetrics:
             buckets=BATCH_SIZE_BUCKETS,
             registry=registry,
         ).labels(deployment)
-        self._by: dict[tuple[str, Outcome], Counter] = {}
+        self._by: dict[tuple[str, RequestOutcome], Counter] = {}
         registry.register(ReadCollector(self._read, "the deployment's queue and states"))
 
     # -- counted where the daemon decides ------------------------------------------------------
-    def request(self, robot: str, outcome: Outcome) -> None:
+    def request(self, robot: str, outcome: RequestOutcome) -> None:
         """One request of `robot` came to `outcome`."""
         key = (robot, outcome)
         counter = self._by.get(key)
@@ -151,7 +153,7 @@ class CloudMetrics:
 
     def answered(self, robot: str, queue_s: float, compute_s: float) -> None:
         """One request of `robot` answered with its outputs, after these seconds."""
-        self.request(robot, Outcome.OK)
+        self.request(robot, RequestOutcome.OK)
         self._queue_s.observe(queue_s)
         self._compute_s.observe(compute_s)
 
@@ -211,6 +213,6 @@ __all__ = [
     "NOT_REQUESTS",
     "REFUSAL_OUTCOMES",
     "CloudMetrics",
-    "Outcome",
+    "RequestOutcome",
     "error_outcome",
 ]

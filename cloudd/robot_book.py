@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import zenoh
 
-from cloudd.state import RobotState, StateTable, Verdict
+from cloudd.state import RobotServiceState, StateTable, Verdict
 from common.wire.registry import CtlOp
 
 STOPPING_REASON = "this deployment is stopping"
@@ -64,7 +64,7 @@ class RobotBook:
         self._services: dict[str, ServiceQueryables] = {}
 
     # -- views -----------------------------------------------------------------------------
-    def states(self) -> dict[str, RobotState]:
+    def states(self) -> dict[str, RobotServiceState]:
         """Every known robot's state and epoch here."""
         with self._lock:
             return self._states.snapshot()
@@ -74,7 +74,7 @@ class RobotBook:
         with self._lock:
             return dict(self._served)
 
-    def snapshot(self) -> tuple[dict[str, RobotState], dict[str, int]]:
+    def snapshot(self) -> tuple[dict[str, RobotServiceState], dict[str, int]]:
         """States and frames served, read together."""
         with self._lock:
             return self._states.snapshot(), dict(self._served)
@@ -117,7 +117,7 @@ class RobotBook:
         with self._lock:
             self._states.restore(verdict)
 
-    def drain_robot(self, robot: str) -> RobotState:
+    def drain_robot(self, robot: str) -> RobotServiceState:
         """Mark one robot draining if it is in service; its state afterwards."""
         with self._lock:
             return self._states.drain_robot(robot)

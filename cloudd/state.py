@@ -31,7 +31,7 @@ _SERVING = (DeploymentState.SERVICE, DeploymentState.DRAINING)
 
 
 @dataclass(frozen=True)
-class RobotState:
+class RobotServiceState:
     """One robot's state at this deployment and the epoch of the last accepted request."""
 
     state: DeploymentState = DeploymentState.STANDBY
@@ -56,8 +56,8 @@ class Verdict:
 
     ok: bool
     robot: str
-    after: RobotState
-    before: RobotState
+    after: RobotServiceState
+    before: RobotServiceState
     reason: str = ""
 
     @property
@@ -75,15 +75,17 @@ class StateTable:
     """Per-robot states of one deployment. Not locked: the daemon serializes access."""
 
     def __init__(self, robots: Iterable[str] = ()) -> None:
-        self._robots: dict[str, RobotState] = {robot: RobotState() for robot in robots}
+        self._robots: dict[str, RobotServiceState] = {
+            robot: RobotServiceState() for robot in robots
+        }
         self.draining = False
 
     # -- reading ---------------------------------------------------------------------------
-    def get(self, robot: str) -> RobotState:
+    def get(self, robot: str) -> RobotServiceState:
         """The robot's state (standby without an epoch for a robot never named)."""
-        return self._robots.get(robot, RobotState())
+        return self._robots.get(robot, RobotServiceState())
 
-    def snapshot(self) -> dict[str, RobotState]:
+    def snapshot(self) -> dict[str, RobotServiceState]:
         """Every known robot's state."""
         return dict(self._robots)
 
@@ -99,7 +101,7 @@ class StateTable:
             who = "this deployment is" if self.draining else f"{robot} is"
             return self._refuse(robot, current, f"{who} draining: no robot taken into service")
         if epoch > current.epoch:
-            return self._accept(robot, current, RobotState(DeploymentState.SERVICE, epoch))
+            return self._accept(robot, current, RobotServiceState(DeploymentState.SERVICE, epoch))
         if epoch == current.epoch and current.state is DeploymentState.SERVICE:
             return self._accept(robot, current, current)  # the same request again: idempotent
         return self._refuse(
@@ -113,7 +115,7 @@ class StateTable:
         """The verdict on `standby(robot, epoch)`."""
         current = self.get(robot)
         if epoch >= current.epoch:
-            return self._accept(robot, current, RobotState(DeploymentState.STANDBY, epoch))
+            return self._accept(robot, current, RobotServiceState(DeploymentState.STANDBY, epoch))
         return self._refuse(
             robot,
             current,
@@ -132,11 +134,11 @@ class StateTable:
         if verdict.ok:
             self._robots[verdict.robot] = verdict.before
 
-    def drain_robot(self, robot: str) -> RobotState:
+    def drain_robot(self, robot: str) -> RobotServiceState:
         """Mark one robot draining if it is in service; its state afterwards."""
         current = self.get(robot)
         if current.state is DeploymentState.SERVICE:
-            current = RobotState(DeploymentState.DRAINING, current.epoch)
+            current = RobotServiceState(DeploymentState.DRAINING, current.epoch)
             self._robots[robot] = current
         return current
 
@@ -146,9 +148,9 @@ class StateTable:
         return [robot for robot in list(self._robots) if self.drain_robot(robot).serving]
 
     @staticmethod
-    def _accept(robot: str, before: RobotState, after: RobotState) -> Verdict:
+    def _accept(robot: str, before: RobotServiceState, after: RobotServiceState) -> Verdict:
         return Verdict(ok=True, robot=robot, after=after, before=before)
 
     @staticmethod
-    def _refuse(robot: str, current: RobotState, reason: str) -> Verdict:
+    def _refuse(robot: str, current: RobotServiceState, reason: str) -> Verdict:
         return Verdict(ok=False, robot=robot, after=current, before=current, reason=reason)

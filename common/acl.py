@@ -89,7 +89,11 @@ def cloud_grants(cfg: FleetConfig, deployment: str) -> list[Grant]:
             "serve its fleet's service (and its own pool member keys); answer its own probe "
             "and ctl",
         ),
-        Grant((Message.LIVELINESS_TOKEN,), (keys.alive_cloud(fleet, deployment),), "its own token"),
+        Grant(
+            (Message.LIVELINESS_TOKEN,),
+            (keys.alive_deployment(fleet, deployment),),
+            "its own token",
+        ),
         Grant((Message.QUERY,), (keys.reg_drain(fleet),), "ask the registry to drain it"),
         Grant(FOLLOW_LIVELINESS, (keys.alive_all(fleet),), "follow the fleet's membership"),
     ]

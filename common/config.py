@@ -923,7 +923,7 @@ class FleetConfig(_Model):
                             f"fleet; robots: {', '.join(self.robot_ids) or 'none'}"
                         )
         for robot in self.robot_ids:
-            serving = [d for d in self.cloud_ids if self.initial_state(d, robot) == "service"]
+            serving = [d for d in self.deployment_ids if self.initial_state(d, robot) == "service"]
             if len(serving) != 1:
                 found = ", ".join(serving) if serving else "none"
                 raise ValueError(
@@ -964,7 +964,7 @@ class FleetConfig(_Model):
         return [i for i, m in self.machines.items() if m.role is Role.ROBOT]
 
     @property
-    def cloud_ids(self) -> list[str]:
+    def deployment_ids(self) -> list[str]:
         """Cloud machine (deployment) ids, in file order."""
         return [i for i, m in self.machines.items() if m.role is Role.CLOUD]
 
@@ -972,7 +972,7 @@ class FleetConfig(_Model):
         """The deployments that admit fewer of one robot's requests at once than a robot with
         `in_flight` frames in flight sends them (in round robin each member gets its share of
         the pool's), with what they admit (`batching.max_in_flight_per_robot`)."""
-        clouds = self.cloud_ids
+        clouds = self.deployment_ids
         members = min(self.dispatch.pool_limit() or len(clouds), len(clouds)) or 1
         each = math.ceil(in_flight / members)
         limits = {c: self.machines[c].batching.max_in_flight_per_robot for c in clouds}
@@ -1062,7 +1062,7 @@ class FleetConfig(_Model):
 
     def initial_service(self, robot: str) -> str | None:
         """The deployment serving `robot` at start (None when the fleet has no cloud for it)."""
-        for deployment in self.cloud_ids:
+        for deployment in self.deployment_ids:
             if self.initial_state(deployment, robot) == "service":
                 return deployment
         return None

@@ -156,7 +156,7 @@ def alive_registry(fleet: str, registry: str) -> str:
     return alive(fleet, "registry", registry)
 
 
-def alive_cloud(fleet: str, deployment: str) -> str:
+def alive_deployment(fleet: str, deployment: str) -> str:
     """`ef/<fleet>/alive/cloud/<deployment>`."""
     return alive(fleet, "cloud", deployment)
 
@@ -176,7 +176,7 @@ def alive_registries(fleet: str) -> str:
     return _join(prefix(fleet), "alive", "registry", "*")
 
 
-def alive_clouds(fleet: str) -> str:
+def alive_deployments(fleet: str) -> str:
     """`ef/<fleet>/alive/cloud/*`."""
     return _join(prefix(fleet), "alive", "cloud", "*")
 

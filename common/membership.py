@@ -44,7 +44,7 @@ SEED_TIMEOUT_S = 1.0
 # The subscription of a view that follows one role only (no key is formatted here).
 _ROLE_KEYS: dict[str, Callable[[str], str]] = {
     keys.Role.REGISTRY: keys.alive_registries,
-    keys.Role.CLOUD: keys.alive_clouds,
+    keys.Role.CLOUD: keys.alive_deployments,
     keys.Role.ROBOT: keys.alive_robots,
 }
 

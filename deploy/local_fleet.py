@@ -209,29 +209,31 @@ class LocalFleet:
             self._name(cloud_id), ["cloud", *self._config_args, "--id", cloud_id, *args]
         )
 
-    def start_clouds(self, cloud_ids: Sequence[str] | None = None, *args: str) -> list[DaemonProc]:
+    def start_clouds(
+        self, deployment_ids: Sequence[str] | None = None, *args: str
+    ) -> list[DaemonProc]:
         """Start cloud daemons side by side, then wait until every one is ready."""
-        ids = list(self.cfg.cloud_ids if cloud_ids is None else cloud_ids)
+        ids = list(self.cfg.deployment_ids if deployment_ids is None else deployment_ids)
         procs = [self.start_cloud(c, *args) for c in ids]
         self.wait_clouds(ids, procs=procs)
         return procs
 
     def wait_clouds(
-        self, cloud_ids: Sequence[str], *, procs: Sequence[DaemonProc] | None = None
+        self, deployment_ids: Sequence[str], *, procs: Sequence[DaemonProc] | None = None
     ) -> None:
         """Until each cloud's token is up and, if a registry runs, it lists them as alive."""
         from common import keys
 
         self.tokens.wait_for(
-            [keys.alive_cloud(self.fleet, c) for c in cloud_ids],
+            [keys.alive_deployment(self.fleet, c) for c in deployment_ids],
             timeout_s=self.startup_timeout_s,
             procs=procs,
         )
         if self.registry_alive():
             wait_until(
-                lambda: self._registered(cloud_ids),
+                lambda: self._registered(deployment_ids),
                 timeout_s=self.startup_timeout_s,
-                what=f"the registry to register {', '.join(cloud_ids)}",
+                what=f"the registry to register {', '.join(deployment_ids)}",
                 procs=procs,
             )
 
@@ -312,9 +314,9 @@ class LocalFleet:
                 return row
         return None
 
-    def _registered(self, cloud_ids: Sequence[str]) -> bool:
+    def _registered(self, deployment_ids: Sequence[str]) -> bool:
         alive = {row.id for row in self.view("deployments", timeout_s=1.0) if row.alive}
-        return all(c in alive for c in cloud_ids)
+        return all(c in alive for c in deployment_ids)
 
     def probe(self, deployment: str, *, timeout_s: float = 2.0) -> Any:
         """The ProbeReply of `deployment` (DaemonError if it does not answer)."""

@@ -406,20 +406,20 @@ class TestbedFleet:
         return proc
 
     def start_clouds(
-        self, cloud_ids: Sequence[str], *, wait_registered: bool = True
+        self, deployment_ids: Sequence[str], *, wait_registered: bool = True
     ) -> list[NetnsDaemon]:
         """Cloud daemons on their hosts, side by side; waits for their tokens and, with
         `wait_registered`, until the registry lists them as alive."""
         cfg, observer = self._require_run()
-        self.log(f"starting {', '.join(cloud_ids)}")
+        self.log(f"starting {', '.join(deployment_ids)}")
         procs = [
             self._start(c, self._unique(c), ["cloud", "--config", str(self.config), "--id", c])
-            for c in cloud_ids
+            for c in deployment_ids
         ]
-        for cloud, proc in zip(cloud_ids, procs, strict=True):
-            self._wait_token(keys.alive_cloud(cfg.fleet, cloud), proc)
+        for cloud, proc in zip(deployment_ids, procs, strict=True):
+            self._wait_token(keys.alive_deployment(cfg.fleet, cloud), proc)
         if wait_registered:
-            wanted = set(cloud_ids)
+            wanted = set(deployment_ids)
 
             def registered() -> bool:
                 rows = observer.view("deployments", timeout_s=2.0)
@@ -428,7 +428,7 @@ class TestbedFleet:
             wait_until(
                 registered,
                 timeout_s=self.startup_timeout_s,
-                what=f"the registry to register {', '.join(cloud_ids)}",
+                what=f"the registry to register {', '.join(deployment_ids)}",
                 procs=procs,
                 interval_s=0.2,
             )

@@ -150,7 +150,7 @@ def parse_batching(text: str) -> list[bool]:
     return modes[text]
 
 
-def cloud_ids(deployments: int) -> list[str]:
+def deployment_ids(deployments: int) -> list[str]:
     return [f"edge-{i}" for i in range(1, deployments + 1)]
 
 
@@ -161,7 +161,7 @@ def robot_ids(robots: int) -> list[str]:
 def fleet_changes(options: ScaleOptions, deployments: int, batching: bool) -> dict[str, Any]:
     """What the bench changes in `elasticfog init`'s fleet: the model, the deadline and bound,
     the deployments (workers, batching) and the robots, robot i served by deployment i mod D."""
-    clouds = cloud_ids(deployments)
+    clouds = deployment_ids(deployments)
     robots = robot_ids(max(options.robots))
     section = {
         "enabled": batching,
@@ -231,7 +231,7 @@ def running_fleet(
     with LocalFleet(path, directory, startup_timeout_s=ROUTED_TIMEOUT_S) as lf:
         options.log(f"{label}: starting the registry and {deployments} cloud daemon(s)")
         registry = lf.start_registry()
-        clouds = lf.start_clouds(cloud_ids(deployments))
+        clouds = lf.start_clouds(deployment_ids(deployments))
         fleet = RunningFleet(cfg, registry, clouds)
         if not options.pin_cloud:
             yield fleet

@@ -87,7 +87,7 @@ class Command:
 
 
 @dataclass(frozen=True)
-class Decision:
+class ControlDecision:
     """The command sent to the robot and why; ``free_m`` is s_j (None when not computed)."""
 
     command: Command
@@ -125,7 +125,7 @@ class SharedControl:
         self._t_frame = t_frame
         return True
 
-    def command(self, joystick: Command, t_now: float) -> Decision:
+    def command(self, joystick: Command, t_now: float) -> ControlDecision:
         """The command to send at ``t_now`` for this joystick position."""
         v_j, w_j = joystick.v_mps, joystick.w_radps
         if not (math.isfinite(v_j) and math.isfinite(w_j) and math.isfinite(t_now)):
@@ -150,10 +150,10 @@ class SharedControl:
 
     def _send(
         self, command: Command, limit: Limit, t_now: float, free: float | None = None
-    ) -> Decision:
+    ) -> ControlDecision:
         self._v_sent = max(command.v_mps, 0.0)
         self._t_sent = t_now
-        return Decision(command, limit, free)
+        return ControlDecision(command, limit, free)
 
 
 def _same_curvature(joystick: Command, v_mps: float) -> Command:

@@ -34,11 +34,11 @@ from registry.deployment_table import deployment_table
 from registry.measurements import Measurements
 from registry.metrics import RESTORE, RegistryMetrics
 from registry.pool_keeper import PoolKeeper
-from registry.prober import Probed, Prober
+from registry.prober import Probed, RegistryProber
 from registry.registration import Registrar, RegistrationState
 from registry.replies import answer, error_payload
 from registry.requests import QueuedRequest, drain, reroute, route_change
-from registry.rib import Rib, RobotRow, RouteRow
+from registry.rib import Rib, RibRobotRow, RibRouteRow
 from registry.round_inputs import prefer_initial, robot_view, waiting_for
 from registry.scheduler import DeploymentTable, Reason, RouteDecision, Scheduler
 from registry.switch import Switcher, SwitchOutcome, SwitchResult, TransportError, carry_out
@@ -67,7 +67,7 @@ class ControlLoop:
     transport: ZenohTransport
     switcher: Switcher
     registrar: Registrar
-    prober: Prober
+    prober: RegistryProber
     pools: PoolKeeper | None  # round robin only
     scheduler: Scheduler
     measurements: Measurements
@@ -232,7 +232,7 @@ class ControlLoop:
         robot: str,
         *,
         unusable: frozenset[str] = frozenset(),
-        read: tuple[RobotRow | None, RouteRow | None, DeploymentTable] | None = None,
+        read: tuple[RibRobotRow | None, RibRouteRow | None, DeploymentTable] | None = None,
     ) -> SwitchResult | None:
         """Ask the scheduler about one robot and carry out its decision (control loop only).
         `read`: the robot's row, its route and the deployments as the round read them (else

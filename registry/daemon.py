@@ -72,7 +72,7 @@ from registry.measurements import Measurements
 from registry.metrics import RegistryMetrics
 from registry.pool_keeper import pool_keeper
 from registry.pools import pool_planner
-from registry.prober import Prober
+from registry.prober import RegistryProber
 from registry.profile_saver import PacedSaver
 from registry.publications import PublicationReader
 from registry.refusals import Refusals
@@ -237,7 +237,7 @@ class RegistryDaemon(Daemon):
             fleet_model_digest(cfg),
             max_request_bytes=self.max_request_bytes,
         )
-        prober = Prober(transport, self.id, self._events.put, self.closing)
+        prober = RegistryProber(transport, self.id, self._events.put, self.closing)
         self.on_release(prober.close, what="probe pool")
         # After the queryables are gone: what they queued gets a refusal instead of a timeout.
         self.on_release(refuse_queued, self._events, what="queued requests")

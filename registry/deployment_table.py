@@ -8,12 +8,12 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 
-from registry.rib import DeploymentRow
+from registry.rib import RibDeploymentRow
 from registry.scheduler import DeploymentTable, DeploymentView
 
 
 def deployment_table(
-    rows: Iterable[DeploymentRow], unusable: frozenset[str] = frozenset()
+    rows: Iterable[RibDeploymentRow], unusable: frozenset[str] = frozenset()
 ) -> DeploymentTable:
     """The scheduler's view of the RIB's deployments; those `unusable` count as dead."""
     return DeploymentTable(

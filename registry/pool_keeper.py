@@ -14,7 +14,7 @@ import time
 from collections.abc import Callable
 
 from registry.pools import POOL_RETRY_S, PoolPlanner
-from registry.rib import RouteRow
+from registry.rib import RibRouteRow
 from registry.switch import Switcher
 
 log = logging.getLogger("registry.pools")  # the pools' lines under one logger
@@ -40,7 +40,7 @@ class PoolKeeper:
         self._clock = clock
         self._after: dict[str, float] = {}  # robot -> clock time of its next rebuild
 
-    def tend(self, route: RouteRow, usable: set[str]) -> None:
+    def tend(self, route: RibRouteRow, usable: set[str]) -> None:
         """Rebuild `route`'s pool if it needs it (`PoolPlanner.needs_repool`)."""
         if self.planner.needs_repool(route, usable):
             self.rebuild(route.robot, "pool")

@@ -23,7 +23,7 @@ from collections import Counter
 from collections.abc import Iterable, Sequence
 
 from common.config import DispatchMode, FleetConfig
-from registry.rib import DeploymentRow, Rib, RouteRow
+from registry.rib import Rib, RibDeploymentRow, RibRouteRow
 
 log = logging.getLogger(__name__)
 
@@ -58,7 +58,7 @@ class PoolPlanner:
         size = self.limit or len(usable) + 1
         return [primary, *others[: max(0, size - 1)]]
 
-    def needs_repool(self, route: RouteRow, usable: set[str]) -> bool:
+    def needs_repool(self, route: RibRouteRow, usable: set[str]) -> bool:
         """Whether `route`'s pool should change: a member is gone or draining, or the pool is
         short of its size while a usable deployment (of `usable(...)`, read once a round) is
         outside it."""
@@ -72,14 +72,14 @@ class PoolPlanner:
         size = self.limit or len(usable)
         return len(pool) < size and any(d not in pool for d in usable)
 
-    def usable(self, deployments: Iterable[DeploymentRow]) -> set[str]:
+    def usable(self, deployments: Iterable[RibDeploymentRow]) -> set[str]:
         """The deployments that may be pool members: alive, not draining, of the service."""
         return {
             d.id for d in deployments if d.alive and not d.draining and d.service == self._service
         }
 
 
-def _serving(route: RouteRow) -> Sequence[str]:
+def _serving(route: RibRouteRow) -> Sequence[str]:
     if route.pool:
         return route.pool
     return (route.deployment,) if route.deployment is not None else ()

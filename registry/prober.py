@@ -1,8 +1,8 @@
 """Probing deployments off the control loop: registration, and a refresh every few seconds.
 
 A probe is a Zenoh get with a timeout (`registry.transport`), up to half a second, tried up to
-three times for a registration: the control loop must not wait on it. `Prober` runs probes on a
-small pool and hands each outcome, a `Probed`, to a callback (the daemon queues it for the
+three times for a registration: the control loop must not wait on it. `RegistryProber` runs probes
+on a small pool and hands each outcome, a `Probed`, to a callback (the daemon queues it for the
 control loop, which alone decides). `close()` cancels the probes not started, lets the running
 ones finish (they stop retrying once the daemon is closing) and waits for them; after it, nothing
 is probed.
@@ -36,8 +36,9 @@ class Probed:
     refresh: bool
 
 
-class Prober:
-    """`Prober(transport, sender, on_probed, closing)`; `submit(deployment, refresh=...)`."""
+class RegistryProber:
+    """`RegistryProber(transport, sender, on_probed, closing)`; `submit(deployment,
+    refresh=...)`."""
 
     def __init__(
         self,

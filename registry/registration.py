@@ -35,7 +35,7 @@ from common.models import file_digest
 from common.wire import registry as msg
 from registry.deployment_table import deployment_table
 from registry.replies import answer, decode_query
-from registry.rib import EventKind, Rib, RouteRow
+from registry.rib import EventKind, Rib, RibRouteRow
 from registry.scheduler import Reason, RobotView, no_room_for
 
 log = logging.getLogger(__name__)
@@ -265,7 +265,7 @@ class Registrar:
             at=time.time(),
         )
 
-    def _route_reason(self, row: RouteRow) -> str:
+    def _route_reason(self, row: RibRouteRow) -> str:
         """Why a robot has its route, for the registration reply: `current` for a deployment;
         for none, the reason it was given (`no_capacity`: every deployment full), so a robot
         that registers again learns why it computes locally, as it did from the route change."""

@@ -30,15 +30,15 @@ from typing import Any
 # callers).
 from common.wire.registry import DeploymentState
 from registry.rib_events import EventKind as EventKind  # re-exported
-from registry.rib_events import EventRow as EventRow
+from registry.rib_events import RibEventRow as RibEventRow
 from registry.rib_events import RibEvents
-from registry.rib_profiles import ProfileRow as ProfileRow  # re-exported
+from registry.rib_profiles import RibProfileRow as RibProfileRow  # re-exported
 from registry.rib_store import MEMORY as MEMORY  # re-exported: callers open Rib(MEMORY)
 from registry.rib_store import SCHEMA_VERSION as SCHEMA_VERSION
 
 
 @dataclass(frozen=True)
-class DeploymentRow:
+class RibDeploymentRow:
     """A cloud/edge deployment as the registry last saw it."""
 
     id: str
@@ -57,7 +57,7 @@ class DeploymentRow:
 
 
 @dataclass(frozen=True)
-class RobotRow:
+class RibRobotRow:
     """A robot as the registry last saw it."""
 
     id: str
@@ -71,7 +71,7 @@ class RobotRow:
 
 
 @dataclass(frozen=True)
-class RouteRow:
+class RibRouteRow:
     """Which deployment serves a robot (None: the robot computes locally), under which epoch;
     `pool`: in a round-robin fleet every deployment serving it, `deployment` first (empty in an
     anycast fleet)."""
@@ -88,7 +88,7 @@ class RouteRow:
 
 
 @dataclass(frozen=True)
-class DeploymentStateRow:
+class RibDeploymentStateRow:
     """One deployment's state for one robot."""
 
     deployment: str
@@ -215,11 +215,11 @@ class Rib(RibEvents):
             )
             return conn.total_changes - before
 
-    def deployments(self) -> list[DeploymentRow]:
+    def deployments(self) -> list[RibDeploymentRow]:
         """Every known deployment, by id."""
         return [_deployment_row(r) for r in self._query("SELECT * FROM deployments ORDER BY id")]
 
-    def deployment(self, deployment: str) -> DeploymentRow | None:
+    def deployment(self, deployment: str) -> RibDeploymentRow | None:
         """One deployment, or None when unknown."""
         rows = self._query("SELECT * FROM deployments WHERE id = ?", (deployment,))
         return _deployment_row(rows[0]) if rows else None
@@ -254,11 +254,11 @@ class Rib(RibEvents):
             self._event(conn, kind, robot, None, None, reason)
             return True
 
-    def robots(self) -> list[RobotRow]:
+    def robots(self) -> list[RibRobotRow]:
         """Every known robot, by id."""
         return [_robot_row(r) for r in self._query("SELECT * FROM robots ORDER BY id")]
 
-    def live_robots(self) -> list[tuple[RobotRow, RouteRow | None]]:
+    def live_robots(self) -> list[tuple[RibRobotRow, RibRouteRow | None]]:
         """Every live robot with its route (None when it never had one), by robot: what a
         scheduling round reads, in one query rather than two per robot."""
         rows = self._query(
@@ -269,14 +269,14 @@ class Rib(RibEvents):
         return [
             (
                 _robot_row(r),
-                RouteRow(r["id"], r["deployment"], r["epoch"], r["since"], _pool(r["pool"]))
+                RibRouteRow(r["id"], r["deployment"], r["epoch"], r["since"], _pool(r["pool"]))
                 if r["epoch"] is not None
                 else None,
             )
             for r in rows
         ]
 
-    def robot(self, robot: str) -> RobotRow | None:
+    def robot(self, robot: str) -> RibRobotRow | None:
         """One robot, or None when unknown."""
         rows = self._query("SELECT * FROM robots WHERE id = ?", (robot,))
         return _robot_row(rows[0]) if rows else None
@@ -308,7 +308,7 @@ class Rib(RibEvents):
 
     def deployment_states(
         self, *, robot: str | None = None, deployment: str | None = None
-    ) -> list[DeploymentStateRow]:
+    ) -> list[RibDeploymentStateRow]:
         """States, optionally of one robot or one deployment."""
         where, params = [], []
         if robot is not None:
@@ -322,7 +322,7 @@ class Rib(RibEvents):
             f"SELECT * FROM deployment_states {clause} ORDER BY robot, deployment", params
         )
         return [
-            DeploymentStateRow(
+            RibDeploymentStateRow(
                 deployment=r["deployment"],
                 robot=r["robot"],
                 state=DeploymentState(r["state"]),
@@ -362,7 +362,7 @@ class Rib(RibEvents):
         reason: str = "",
         *,
         pool: Sequence[str] = (),
-    ) -> RouteRow:
+    ) -> RibRouteRow:
         """Persist a route (None: the robot computes locally) under an epoch from `reserve_epoch`.
 
         Epochs only grow: an epoch not newer than the current route's is refused. The new
@@ -409,16 +409,16 @@ class Rib(RibEvents):
                 epoch,
                 f"{reason}: {moved}" if reason else moved,
             )
-        return RouteRow(
+        return RibRouteRow(
             robot=robot, deployment=deployment, epoch=epoch, since=now, pool=tuple(pool)
         )
 
-    def route(self, robot: str) -> RouteRow | None:
+    def route(self, robot: str) -> RibRouteRow | None:
         """A robot's route, or None when it never had one (a reserved epoch alone is no route)."""
         rows = self._query("SELECT * FROM routes WHERE robot = ? AND epoch > 0", (robot,))
         return _route_row(rows[0]) if rows else None
 
-    def routes(self) -> list[RouteRow]:
+    def routes(self) -> list[RibRouteRow]:
         """Every route, by robot."""
         return [
             _route_row(r)
@@ -436,8 +436,8 @@ class Rib(RibEvents):
         return int(rows[0][0]) if rows else 0
 
 
-def _deployment_row(r: sqlite3.Row) -> DeploymentRow:
-    return DeploymentRow(
+def _deployment_row(r: sqlite3.Row) -> RibDeploymentRow:
+    return RibDeploymentRow(
         id=r["id"],
         service=r["service"],
         model_digest=r["model_digest"],
@@ -450,14 +450,14 @@ def _deployment_row(r: sqlite3.Row) -> DeploymentRow:
     )
 
 
-def _robot_row(r: sqlite3.Row) -> RobotRow:
-    return RobotRow(
+def _robot_row(r: sqlite3.Row) -> RibRobotRow:
+    return RibRobotRow(
         id=r["id"], service=r["service"], alive=bool(r["alive"]), last_seen=r["last_seen"]
     )
 
 
-def _route_row(r: sqlite3.Row) -> RouteRow:
-    return RouteRow(
+def _route_row(r: sqlite3.Row) -> RibRouteRow:
+    return RibRouteRow(
         robot=r["robot"],
         deployment=r["deployment"],
         epoch=r["epoch"],

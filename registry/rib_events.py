@@ -43,7 +43,7 @@ class EventKind(str, Enum):
 
 
 @dataclass(frozen=True)
-class EventRow:
+class RibEventRow:
     """One recorded transition."""
 
     seq: int
@@ -107,7 +107,7 @@ class RibEvents(RibProfiles):
         *,
         robot: str | None = None,
         kind: str | None = None,
-    ) -> list[EventRow]:
+    ) -> list[RibEventRow]:
         """The newest `limit` events (optionally of one robot or kind), oldest first."""
         if isinstance(limit, bool) or not isinstance(limit, int) or limit < 1:
             raise ValueError(f"events limit must be an integer >= 1, got {limit!r}")
@@ -123,7 +123,7 @@ class RibEvents(RibProfiles):
             f"SELECT * FROM events {clause} ORDER BY seq DESC LIMIT ?", [*params, limit]
         )
         return [
-            EventRow(
+            RibEventRow(
                 seq=r["seq"],
                 ts=r["ts"],
                 kind=r["kind"],

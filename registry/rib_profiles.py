@@ -19,7 +19,7 @@ from registry.rib_store import RibStore
 
 
 @dataclass(frozen=True)
-class ProfileRow:
+class RibProfileRow:
     """Persisted latency samples of one robot × deployment × source (oldest first)."""
 
     robot: str
@@ -82,7 +82,7 @@ class RibProfiles(RibStore):
             )
         return written
 
-    def profiles(self, robot: str | None = None) -> list[ProfileRow]:
+    def profiles(self, robot: str | None = None) -> list[RibProfileRow]:
         """Persisted profiles, optionally of one robot."""
         if robot is None:
             rows = self._query("SELECT * FROM profiles ORDER BY robot, deployment, source")
@@ -91,7 +91,7 @@ class RibProfiles(RibStore):
                 "SELECT * FROM profiles WHERE robot = ? ORDER BY deployment, source", (robot,)
             )
         return [
-            ProfileRow(
+            RibProfileRow(
                 robot=r["robot"],
                 deployment=r["deployment"],
                 source=r["source"],

@@ -1,6 +1,6 @@
 """What the scheduler remembers per robot between rounds, and how that memory ages.
 
-Per robot (`RobotState`): when it last moved, when the triggers that wait (violation, busy,
+Per robot (`RobotMemoryEntry`): when it last moved, when the triggers that wait (violation, busy,
 better) started, when an attempt to move it found no taker, whether it was told there is no
 capacity, and the deployments it left: for being slow (`left_at`: penalized until their probes
 have met the bound for `recovery_s`; a deployment that goes away is forgotten, as one that comes
@@ -33,7 +33,7 @@ def recent_profile(stats: WindowStats | None, now: float, max_age_s: float) -> W
 
 
 @dataclass
-class RobotState:
+class RobotMemoryEntry:
     """One robot's memory (see the module docstring); times from the scheduler's clock."""
 
     last_switch_at: float | None = None
@@ -51,7 +51,8 @@ class RobotState:
 
 
 class RobotMemory:
-    """Every robot's `RobotState`, the busy arrivals per deployment, and the penalties' aging."""
+    """Every robot's `RobotMemoryEntry`, the busy arrivals per deployment, and the penalties'
+    aging."""
 
     def __init__(
         self,
@@ -67,15 +68,15 @@ class RobotMemory:
         self._recovery_s = recovery_s
         self._min_probe_samples = min_probe_samples
         self._profile_max_age_s = profile_max_age_s
-        self._robots: dict[str, RobotState] = {}
+        self._robots: dict[str, RobotMemoryEntry] = {}
         # deployment -> when a robot was last moved there for `busy` (the arrival gap).
         self.busy_arrivals: dict[str, float] = {}
 
-    def state(self, robot: str) -> RobotState:
+    def state(self, robot: str) -> RobotMemoryEntry:
         """The robot's memory, made empty on first use."""
         st = self._robots.get(robot)
         if st is None:
-            st = self._robots[robot] = RobotState()
+            st = self._robots[robot] = RobotMemoryEntry()
         return st
 
     def moved(
@@ -129,7 +130,7 @@ class RobotMemory:
         st = self._robots.get(robot)
         return frozenset(st.left_at) if st else frozenset()
 
-    def avoided(self, st: RobotState, deployment: str, now: float) -> bool:
+    def avoided(self, st: RobotMemoryEntry, deployment: str, now: float) -> bool:
         """Whether a move by choice must not go to `deployment`: left for being slow and not
         recovered, or left for `busy` within flap_window_s."""
         if deployment in st.left_at:
@@ -144,7 +145,7 @@ class RobotMemory:
 
     def update_recovery(
         self,
-        st: RobotState,
+        st: RobotMemoryEntry,
         by_id: Mapping[str, _Liveness],
         profiles: Mapping[str, WindowStats],
         now: float,

@@ -23,7 +23,7 @@ from dataclasses import replace
 from common.config import FleetConfig
 from registry.measurements import RobotMeasures
 from registry.registration import Registrar, RegistrationState
-from registry.rib import RobotRow
+from registry.rib import RibRobotRow
 from registry.scheduler import (
     Reason,
     RobotView,
@@ -33,7 +33,7 @@ from registry.scheduler import (
 
 def robot_view(
     robot: str,
-    row: RobotRow | None,
+    row: RibRobotRow | None,
     route: str | None,
     measures: RobotMeasures,
     *,

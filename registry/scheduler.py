@@ -74,7 +74,7 @@ from enum import Enum
 
 from common.wire.registry import NO_CAPACITY_REASON
 from registry.latency import LatencyBound, Profiles, WindowStats
-from registry.robot_memory import RobotMemory, RobotState, recent_profile
+from registry.robot_memory import RobotMemory, RobotMemoryEntry, recent_profile
 
 DEFAULT_MIN_DWELL_S = 3.0
 DEFAULT_TIMEOUT_COUNT = 3
@@ -408,7 +408,7 @@ class Scheduler:
         return self._on_improvement(robot, current, targets, reference, st, now)
 
     def _forced(
-        self, robot: RobotView, reason: Reason, ranked: list[_Candidate], st: RobotState
+        self, robot: RobotView, reason: Reason, ranked: list[_Candidate], st: RobotMemoryEntry
     ) -> RouteDecision | None:
         targets = [c for c in ranked if c.deployment.id != robot.route]
         if reason is Reason.TIMEOUTS and robot.offloaded:
@@ -500,7 +500,7 @@ class Scheduler:
         current: DeploymentView,
         table: DeploymentTable,
         profiles: Profiles,
-        st: RobotState,
+        st: RobotMemoryEntry,
         now: float,
     ) -> RouteDecision | None:
         # Any deployment with room beats frames finished on the robot, but one predicted to meet
@@ -525,7 +525,7 @@ class Scheduler:
         current: DeploymentView,
         targets: _Targets,
         reference: float | None,
-        st: RobotState,
+        st: RobotMemoryEntry,
         now: float,
     ) -> RouteDecision | None:
         if reference is None:
@@ -552,7 +552,7 @@ class Scheduler:
         return _move(robot.id, current.id, ranked, Reason.BETTER)
 
     # -- helpers ---------------------------------------------------------------------------------
-    def _dwelt(self, st: RobotState, now: float) -> bool:
+    def _dwelt(self, st: RobotMemoryEntry, now: float) -> bool:
         return st.last_switch_at is None or now - st.last_switch_at >= self.params.min_dwell_s
 
     def _reference(
@@ -560,7 +560,7 @@ class Scheduler:
         robot: RobotView,
         current: DeploymentView,
         profiles: Mapping[str, WindowStats],
-        st: RobotState,
+        st: RobotMemoryEntry,
         now: float,
     ) -> float | None:
         """The current deployment's latency on the same scale as the candidates' predictions.
@@ -593,7 +593,7 @@ class Scheduler:
         robot: RobotView,
         dep: DeploymentView,
         profiles: Mapping[str, WindowStats],
-        st: RobotState,
+        st: RobotMemoryEntry,
         now: float,
     ) -> _Candidate:
         stats = recent_profile(profiles.get(dep.id), now, self.params.profile_max_age_s)
@@ -616,7 +616,7 @@ class Scheduler:
         robot: RobotView,
         table: DeploymentTable,
         profiles: Mapping[str, WindowStats],
-        st: RobotState,
+        st: RobotMemoryEntry,
         now: float,
     ) -> list[_Candidate]:
         ranked = [
@@ -685,7 +685,7 @@ class _Targets:
         current: DeploymentView,
         table: DeploymentTable,
         profiles: Profiles,
-        st: RobotState,
+        st: RobotMemoryEntry,
         now: float,
     ) -> None:
         self._scheduler = scheduler

@@ -76,7 +76,7 @@ from robotd.frame_path.frame_loop import FrameLoop
 from robotd.frame_path.local_runs import LocalRunner
 from robotd.frame_path.model_runs import ModelRuns
 from robotd.frame_path.pacing import FramePacer, TimelinePacer, TokenBucket
-from robotd.frame_path.probes import PROBE_INTERVAL_S, CloudTime, Prober, probe_padding_bytes
+from robotd.frame_path.probes import PROBE_INTERVAL_S, CloudTime, RobotProber, probe_padding_bytes
 from robotd.frame_path.registry_link import REGISTRY_RETRY_INITIAL_S, RegistryLink
 from robotd.frame_path.request_sender import RequestSender
 from robotd.frame_path.service_match import ServiceMatch
@@ -451,13 +451,13 @@ class RobotDaemon(Daemon):
         padding = self.options.probe_padding_bytes
         if padding is None:
             padding = probe_padding_bytes([c.bytes for c in model.partition.cuts])
-        prober = Prober(
+        prober = RobotProber(
             session,
             self.fleet,
             self.robot,
             max_padding_bytes=padding,
             publish=self._sink.probe,
-            alive_clouds=lambda: set(members.ids("cloud")),
+            alive_deployments=lambda: set(members.ids("cloud")),
             cloud_time=self._cloud_time,
             interval_s=self.options.probe_interval_s,
             max_reply_bytes=cfg.max_payload_bytes,

@@ -106,7 +106,7 @@ class CloudTime:
             return self._value
 
 
-class Prober:
+class RobotProber:
     """Probes every deployment from its own thread; `start()`, then `stop()` (joins)."""
 
     def __init__(
@@ -117,7 +117,7 @@ class Prober:
         *,
         max_padding_bytes: int,
         publish: Callable[[ProbeReport], None],
-        alive_clouds: Callable[[], set[str]],
+        alive_deployments: Callable[[], set[str]],
         cloud_time: CloudTime,
         interval_s: float = PROBE_INTERVAL_S,
         timeout_s: float = PROBE_TIMEOUT_S,
@@ -129,7 +129,7 @@ class Prober:
         self.max_padding_bytes = max_padding_bytes
         self.padding_bytes = min(PROBE_MIN_PADDING_BYTES, max_padding_bytes)
         self._publish = publish
-        self._alive_clouds = alive_clouds
+        self._alive_clouds = alive_deployments
         self._cloud_time = cloud_time
         self.interval_s = interval_s
         self.timeout_s = timeout_s

@@ -157,7 +157,7 @@ def test_sigkill_of_the_serving_cloud_loses_no_frame(make_fleet, local_fleet, tm
     # ports chosen by the OS at start, which nothing told the robot.
     robot_settings = zenoh_settings(lf.cfg, machine=ROBOT)
     assert robot_settings["connect/endpoints"] == [lf.cfg.registry.endpoint]
-    for cloud in lf.cfg.cloud_ids:
+    for cloud in lf.cfg.deployment_ids:
         assert all(ep.endswith(":0") for ep in lf.cfg.machine(cloud).listen)
     assert "edge" not in str(fleet.data["machines"][ROBOT])
 

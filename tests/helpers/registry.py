@@ -219,7 +219,7 @@ class FakeDeployment:
             session.declare_queryable(keys.dep_probe(self.fleet, name), self._on_probe),
             session.declare_queryable(keys.dep_ctl(self.fleet, name), self._on_ctl),
         ]
-        self.token = session.liveliness().declare_token(keys.alive_cloud(self.fleet, name))
+        self.token = session.liveliness().declare_token(keys.alive_deployment(self.fleet, name))
 
     def _on_probe(self, query: zenoh.Query) -> None:
         with query:

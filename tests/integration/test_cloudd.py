@@ -208,7 +208,7 @@ def infer_request(
 def connect(open_peer: Callable[..., zenoh.Session], daemon: CloudDaemon, wait: Any) -> Any:
     """A peer session that sees the daemon (its token and its probe queryable)."""
     session = open_peer()
-    wait(session, keys.alive_cloud(daemon.cfg.fleet, "edge-1"))
+    wait(session, keys.alive_deployment(daemon.cfg.fleet, "edge-1"))
     assert isinstance(wait_reply(session, probe_key(daemon)), ProbeReply)
     return session
 

@@ -143,7 +143,7 @@ def robots_in_service(
 ) -> zenoh.Session:
     """Every robot in service, each heard from once (so a batch expects the others)."""
     session = open_peer()
-    wait_for_token(session, keys.alive_cloud(daemon.cfg.fleet, "edge-1"))
+    wait_for_token(session, keys.alive_deployment(daemon.cfg.fleet, "edge-1"))
     for robot in ROBOTS:
         ctl = CtlRequest(op=CtlOp.SERVICE, robot=robot, epoch=1, sender="test")
         replies = list(session.get(keys.dep_ctl(daemon.cfg.fleet, "edge-1"), payload=ctl.to_wire()))

@@ -82,7 +82,7 @@ def test_daemon_serves_then_stops_within_2s(
     fleet = yaml.safe_load(fleet_file.read_text())["fleet"]
     proc, log_path = start_daemon("--inject-delay-ms", str(INJECTED_DELAY_MS))
     session = open_peer()
-    wait_for_token(session, keys.alive_cloud(fleet, "edge-1"), timeout_s=START_WITHIN_S)
+    wait_for_token(session, keys.alive_deployment(fleet, "edge-1"), timeout_s=START_WITHIN_S)
 
     request = ProbeRequest(sender="test", sent_at=time.time()).to_wire()
     t0 = time.monotonic()

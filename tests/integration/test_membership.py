@@ -30,7 +30,7 @@ def test_follows_tokens_that_come_and_go(
     watcher, member = open_peer(), open_peer()
     changes: list[MemberChange] = []
     with MembershipView(watcher, fleet, on_change=changes.append) as view:
-        token = member.liveliness().declare_token(keys.alive_cloud(fleet, "edge-1"))
+        token = member.liveliness().declare_token(keys.alive_deployment(fleet, "edge-1"))
         assert view.wait_for("cloud", ["edge-1"], timeout_s=WAIT_S), "edge-1 not seen"
         token.undeclare()
         assert view.wait_for("cloud", ["edge-1"], timeout_s=WAIT_S, present=False)
@@ -68,8 +68,8 @@ def test_one_role_ignores_the_others_and_predicates_wait_for_counts(
         MembershipView(watcher, fleet) as everyone,
     ):
         tokens = [
-            member.liveliness().declare_token(keys.alive_cloud(fleet, "edge-1")),
-            member.liveliness().declare_token(keys.alive_cloud(fleet, "edge-2")),
+            member.liveliness().declare_token(keys.alive_deployment(fleet, "edge-1")),
+            member.liveliness().declare_token(keys.alive_deployment(fleet, "edge-2")),
             member.liveliness().declare_token(keys.alive_registry(fleet, "reg")),
         ]
         try:

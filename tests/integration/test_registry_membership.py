@@ -62,7 +62,7 @@ def test_a_cloud_token_older_than_the_registry_is_seen_and_so_is_its_end(
 ) -> None:
     cfg, router = external_router
     edge = FakeDeployment(peer(cfg), cfg, "edge-1", digest=model_digest(cfg))
-    wait_for_token(router, keys.alive_cloud(cfg.fleet, "edge-1"))
+    wait_for_token(router, keys.alive_deployment(cfg.fleet, "edge-1"))
 
     start_registry(cfg)
     observer = peer(cfg)

@@ -75,7 +75,7 @@ class Deployment:
         """Declare the key, then a token `marker` (seen by a peer only after the queryable)."""
         self.serving = True
         self._queryable = self.session.declare_queryable(self.key, self._on_query, complete=True)
-        token_key = keys.alive_cloud(FLEET, marker)
+        token_key = keys.alive_deployment(FLEET, marker)
         self._tokens.append(self.session.liveliness().declare_token(token_key))
         return token_key
 

@@ -565,8 +565,8 @@ def test_probes_report_every_live_deployment_and_routes_reach_requests(
 
     held = [
         cloud.declare_queryable(keys.dep_probe(FLEET, DEPLOYMENT), on_probe),
-        cloud.liveliness().declare_token(keys.alive_cloud(FLEET, DEPLOYMENT)),
-        cloud.liveliness().declare_token(keys.alive_cloud(FLEET, "edge-2")),
+        cloud.liveliness().declare_token(keys.alive_deployment(FLEET, DEPLOYMENT)),
+        cloud.liveliness().declare_token(keys.alive_deployment(FLEET, "edge-2")),
     ]
     reports: dict[str, ProbeReport] = {}
     both = threading.Event()

@@ -225,7 +225,7 @@ def test_robot2_cannot_follow_robot1s_route(tls: TlsFleet) -> None:
 def test_robot2_cannot_declare_another_hosts_token(tls: TlsFleet) -> None:
     forged = [
         tls.robot2.liveliness().declare_token(keys.alive_robot(tls.fleet, "robot-1")),
-        tls.robot2.liveliness().declare_token(keys.alive_cloud(tls.fleet, "edge-9")),
+        tls.robot2.liveliness().declare_token(keys.alive_deployment(tls.fleet, "edge-9")),
     ]
     _barrier_token(tls, tls.router)
     alive = {
@@ -233,7 +233,7 @@ def test_robot2_cannot_declare_another_hosts_token(tls: TlsFleet) -> None:
         for r in tls.router.liveliness().get(keys.alive_all(tls.fleet), timeout=QUERY_TIMEOUT_S)
         if r.ok is not None
     }
-    assert keys.alive_cloud(tls.fleet, "edge-9") not in alive
+    assert keys.alive_deployment(tls.fleet, "edge-9") not in alive
     assert keys.alive_robot(tls.fleet, "robot-1") not in alive
     for token in forged:
         token.undeclare()

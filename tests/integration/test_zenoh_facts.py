@@ -68,10 +68,10 @@ def _two_servers(
     for name in calls:
         server = open_peer()
         held.append(_serve(server, key, name, calls, complete=complete))
-        held.append(server.liveliness().declare_token(keys.alive_cloud(FLEET, name)))
+        held.append(server.liveliness().declare_token(keys.alive_deployment(FLEET, name)))
     client = open_peer()
     for name in calls:
-        wait_for_token(client, keys.alive_cloud(FLEET, name))
+        wait_for_token(client, keys.alive_deployment(FLEET, name))
     return client, calls, held
 
 
@@ -105,8 +105,8 @@ def test_peers_link_directly_and_survive_the_router(
     key = keys.dep_probe(FLEET, "edge-1")
     calls = {"edge-1": 0}
     _queryable = _serve(server, key, "edge-1", calls, complete=True)
-    _token = server.liveliness().declare_token(keys.alive_cloud(FLEET, "edge-1"))
-    wait_for_token(client, keys.alive_cloud(FLEET, "edge-1"))
+    _token = server.liveliness().declare_token(keys.alive_deployment(FLEET, "edge-1"))
+    wait_for_token(client, keys.alive_deployment(FLEET, "edge-1"))
     assert _answers(client, key) == ["edge-1"]
     zenoh_router.session.close()  # the registry's router dies; robot <-> deployment goes on
     assert _answers(client, key) == ["edge-1"]
@@ -119,7 +119,7 @@ def test_liveliness_token_seen_on_declare_and_gone_on_undeclare(
     wait_for_token_gone: Callable[..., None],
 ) -> None:
     watcher, holder = open_peer(), open_peer()
-    key = keys.alive_cloud(FLEET, "edge-1")
+    key = keys.alive_deployment(FLEET, "edge-1")
     events: list[tuple[str, zenoh.SampleKind]] = []
     lock = threading.Lock()
 
@@ -127,7 +127,7 @@ def test_liveliness_token_seen_on_declare_and_gone_on_undeclare(
         with lock:
             events.append((str(sample.key_expr), sample.kind))
 
-    subscriber = watcher.liveliness().declare_subscriber(keys.alive_clouds(FLEET), on_sample)
+    subscriber = watcher.liveliness().declare_subscriber(keys.alive_deployments(FLEET), on_sample)
     token = holder.liveliness().declare_token(key)
     wait_for_token(watcher, key)
     seed = [str(r.ok.key_expr) for r in watcher.liveliness().get(keys.alive_all(FLEET)) if r.ok]
@@ -175,8 +175,8 @@ def test_one_mebibyte_tensor_round_trip(
         query.reply(key, reply.to_wire())
 
     _queryable = server.declare_queryable(key, echo, complete=True)
-    _token = server.liveliness().declare_token(keys.alive_cloud(FLEET, "edge-1"))
-    wait_for_token(client, keys.alive_cloud(FLEET, "edge-1"))
+    _token = server.liveliness().declare_token(keys.alive_deployment(FLEET, "edge-1"))
+    wait_for_token(client, keys.alive_deployment(FLEET, "edge-1"))
 
     tensor = np.random.default_rng(0).standard_normal(256 * 1024).astype(np.float32)
     assert tensor.nbytes == 1024 * 1024

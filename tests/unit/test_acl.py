@@ -55,7 +55,9 @@ def test_a_robot_touches_only_its_own_keys(fleet: FleetConfig) -> None:
         assert not allowed(fleet, robot, Message.DECLARE_SUBSCRIBER, keys.tele(f, other))
         assert allowed(fleet, robot, Message.LIVELINESS_TOKEN, keys.alive_robot(f, robot))
         assert not allowed(fleet, robot, Message.LIVELINESS_TOKEN, keys.alive_robot(f, other))
-        assert not allowed(fleet, robot, Message.LIVELINESS_TOKEN, keys.alive_cloud(f, "edge-1"))
+        assert not allowed(
+            fleet, robot, Message.LIVELINESS_TOKEN, keys.alive_deployment(f, "edge-1")
+        )
         assert not allowed(fleet, robot, Message.DECLARE_QUERYABLE, keys.svc_infer(f, svc, robot))
         assert not allowed(fleet, robot, Message.REPLY, keys.svc_infer(f, svc, robot))
 

@@ -170,7 +170,7 @@ def test_mounted_fleet_is_valid_and_off_shared_memory() -> None:
         assert machine.shared_memory in (None, False)
     host = fleet.registry.endpoint.split("/", 1)[1].rsplit(":", 1)[0]
     assert host in SERVICES, f"registry endpoint {fleet.registry.endpoint} names no service"
-    assert set(fleet.cloud_ids) == {"edge-1", "edge-2", "cloud-1"}
+    assert set(fleet.deployment_ids) == {"edge-1", "edge-2", "cloud-1"}
 
 
 @pytest.mark.parametrize("name", SERVICES)
@@ -224,7 +224,7 @@ def test_prometheus_scrapes_every_daemon_on_its_metrics_port() -> None:
     """Each fleet service is a target at the port its machine serves /metrics on."""
     fleet = _fleet_for(_service("registry"))
     ports = {"registry": fleet.registry.metrics.port}
-    ports.update({m: fleet.machines[m].metrics.port for m in fleet.cloud_ids})
+    ports.update({m: fleet.machines[m].metrics.port for m in fleet.deployment_ids})
     ports["robot"] = fleet.machines["robot-1"].metrics.port
     assert all(p is not None for p in ports.values()), ports
     config = yaml.safe_load(PROMETHEUS_FILE.read_text())

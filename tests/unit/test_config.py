@@ -30,7 +30,7 @@ def test_valid_cases_load(path: Path) -> None:
     assert isinstance(config, FleetConfig)
     assert config.source_path == path
     for robot in config.robot_ids:
-        assert config.initial_service(robot) in config.cloud_ids
+        assert config.initial_service(robot) in config.deployment_ids
 
 
 @pytest.mark.parametrize("path", INVALID, ids=lambda p: p.stem)
@@ -91,7 +91,7 @@ def test_fogros_shorthand_and_per_robot_initial_policy() -> None:
     assert config.initial_service("myagv") == "cloud"
     assert config.initial_state("cloud", "turtlebot") == "standby"
     assert config.robot_ids == ["turtlebot", "myagv"]
-    assert config.cloud_ids == ["edge", "cloud"]
+    assert config.deployment_ids == ["edge", "cloud"]
 
 
 def test_machine_lookup_lists_known_ids() -> None:

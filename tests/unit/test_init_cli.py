@@ -29,7 +29,7 @@ def test_writes_a_commented_single_host_fleet_that_loads(tmp_path: Path) -> None
     assert config.fleet == "default"
     assert config.registry.endpoint == "tcp/127.0.0.1:7447"
     assert config.registry.listen == ["tcp/127.0.0.1:7447"]
-    assert config.cloud_ids == ["edge-1", "edge-2"]
+    assert config.deployment_ids == ["edge-1", "edge-2"]
     assert config.robot_ids == ["robot-1"]
     assert config.initial_state("edge-1", "robot-1") == "service"
     assert config.initial_state("edge-2", "robot-1") == "standby"

@@ -22,7 +22,7 @@ def test_every_key_as_documented() -> None:
     assert keys.rib_events(F) == "ef/lab/rib/events"
     assert keys.rib_profiles(F) == "ef/lab/rib/profiles"
     assert keys.alive_registry(F, "registry") == "ef/lab/alive/registry/registry"
-    assert keys.alive_cloud(F, "edge-1") == "ef/lab/alive/cloud/edge-1"
+    assert keys.alive_deployment(F, "edge-1") == "ef/lab/alive/cloud/edge-1"
     assert keys.alive_robot(F, "robot-1") == "ef/lab/alive/robot/robot-1"
     assert keys.svc_infer(F, "vision", "robot-1") == "ef/lab/svc/vision/robot-1/infer"
     assert keys.dep_probe(F, "edge-1") == "ef/lab/dep/edge-1/probe"
@@ -37,7 +37,7 @@ def test_every_key_as_documented() -> None:
 
 def test_wildcards_for_subscribers() -> None:
     assert keys.alive_all(F) == "ef/lab/alive/**"
-    assert keys.alive_clouds(F) == "ef/lab/alive/cloud/*"
+    assert keys.alive_deployments(F) == "ef/lab/alive/cloud/*"
     assert keys.alive_robots(F) == "ef/lab/alive/robot/*"
     assert keys.alive_registries(F) == "ef/lab/alive/registry/*"
     assert keys.rib_all(F) == "ef/lab/rib/*"
@@ -51,8 +51,8 @@ def test_wildcards_for_subscribers() -> None:
 def test_wildcards_match_the_keys_they_are_for() -> None:
     zenoh = pytest.importorskip("zenoh")
     ke = zenoh.KeyExpr
-    assert ke(keys.alive_clouds(F)).intersects(keys.alive_cloud(F, "edge-1"))
-    assert not ke(keys.alive_clouds(F)).intersects(keys.alive_robot(F, "edge-1"))
+    assert ke(keys.alive_deployments(F)).intersects(keys.alive_deployment(F, "edge-1"))
+    assert not ke(keys.alive_deployments(F)).intersects(keys.alive_robot(F, "edge-1"))
     assert ke(keys.alive_all(F)).intersects(keys.alive_robot(F, "r"))
     # Per-frame telemetry and probe reports are told apart by the wildcard depth.
     assert not ke(keys.tele_all(F)).intersects(keys.tele_probe(F, "r"))
@@ -94,7 +94,7 @@ def test_parse_every_concrete_key() -> None:
         keys.reg_register(F): KeyParts(F, KeyKind.REG_REGISTER),
         keys.reg_reroute(F): KeyParts(F, KeyKind.REG_REROUTE),
         keys.reg_drain(F): KeyParts(F, KeyKind.REG_DRAIN),
-        keys.alive_cloud(F, "e"): KeyParts(F, KeyKind.ALIVE, id="e", role="cloud"),
+        keys.alive_deployment(F, "e"): KeyParts(F, KeyKind.ALIVE, id="e", role="cloud"),
         keys.alive_robot(F, "r"): KeyParts(F, KeyKind.ALIVE, id="r", role="robot"),
         keys.alive_registry(F, "g"): KeyParts(F, KeyKind.ALIVE, id="g", role="registry"),
         keys.svc_infer(F, "s", "r"): KeyParts(F, KeyKind.SVC_INFER, id="r", service="s"),

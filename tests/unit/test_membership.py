@@ -82,7 +82,7 @@ def _view(session: FakeSession, changes: list[MemberChange], **kwargs: Any) -> M
 
 def test_a_stale_seed_does_not_revive_a_token_the_subscriber_saw_go() -> None:
     session = FakeSession()
-    edge1, edge2 = keys.alive_cloud(FLEET, "edge-1"), keys.alive_cloud(FLEET, "edge-2")
+    edge1, edge2 = keys.alive_deployment(FLEET, "edge-1"), keys.alive_deployment(FLEET, "edge-2")
     session.live.seed = [edge2, edge1]
     # edge-1 comes and goes on the subscriber while the get is still answering (with old news).
     session.live.between = [
@@ -141,7 +141,7 @@ def test_a_failing_listener_is_logged_not_raised(caplog: pytest.LogCaptureFixtur
         raise RuntimeError("listener bug")
 
     with MembershipView(session, FLEET, on_change=listener) as view:  # type: ignore[arg-type]
-        session.live.sample(keys.alive_cloud(FLEET, "edge-1"), zenoh.SampleKind.PUT)
+        session.live.sample(keys.alive_deployment(FLEET, "edge-1"), zenoh.SampleKind.PUT)
         assert view.alive("cloud", "edge-1")
     assert any("membership listener failed" in r.getMessage() for r in caplog.records)
 

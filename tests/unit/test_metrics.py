@@ -12,7 +12,7 @@ from typing import Any
 
 from prometheus_client import CollectorRegistry
 
-from cloudd.metrics import NOT_REQUESTS, REFUSAL_OUTCOMES, Outcome, error_outcome
+from cloudd.metrics import NOT_REQUESTS, REFUSAL_OUTCOMES, RequestOutcome, error_outcome
 from cloudd.refusals import RefusalReason
 from common.metrics import new_registry
 from common.wire import ErrorCode
@@ -127,10 +127,10 @@ def test_every_refusal_and_error_code_has_an_outcome() -> None:
     # A refusal of no request (the in-flight cap, counted at the service ctl) has no outcome.
     assert set(REFUSAL_OUTCOMES) | NOT_REQUESTS == set(RefusalReason)
     assert not set(REFUSAL_OUTCOMES) & NOT_REQUESTS
-    assert error_outcome(ErrorCode.DEADLINE_EXPIRED) is Outcome.EXPIRED
-    assert error_outcome(ErrorCode.NOT_SERVING) is Outcome.NOT_SERVING
-    assert error_outcome(ErrorCode.INTERNAL) is Outcome.ERROR
-    assert error_outcome(None) is Outcome.ERROR
+    assert error_outcome(ErrorCode.DEADLINE_EXPIRED) is RequestOutcome.EXPIRED
+    assert error_outcome(ErrorCode.NOT_SERVING) is RequestOutcome.NOT_SERVING
+    assert error_outcome(ErrorCode.INTERNAL) is RequestOutcome.ERROR
+    assert error_outcome(None) is RequestOutcome.ERROR
 
 
 class CountingSource(FrameSource):

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from registry.rib import Rib, RouteRow
+from registry.rib import Rib, RibRouteRow
 
 
 @pytest.fixture
@@ -28,7 +28,7 @@ def test_live_robots_come_with_their_routes_and_the_gone_ones_do_not(rib: Rib) -
     rib.set_robot_alive("robot-3", False, "gone")
     live = rib.live_robots()
     assert [(row.id, route) for row, route in live] == [
-        ("robot-1", RouteRow("robot-1", "edge-1", 1, 1_700_000_000.0)),
+        ("robot-1", RibRouteRow("robot-1", "edge-1", 1, 1_700_000_000.0)),
         ("robot-2", None),
     ]
     assert all(row.alive and row.service == "detect" for row, _ in live)
