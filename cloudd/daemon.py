@@ -165,7 +165,7 @@ class CloudDaemon(Daemon):
         self.limits = CloudLimits.of(cfg, self.machine)
         self.refusals = Refusals()
         self._book = RobotBook(cfg.robot_ids, closing=self.closing)
-        self._service_keys = ServiceKeys(cfg.fleet, cfg.service, deployment, self._book)
+        self._service_keys = ServiceKeys(cfg.fleet, cfg.service_name, deployment, self._book)
         self._replies = Replier(deployment, self.faults, self.throttled)
         self._probe = ProbeResponder(
             deployment,
@@ -246,7 +246,7 @@ class CloudDaemon(Daemon):
             deployment=self.deployment,
             protocol_version=PROTOCOL_VERSION,
             capabilities=CAPABILITIES,
-            service=self.cfg.service,
+            service=self.cfg.service_name,
             model_digest=model.digest if model is not None else "",
             states=states,
             load=queue.load if queue is not None else 0,
@@ -359,7 +359,7 @@ class CloudDaemon(Daemon):
     def _model_names(self) -> tuple[str, str]:
         """(the fleet's model, its digest once loaded), for the metrics."""
         model = self._model
-        return self.cfg.model, model.digest if model is not None else ""
+        return self.cfg.model_spec, model.digest if model is not None else ""
 
     def _queue_numbers(self) -> tuple[int, int, int] | None:
         """(requests pending, requests queued, capacity), for the metrics; None before the
@@ -372,14 +372,14 @@ class CloudDaemon(Daemon):
 
     def _load_model(self) -> None:
         started = time.monotonic()
-        log.info("%s: loading %s", self.deployment, self.cfg.model)
+        log.info("%s: loading %s", self.deployment, self.cfg.model_spec)
         model = open_split_model(self.cfg, self.machine)
         self._model = self.hold(model, "model sessions")
         warm = warm_suffixes(
             model,
             self.machine,
             deployment=self.deployment,
-            model_name=self.cfg.model,
+            model_name=self.cfg.model_spec,
             stop=self.should_exit,
         )
         if warm is None:

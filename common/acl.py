@@ -77,15 +77,16 @@ def registry_grants(cfg: FleetConfig) -> list[Grant]:
 
 
 def cloud_grants(cfg: FleetConfig, deployment: str) -> list[Grant]:
-    """A cloud deployment: its fleet's service keys and its own probe/ctl."""
+    """A cloud deployment: the service keys of the services it serves and its own probe/ctl."""
     fleet = cfg.fleet
     own = (keys.dep_probe(fleet, deployment), keys.dep_ctl(fleet, deployment))
-    service = keys.svc_infer_all(fleet, cfg.service)
-    member = keys.svc_infer_at_all(fleet, cfg.service, deployment)
+    served = cfg.services_of(deployment)
+    service = [keys.svc_infer_all(fleet, name) for name in served]
+    member = [keys.svc_infer_at_all(fleet, name, deployment) for name in served]
     return [
         Grant(
             (Message.DECLARE_QUERYABLE, Message.REPLY),
-            (service, member, *own),
+            (*service, *member, *own),
             "serve its fleet's service (and its own pool member keys); answer its own probe "
             "and ctl",
         ),
@@ -100,14 +101,15 @@ def cloud_grants(cfg: FleetConfig, deployment: str) -> list[Grant]:
 
 
 def robot_grants(cfg: FleetConfig, robot: str) -> list[Grant]:
-    """A robot: its own service key, telemetry, route and token; the registry's requests."""
+    """A robot: its own service keys (one per service it uses), telemetry, route and token;
+    the registry's requests."""
     fleet = cfg.fleet
     return [
         Grant(
             (Message.QUERY,),
             (
-                keys.svc_infer(fleet, cfg.service, robot),
-                keys.svc_infer_pool(fleet, cfg.service, robot),
+                *(keys.svc_infer(fleet, name, robot) for name in cfg.services_of(robot)),
+                *(keys.svc_infer_pool(fleet, name, robot) for name in cfg.services_of(robot)),
                 keys.reg_register(fleet),
                 keys.reg_reroute(fleet),
                 keys.dep_probe_all(fleet),

@@ -536,6 +536,11 @@ class MachineConfig(_Model):
         default_factory=MetricsConfig,
         description="This machine's Prometheus /metrics endpoint (off unless a port is set).",
     )
+    services: list[Id] | None = Field(
+        default=None,
+        description="The services this machine serves (a cloud) or uses (a robot), by name; "
+        "null: every service of the fleet.",
+    )
 
     @property
     def gpu_serving_on(self) -> bool:
@@ -807,15 +812,111 @@ class FidelityConfig(_Model):
     )
 
 
+class ServiceConfig(_Model):
+    """One service of the fleet: an ONNX model (split like any model) or a Python handler (run
+    whole, on the robot or a deployment: its only cut is 0), with the fleet-level keys it
+    overrides. What it does not set comes from the fleet."""
+
+    model: str | None = Field(
+        default=None,
+        min_length=1,
+        description="The ONNX model: a path (relative to this file) or zoo:NAME. Exactly one of "
+        "model or handler.",
+    )
+    handler: str | None = Field(
+        default=None,
+        min_length=1,
+        description="A Python function, module:function (the fleet file's folder is searched "
+        "first), called with the frame's inputs ({name: uint8 1xHxWx3 RGB}) and params; it "
+        "returns {name: numpy array}. Exactly one of model or handler.",
+    )
+    params: dict[str, Any] = Field(
+        default_factory=dict, description="Handler: keyword arguments passed on every call."
+    )
+    input_shape: list[Annotated[int, Field(ge=1)]] | None = Field(
+        default=None,
+        min_length=1,
+        description="Input shape (a model's dynamic dimensions; a handler's image as C, H, W); "
+        "null: the fleet's input_shape (a handler: the source's frame size).",
+    )
+    cuts: CutsConfig | None = Field(default=None, description="Candidate cuts; null: the fleet's.")
+    policy: PolicyConfig | None = Field(
+        default=None, description="The split policy; null: the fleet's."
+    )
+    dispatch: DispatchConfig | None = Field(
+        default=None, description="anycast or round_robin; null: the fleet's."
+    )
+    latency_bound: LatencyBoundConfig | None = Field(
+        default=None, description="The latency bound the scheduler keeps; null: the fleet's."
+    )
+    deadline_s: float | None = Field(
+        default=None, gt=0, description="Per-frame deadline, s; null: the fleet's deadline_s."
+    )
+    objective: ObjectiveConfig | None = Field(
+        default=None, description="Per-frame cost weights; null: the fleet's."
+    )
+    results: ResultsConfig | None = Field(
+        default=None, description="How its results are published; null: each robot's results."
+    )
+    fps: float | None = Field(
+        default=None,
+        gt=0,
+        description="Frames per second this service takes of the robot's capture; null: the "
+        "robot's fps (every capture).",
+    )
+    priority: int = Field(
+        default=1,
+        ge=0,
+        description="Who gives way when a robot's services cannot all be served in time on "
+        "its shared uplink and CPU: the lower priority (then the looser deadline) gives way.",
+    )
+
+    @model_validator(mode="after")
+    def _model_or_handler(self) -> ServiceConfig:
+        if (self.model is None) == (self.handler is None):
+            raise ValueError("set exactly one of model or handler")
+        if self.handler is not None:
+            if self.cuts is not None:
+                raise ValueError("cuts: a handler has one cut, 0 (the image); remove cuts")
+            module, sep, function = self.handler.partition(":")
+            if not sep or not module or not function:
+                raise ValueError(
+                    f"handler: {self.handler!r} is not module:function, e.g. mypkg.tags:detect"
+                )
+        elif self.params:
+            raise ValueError("params: only a handler takes params")
+        return self
+
+    @property
+    def zoo_model(self) -> str | None:
+        """The zoo model name for `model: zoo:NAME`, else None."""
+        if self.model is None or not self.model.startswith(ZOO_PREFIX):
+            return None
+        return self.model[len(ZOO_PREFIX) :]
+
+
 class FleetConfig(_Model):
-    """A fleet: one service, one model, a registry, machines and how robots are served."""
+    """A fleet: its services (ONNX models or Python handlers), a registry, machines and how
+    robots are served. The one-service form (`service` + `model`) is a fleet of one service."""
 
     fleet: Id = Field(
         default=DEFAULT_FLEET, description="Fleet name, the second chunk of every key."
     )
-    service: Id = Field(description="Name of the service robots call (in its anycast key).")
-    model: str = Field(
-        min_length=1, description="The ONNX model: a path (relative to this file) or zoo:NAME."
+    service: Id | None = Field(
+        default=None,
+        description="One-service form: the name of the service robots call (in its anycast "
+        "key), with model. Several services: services. Read back, the first service's name.",
+    )
+    model: str | None = Field(
+        default=None,
+        min_length=1,
+        description="One-service form: the ONNX model, a path (relative to this file) or "
+        "zoo:NAME. Read back, the first service's model (null for a handler).",
+    )
+    services: dict[Id, ServiceConfig] = Field(
+        default_factory=dict,
+        description="The fleet's services by name (each a model or a handler, with overrides); "
+        "the one-service form (service + model) means one service of that name.",
     )
     input_shape: list[Annotated[int, Field(ge=1)]] | None = Field(
         default=None,
@@ -865,8 +966,11 @@ class FleetConfig(_Model):
 
     @model_validator(mode="after")
     def _cross_checks(self, info: ValidationInfo) -> FleetConfig:
-        if self.zoo_model is not None:
-            validate_id(self.zoo_model, "model: zoo model name")
+        self._one_form()
+        for name, svc in self.services.items():
+            if svc.zoo_model is not None:
+                validate_id(svc.zoo_model, f"services.{name}.model: zoo model name")
+        self._check_machine_services()
         self._check_initial_policy()
         self._check_tls()
         self._resolve_paths(_base_dir(info))
@@ -899,6 +1003,40 @@ class FleetConfig(_Model):
         owners += [(f"machines.{m}", self.tls_for(m)) for m in self.machines]
         return owners
 
+    def _one_form(self) -> None:
+        """The one-service form becomes a fleet of one service; with `services`, `service` and
+        `model` are read back as the first service's."""
+        if not self.services:
+            if self.service is None:
+                raise ValueError("service: required key is missing (or list services:)")
+            if self.model is None:
+                raise ValueError("model: required key is missing (or list services:)")
+            self.services = {self.service: ServiceConfig(model=self.model)}
+            return
+        given = [k for k in ("service", "model") if k in self.model_fields_set]
+        if given:
+            raise ValueError(
+                f"{' and '.join(given)}: the one-service form; with services:, set each "
+                "service's model or handler there"
+            )
+        self.service, first = next(iter(self.services.items()))
+        self.model = first.model
+
+    def _check_machine_services(self) -> None:
+        known = ", ".join(self.services)
+        for machine_id, machine in self.machines.items():
+            if machine.services is None:
+                continue
+            for name in machine.services:
+                if name not in self.services:
+                    raise ValueError(
+                        f"machines.{machine_id}.services: unknown service {name!r}; "
+                        f"services: {known}"
+                    )
+            twice = sorted({n for n in machine.services if machine.services.count(n) > 1})
+            if twice:
+                raise ValueError(f"machines.{machine_id}.services: names {', '.join(twice)} twice")
+
     def _check_initial_policy(self) -> None:
         known = ", ".join(self.machines) or "none"
         for machine_id, entry in self.initial_policy.items():
@@ -922,14 +1060,20 @@ class FleetConfig(_Model):
                             f"initial_policy.{machine_id}: {robot!r} is not a robot of this "
                             f"fleet; robots: {', '.join(self.robot_ids) or 'none'}"
                         )
-        for robot in self.robot_ids:
-            serving = [d for d in self.deployment_ids if self.initial_state(d, robot) == "service"]
-            if len(serving) != 1:
-                found = ", ".join(serving) if serving else "none"
-                raise ValueError(
-                    f"initial_policy: robot {robot!r} needs exactly one cloud in service at "
-                    f"start, found {found}"
-                )
+        single = len(self.services) == 1
+        for name in self.services:
+            offered = self.deployments_of(name)
+            if not offered and not single:
+                continue  # no cloud serves it: its robots run it themselves (a warning at start)
+            for robot in self.robots_of(name):
+                serving = [d for d in offered if self.initial_state(d, robot) == "service"]
+                if len(serving) != 1:
+                    found = ", ".join(serving) if serving else "none"
+                    of = "" if single else f" for service {name!r}"
+                    raise ValueError(
+                        f"initial_policy: robot {robot!r} needs exactly one cloud in service"
+                        f"{of} at start, found {found}"
+                    )
 
     def _resolve_paths(self, base: Path) -> None:
         def resolve(value: str | None) -> str | None:
@@ -940,8 +1084,10 @@ class FleetConfig(_Model):
             except RuntimeError:  # `~name/...` of a user this host does not have
                 raise ValueError(f"{value!r}: cannot expand '~' (no such user here)") from None
 
-        if not self.model.startswith(ZOO_PREFIX):
-            self.model = str(resolve(self.model))
+        for svc in self.services.values():
+            if svc.model is not None and not svc.model.startswith(ZOO_PREFIX):
+                svc.model = str(resolve(svc.model))
+        self.model = next(iter(self.services.values())).model
         self.registry.db = resolve(self.registry.db or f"{self.fleet}.rib.sqlite")
         tls_sections = [self.zenoh.tls, self.registry.tls, self.cli.tls]
         tls_sections += [m.tls for m in self.machines.values()]
@@ -968,6 +1114,102 @@ class FleetConfig(_Model):
         """Cloud machine (deployment) ids, in file order."""
         return [i for i, m in self.machines.items() if m.role is Role.CLOUD]
 
+    # -- services --------------------------------------------------------------------------------
+    def services_of(self, machine_id: str) -> list[str]:
+        """The services machine `machine_id` serves (a cloud) or uses (a robot), in file order."""
+        named = self.machines[machine_id].services
+        return list(self.services) if named is None else [n for n in self.services if n in named]
+
+    def deployments_of(self, service: str) -> list[str]:
+        """The deployments that serve `service`, in file order."""
+        return [d for d in self.deployment_ids if service in self.services_of(d)]
+
+    def robots_of(self, service: str) -> list[str]:
+        """The robots that use `service`, in file order."""
+        return [r for r in self.robot_ids if service in self.services_of(r)]
+
+    @property
+    def service_config(self) -> ServiceConfig:
+        """The service of a one-service fleet or of a service's view (`for_service`): the
+        first service otherwise."""
+        return self.services[self.service_name]
+
+    @property
+    def service_name(self) -> str:
+        """The (first) service's name."""
+        return next(iter(self.services))
+
+    @property
+    def model_spec(self) -> str:
+        """The (first) service's model, a path or zoo:NAME; UserError for a handler's service
+        (it has no ONNX model to split)."""
+        model = self.service_config.model
+        if model is None:
+            raise UserError(
+                f"service {self.service_name!r} is a handler ({self.handler}), not an ONNX model"
+            )
+        return model
+
+    @property
+    def handler(self) -> str | None:
+        """The (first) service's handler, module:function (None: it is a model)."""
+        return self.service_config.handler
+
+    def service_for(self, name: str | None) -> str:
+        """A wire message's `service` (None: a peer of a one-service fleet, meaning the first
+        service); UserError naming the known services when this fleet has none of that name."""
+        if name is None:
+            return self.service_name
+        if name not in self.services:
+            raise UserError(
+                f"unknown service {name!r}; this fleet's services: {', '.join(self.services)}"
+            )
+        return name
+
+    def for_service(self, name: str) -> FleetConfig:
+        """The fleet as one service sees it: a one-service fleet of `name`, with the service's
+        overrides in place of the fleet-level keys, and only the machines that serve or use it
+        (a robot's `fps` and `results` replaced by the service's where it sets them). The
+        daemons run one plane per service on such views."""
+        svc = self.services[self.service_for(name)]
+        machines: dict[str, MachineConfig] = {}
+        for machine_id, machine in self.machines.items():
+            if name not in self.services_of(machine_id):
+                continue
+            update: dict[str, Any] = {"services": [name]}
+            if machine.role is Role.ROBOT:
+                if svc.fps is not None:
+                    update["fps"] = svc.fps
+                if svc.results is not None:
+                    update["results"] = svc.results
+            machines[machine_id] = machine.model_copy(update=update)
+        initial: dict[str, Any] = {}
+        for machine_id, entry in self.initial_policy.items():
+            if machine_id in machines:
+                initial[machine_id] = (
+                    {r: st for r, st in entry.items() if r in machines}
+                    if isinstance(entry, dict)
+                    else entry
+                )
+        view = self.model_copy(
+            update={
+                "service": name,
+                "model": svc.model,
+                "services": {name: svc},
+                "machines": machines,
+                "initial_policy": initial,
+                "input_shape": svc.input_shape if svc.input_shape is not None else self.input_shape,
+                "cuts": svc.cuts or self.cuts,
+                "policy": svc.policy or self.policy,
+                "dispatch": svc.dispatch or self.dispatch,
+                "latency_bound": svc.latency_bound or self.latency_bound,
+                "deadline_s": svc.deadline_s or self.deadline_s,
+                "objective": svc.objective or self.objective,
+            }
+        )
+        view._source = self._source
+        return view
+
     def short_of_in_flight(self, in_flight: int) -> dict[str, int]:
         """The deployments that admit fewer of one robot's requests at once than a robot with
         `in_flight` frames in flight sends them (in round robin each member gets its share of
@@ -980,8 +1222,8 @@ class FleetConfig(_Model):
 
     @property
     def zoo_model(self) -> str | None:
-        """The zoo model name for `model: zoo:NAME`, else None."""
-        return self.model[len(ZOO_PREFIX) :] if self.model.startswith(ZOO_PREFIX) else None
+        """The (first) service's zoo model name for `model: zoo:NAME`, else None."""
+        return self.service_config.zoo_model
 
     @property
     def tls(self) -> bool:
@@ -1029,8 +1271,10 @@ class FleetConfig(_Model):
 
     @property
     def model_path(self) -> Path | None:
-        """The model file (absolute) when `model` is a path, else None."""
-        return None if self.zoo_model is not None else Path(self.model)
+        """The (first) service's model file (absolute) when it is a path, else None (a zoo
+        model or a handler)."""
+        model = self.service_config.model
+        return None if model is None or self.zoo_model is not None else Path(model)
 
     @property
     def db_path(self) -> Path:

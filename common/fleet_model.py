@@ -12,7 +12,7 @@ def fleet_partition(cfg: FleetConfig) -> Partition:
     when `cuts.segments`) for its `input_shape`, from the partition cache when it is there."""
     shape = tuple(cfg.input_shape) if cfg.input_shape else None
     return load_partition(
-        cfg.model,
+        cfg.model_spec,
         cfg.cuts.names or "auto",
         cfg.cuts.max_cut_tensors,
         shape,

@@ -1,10 +1,13 @@
 """Reading the project's YAML files strictly and saying what is wrong with them in one line.
 
-`read_yaml` reads a file with a SafeLoader that refuses duplicate keys and turns every way PyYAML
-fails (including the exceptions it lets escape, `YAML_ESCAPES`) into a `UserError` naming the
-file; `format_validation_error` turns a pydantic `ValidationError` into `field.path: problem;
-...`, with a close match or the known keys for an unknown key. The fleet file
-(`common.config`), traces, scripts and flags use them.
+`read_yaml` reads a file with a SafeLoader that refuses duplicate keys (naming the key and both
+lines: PyYAML alone keeps the last one silently) and turns every way PyYAML fails (including the
+exceptions it lets escape, `YAML_ESCAPES`) into a `UserError` naming the file;
+`format_validation_error` turns a pydantic `ValidationError` into `field.path: problem; ...`,
+with a close match or the known keys for an unknown key. They are the only YAML reader and the
+only ValidationError wording of the project's files: the fleet file (`common.config`), the
+simulator's traces (`robotd.sim.trace`), the robot's phases (`robotd.emulation`), the demo's
+scripts (`deploy.demo_script`), policy params and flags.
 """
 
 from __future__ import annotations
@@ -17,10 +20,15 @@ from typing import Annotated, Any, Union
 
 import yaml
 from pydantic import BaseModel, ValidationError
+from pydantic_core import ErrorDetails
 
 from common.errors import UserError
 
 MAX_ERRORS_SHOWN = 5
+MAX_INPUT_SHOWN_CHARS = 40
+"""A bad value is quoted in its error up to this many characters (a pasted blob stays short)."""
+_OWN_WORDS = frozenset({"value_error", "assertion_error"})
+"""Errors raised by our validators, whose message already says what was wrong with the value."""
 
 
 # -- reading ---------------------------------------------------------------------------------------
@@ -50,27 +58,29 @@ class _StrictLoader(yaml.SafeLoader):
 
 
 def _no_duplicates(loader: _StrictLoader, node: yaml.MappingNode, deep: bool = False) -> Any:
-    seen: set[Any] = set()
+    first_line: dict[Any, int] = {}
     for key_node, _ in node.value:
         key = loader.construct_object(key_node, deep=deep)
         try:
-            duplicate = key in seen
+            earlier = first_line.get(key)
         except TypeError:  # a list or map as a key: construct_mapping below names the problem
             continue
-        if duplicate:
+        if earlier is not None:
             mark = key_node.start_mark
-            raise yaml.constructor.ConstructorError(None, None, f"duplicate key {key!r}", mark)
-        seen.add(key)
+            problem = f"duplicate key {key!r}, first given on line {earlier + 1}"
+            raise yaml.constructor.ConstructorError(None, None, problem, mark)
+        first_line[key] = key_node.start_mark.line
     return loader.construct_mapping(node, deep=deep)
 
 
 _StrictLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _no_duplicates)
 
 
-def read_yaml(path: Path, *, missing: str = "no such file") -> Any:
+def read_yaml(path: Path, what: str = "", *, missing: str = "no such file") -> Any:
     """The YAML document of `path`; UserError (one line naming the file) when it cannot be read
-    or is not valid YAML. `missing`: what to say when the file does not exist."""
-    name = str(path)
+    or is not valid YAML. `what`: how the file was given, put before its name (`--script`,
+    `trace`); `missing`: what to say when the file does not exist."""
+    name = f"{what} {path}" if what else str(path)
     try:
         text = path.read_text(encoding="utf-8")
     except FileNotFoundError:
@@ -81,6 +91,11 @@ def read_yaml(path: Path, *, missing: str = "no such file") -> Any:
         ) from None
     except (OSError, UnicodeDecodeError) as exc:
         raise UserError(f"{name}: cannot read: {exc}") from None
+    return parse_yaml(text, name)
+
+
+def parse_yaml(text: str, name: str) -> Any:
+    """The YAML document in `text`, read as `read_yaml` reads a file; `name` heads the error."""
     try:
         return yaml.load(text, Loader=_StrictLoader)  # a SafeLoader subclass
     except yaml.YAMLError as exc:
@@ -98,21 +113,40 @@ def _yaml_problem(exc: yaml.YAMLError) -> str:
 
 def format_validation_error(exc: ValidationError, root: type[BaseModel] | None = None) -> str:
     """Pydantic errors as one line: `field.path: problem; other.path: problem`; `root` is the
-    model validated, whose fields an unknown key's message lists."""
+    model validated, whose fields an unknown key's message lists. The one way this project words
+    a ValidationError (fleet files, traces, phases, scripts, policy params, flags)."""
     parts = []
     errors = exc.errors(include_url=False)
     for error in errors[:MAX_ERRORS_SHOWN]:
-        loc = tuple(error["loc"])
-        message = str(error["msg"]).removeprefix("Value error, ").removeprefix("Assertion failed, ")
-        if error["type"] == "extra_forbidden":
-            message = _unknown_key_message(loc, root)
-        elif error["type"] == "missing":
-            message = "required key is missing"
-        path = _format_loc(loc)
+        message = validation_problem(error, root)
+        path = _format_loc(tuple(error["loc"]))
         parts.append(f"{path}: {message}" if path else message)
     if len(errors) > MAX_ERRORS_SHOWN:
         parts.append(f"and {len(errors) - MAX_ERRORS_SHOWN} more")
     return "; ".join(parts)
+
+
+def validation_problem(
+    error: ErrorDetails, root: type[BaseModel] | None = None, *, with_input: bool = True
+) -> str:
+    """One pydantic error's problem without its place, on one line: an unknown key with a close
+    match or the known keys, a missing key, our validators' own words, or pydantic's with the
+    value it got (`Input should be greater than 0 (got -1)`; not `with_input`: without it, for a
+    caller that shows the value itself)."""
+    kind = error["type"]
+    if kind == "extra_forbidden":
+        return _unknown_key_message(tuple(error["loc"]), root)
+    if kind == "missing":
+        return "required key is missing"
+    message = str(error["msg"]).removeprefix("Value error, ").removeprefix("Assertion failed, ")
+    message = " ".join(message.split())
+    got = error.get("input")
+    if with_input and kind not in _OWN_WORDS and isinstance(got, (str, int, float)):
+        shown = repr(got)
+        if len(shown) > MAX_INPUT_SHOWN_CHARS:
+            shown = shown[: MAX_INPUT_SHOWN_CHARS - 3] + "..."
+        message += f" (got {shown})"
+    return message
 
 
 def _format_loc(loc: tuple[Any, ...]) -> str:

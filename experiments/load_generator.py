@@ -164,7 +164,7 @@ class EmulatedRobot:
         self._phase_s = phase_s
         self._poisson = poisson
         """With Poisson arrivals, the random source of this robot's gaps (None: periodic)."""
-        self._key = keys.svc_infer(generator.cfg.fleet, generator.cfg.service, robot)
+        self._key = keys.svc_infer(generator.cfg.fleet, generator.cfg.service_name, robot)
         self._records: list[FrameRecord] = []
         self._lock = threading.Lock()
         self._frames = itertools.count()

@@ -126,7 +126,7 @@ def _model_props(cfg: FleetConfig) -> dict[str, str]:
     from common.models import resolve_model
 
     shape = tuple(cfg.input_shape) if cfg.input_shape else None
-    model = onnx.load(str(resolve_model(cfg.model, shape).path), load_external_data=False)
+    model = onnx.load(str(resolve_model(cfg.model_spec, shape).path), load_external_data=False)
     return {p.key: p.value for p in model.metadata_props}
 
 

@@ -82,7 +82,7 @@ class ControlLoop:
 
     @property
     def service(self) -> str:
-        return self.cfg.service
+        return self.cfg.service_name
 
     def handle(self, event: Event) -> None:
         """Act on one event (a membership change, a probe outcome, a robot to evaluate, a

@@ -152,7 +152,7 @@ class RegistryDaemon(Daemon):
         self.cfg = cfg
         self.fleet = cfg.fleet
         self.id = cfg.registry.id
-        self.service = cfg.service
+        self.service = cfg.service_name
         self.db_path = Path(db_path) if db_path is not None else cfg.db_path
         self.bound = _latency_bound(cfg)
         self.params = params if params is not None else SchedulerParams()

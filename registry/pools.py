@@ -35,7 +35,7 @@ def pool_planner(cfg: FleetConfig, rib: Rib) -> PoolPlanner | None:
     """The fleet's planner: None in an anycast fleet."""
     if cfg.dispatch.mode is not DispatchMode.ROUND_ROBIN:
         return None
-    return PoolPlanner(rib, cfg.service, cfg.dispatch.pool_limit())
+    return PoolPlanner(rib, cfg.service_name, cfg.dispatch.pool_limit())
 
 
 class PoolPlanner:

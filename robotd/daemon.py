@@ -197,7 +197,7 @@ class RobotDaemon(Daemon):
         self._policy_override = policy
         self._on_result = on_result
         self._objective = Objective.parse(config.objective.model_dump())
-        self._svc_key = keys.svc_infer(self.fleet, config.service, robot_id)
+        self._svc_key = keys.svc_infer(self.fleet, config.service_name, robot_id)
         self._served = ServiceMatch()
         self._cloud_time = CloudTime()
         # Offloaded frames in flight at once (`robotd.frame_path.pipeline`).
@@ -287,7 +287,7 @@ class RobotDaemon(Daemon):
                 self.metrics.registry, self.robot, lambda: self.route, source=self._frame_source
             )
         model = self.hold(open_split_model(cfg, self.machine, who=self.robot), "model sessions")
-        robot_model = RobotModel(model, cfg.model)
+        robot_model = RobotModel(model, cfg.model_spec)
         warm_up(model, robot_model.sample_feeds)
         local = LocalRunner(f"local-run-{self.robot}")
         local.start()
@@ -408,7 +408,7 @@ class RobotDaemon(Daemon):
             deadline_s=self.deadline_s,
             max_reply_bytes=cfg.max_payload_bytes,
             uplink=None if self.uplink_mbit is None else TokenBucket.from_mbit(self.uplink_mbit),
-            member_key=functools.partial(keys.svc_infer_at, self.fleet, cfg.service, self.robot),
+            member_key=functools.partial(keys.svc_infer_at, self.fleet, cfg.service_name, self.robot),
             served=self._served.wait_served,
         )
 

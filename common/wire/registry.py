@@ -92,9 +92,10 @@ class RouteChange(Message):
     reason: str
     at: float
     pool: tuple[str, ...] = ()
+    service: str | None = None
 
     def __post_init__(self) -> None:
-        self._check_ids("robot", "deployment")
+        self._check_ids("robot", "deployment", "service")
         self._check_non_negative("epoch")
         self._check_finite("at")
         for member in self.pool:
@@ -193,9 +194,10 @@ class ProbeRequest(Message):
     sent_at: float
     echo_bytes: int = 0
     padding: bytes = b""
+    service: str | None = None
 
     def __post_init__(self) -> None:
-        self._check_ids("sender")
+        self._check_ids("sender", "service")
         self._check_finite("sent_at")
         self._check_non_negative("echo_bytes")
         if self.echo_bytes > MAX_ECHO_BYTES:
@@ -274,9 +276,10 @@ class CtlRequest(Message):
     sender: str = ""
     reason: str = ""
     max_in_flight: int | None = None
+    service: str | None = None
 
     def __post_init__(self) -> None:
-        self._check_ids("robot")
+        self._check_ids("robot", "service")
         self._check_non_negative("epoch")
         if self.max_in_flight is not None and self.max_in_flight < 1:
             raise self._invalid("max_in_flight", f"must be at least 1, got {self.max_in_flight}")
@@ -300,9 +303,10 @@ class CtlReply(Message):
     epoch: int = 0
     state: DeploymentState | None = None
     reason: str = ""
+    service: str | None = None
 
     def __post_init__(self) -> None:
-        self._check_ids("deployment", "robot")
+        self._check_ids("deployment", "robot", "service")
         self._check_non_negative("epoch")
 
 
@@ -320,13 +324,14 @@ class RerouteRequest(Message):
     epoch: int
     reason: FallbackReason
     consecutive_timeouts: int = 0
+    service: str | None = None
 
     def __post_init__(self) -> None:
         try:
             object.__setattr__(self, "reason", fallback_reason(self.reason))
         except ValueError as exc:
             raise self._invalid("reason", str(exc)) from None
-        self._check_ids("robot", "deployment")
+        self._check_ids("robot", "deployment", "service")
         self._check_non_negative("epoch", "consecutive_timeouts")
 
 

@@ -100,9 +100,10 @@ class FrameResultMessage(Message):
     latency_s: float
     published_ns: int
     outputs: dict[str, EncodedTensor]
+    service: str | None = None
 
     def __post_init__(self) -> None:
-        self._check_ids("robot", "deployment")
+        self._check_ids("robot", "deployment", "service")
         self._check_non_negative("frame", "stamp_ns", "cut", "latency_s", "published_ns")
         self._check_finite("latency_s")
         if not self.action:

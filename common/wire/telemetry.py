@@ -173,6 +173,7 @@ class TelemetryRecord(Message):
     stale: bool = False
     dropped_stale: int = 0
     resends: int = 0
+    service: str | None = None
 
     def __post_init__(self) -> None:
         if self.reason is not None:
@@ -180,7 +181,7 @@ class TelemetryRecord(Message):
                 object.__setattr__(self, "reason", fallback_reason(self.reason))
             except ValueError as exc:
                 raise self._invalid("reason", str(exc)) from None
-        self._check_ids("robot", "deployment")
+        self._check_ids("robot", "deployment", "service")
         self._check_non_negative(
             "frame", "bytes_up", "bytes_down", "epoch", "dropped_stale", "resends"
         )
@@ -221,7 +222,8 @@ class ProbeReport(Message):
     capacity: int | None = None
     expected_latency_s: float | None = None
     reason: str | None = None
+    service: str | None = None
 
     def __post_init__(self) -> None:
-        self._check_ids("robot", "deployment")
+        self._check_ids("robot", "deployment", "service")
         self._check_non_negative("rtt_s", "up_bytes", "down_bytes", "expected_latency_s")

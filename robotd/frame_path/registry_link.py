@@ -116,7 +116,7 @@ class RegistryLink:
         # Announced at registration: the deployments serving this robot admit as many.
         self._max_in_flight = max_in_flight
         self._fleet = config.fleet
-        self._service = config.service
+        self._service = config.service_name
         self.endpoint = config.registry.endpoint
         self.robot = robot
         self._model_digest = model_digest

@@ -27,6 +27,7 @@ import numpy.typing as npt
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from common.errors import UserError
+from common.yaml_files import format_validation_error
 
 PURE_ROBOT: Final = "P"
 Action: TypeAlias = int | Literal["P"]
@@ -177,18 +178,6 @@ class _ProfileModel(BaseModel):
     cuts: list[_CutModel] = Field(min_length=1, description="Candidate cuts.")
 
 
-def one_line_validation_error(source: str, exc: ValidationError) -> str:
-    """The first pydantic error as `source: a.b[2].c: message (got X)`, on one line."""
-    err = exc.errors()[0]
-    loc = ""
-    for part in err["loc"]:
-        loc += f"[{part}]" if isinstance(part, int) else (f".{part}" if loc else str(part))
-    got = err.get("input")
-    shown = "" if isinstance(got, (dict, list)) or got is None else f" (got {got!r})"
-    where = f"{loc}: " if loc else ""
-    return f"{source}: {where}{err['msg']}{shown}".replace("\n", " ")
-
-
 @dataclass(frozen=True)
 class CutTable:
     """The offloading actions of a profile, as arrays in action order: cuts by index, and within
@@ -238,7 +227,7 @@ class CutTable:
         try:
             model = _ProfileModel.model_validate(dict(profile))
         except ValidationError as exc:
-            raise UserError(one_line_validation_error(source, exc)) from None
+            raise UserError(f"{source}: {format_validation_error(exc, _ProfileModel)}") from None
         cuts = sorted(model.cuts, key=lambda c: c.index)
         seen = [c.index for c in cuts]
         if len(set(seen)) != len(seen):

@@ -28,6 +28,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from pydantic_core import PydanticCustomError
 
 from common.errors import UserError
+from common.yaml_files import format_validation_error
 from common.wire import WireError
 from common.wire.tensor_codecs import applies, codec_names_for
 from robotd.policies.base import (
@@ -35,7 +36,6 @@ from robotd.policies.base import (
     RAW_CODEC,
     CutTable,
     Policy,
-    one_line_validation_error,
 )
 from robotd.policies.baselines import FixedPolicy
 from robotd.policies.params import NoParams, parse_params
@@ -121,7 +121,7 @@ def parse_option_spec(spec: str) -> OptionParams | None:
     try:
         return OptionParams(option=int(number), codec=codec or RAW_CODEC)
     except ValidationError as exc:
-        raise UserError(one_line_validation_error(f"policy {spec!r}", exc)) from None
+        raise UserError(f"policy {spec!r}: {format_validation_error(exc, OptionParams)}") from None
 
 
 def nav_option(spec: str, params: Mapping[str, Any] | BaseModel | None) -> OptionParams | None:

@@ -17,7 +17,8 @@ from typing import Any, TypeVar
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from common.errors import UserError
-from robotd.policies.base import FloatArray, one_line_validation_error
+from common.yaml_files import format_validation_error
+from robotd.policies.base import FloatArray
 
 F = TypeVar("F", float, FloatArray)
 
@@ -80,7 +81,7 @@ class Objective(BaseModel):
         try:
             return cls.model_validate(dict(value))
         except ValidationError as exc:
-            raise UserError(one_line_validation_error("objective", exc)) from None
+            raise UserError(f"objective: {format_validation_error(exc, cls)}") from None
 
     @property
     def robot_rate(self) -> float:

@@ -14,7 +14,7 @@ from typing import Any, Literal, TypeVar
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from common.errors import UserError
-from robotd.policies.base import one_line_validation_error
+from common.yaml_files import format_validation_error, validation_problem
 
 ForcedKind = Literal["doubling", "every", "off"]
 
@@ -215,7 +215,7 @@ def parse_params(model: type[P], params: Mapping[str, Any] | BaseModel | None, p
     try:
         return model.model_validate(dict(params))
     except ValidationError as exc:
-        raise UserError(one_line_validation_error(f"policy {policy} params", exc)) from None
+        raise UserError(f"policy {policy} params: {format_validation_error(exc, model)}") from None
 
 
 def parse_assignments(items: Sequence[str], option: str = "--param") -> dict[str, str]:
@@ -243,13 +243,14 @@ def check_override(
     try:
         model.model_validate(dict(overrides))
     except ValidationError as exc:
-        err = exc.errors()[0]
+        err = exc.errors(include_url=False)[0]
         loc = err["loc"]
         if loc and loc[0] in overrides:
             head = f"{option} {loc[0]}={overrides[str(loc[0])]}"
         else:
             head = f"{option} ({', '.join(f'{k}={v}' for k, v in overrides.items())})"
-        raise UserError(f"{head}: policy {policy}: {err['msg']}".replace("\n", " ")) from None
+        problem = validation_problem(err, model, with_input=False)  # the head shows the value
+        raise UserError(f"{head}: policy {policy}: {problem}") from None
 
 
 def _no_such_parameter(model: type[BaseModel], key: str, policy: str) -> str:
