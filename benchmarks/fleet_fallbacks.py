@@ -47,6 +47,7 @@ import psutil
 import yaml
 from prometheus_client.parser import text_string_to_metric_families
 
+from common.yaml_files import read_yaml
 from deploy.local_fleet import LocalFleet
 from deploy.procs import elasticfog_argv, free_tcp_port
 
@@ -73,7 +74,7 @@ def init_fleet(directory: Path, robots: int, workers: int, fps: float) -> Path:
         capture_output=True,
     )
     path = directory / "fleet.yaml"
-    data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    data = read_yaml(path)
     for cloud in CLOUDS:
         machine = data["machines"][cloud]
         machine["workers"] = workers
@@ -222,7 +223,7 @@ def analyse(
 
 def run(args: argparse.Namespace, directory: Path) -> dict[str, Any]:
     path = init_fleet(directory, args.robots, args.workers, args.fps)
-    ports = {c: yaml.safe_load(path.read_text())["machines"][c]["metrics"]["port"] for c in CLOUDS}
+    ports = {c: read_yaml(path)["machines"][c]["metrics"]["port"] for c in CLOUDS}
     files = {f"robot-{i}": directory / f"robot-{i}.jsonl" for i in range(1, args.robots + 1)}
     with LocalFleet(path, directory, startup_timeout_s=120.0) as lf:
         registry = lf.start_registry()

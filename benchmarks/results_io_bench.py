@@ -40,7 +40,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from deploy.procs import LocalFleet, write_local_fleet
+from deploy.local_fleet import LocalFleet, write_local_fleet
 
 ROBOT = "robot-1"
 MODEL = "zoo:mobilenet_v2"

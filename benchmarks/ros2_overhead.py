@@ -49,7 +49,8 @@ from common.partition.manifest import TensorSpec
 from common.ros2_messages import MessageType, typestore
 from common.session import init_runtime
 from common.source_spec import parse_ros2_source
-from deploy.procs import LocalFleet, free_tcp_port, write_local_fleet
+from deploy.local_fleet import LocalFleet, write_local_fleet
+from deploy.procs import free_tcp_port
 from robotd.frame_path.frame import FrameResult
 from robotd.results.ros2 import Ros2ResultSink, results_topic
 from robotd.sources.frame_sources import SourceSession

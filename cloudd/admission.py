@@ -25,7 +25,7 @@ import zenoh
 from cloudd.batch_queue import FairQueue, Pending, Refusal
 from cloudd.faults import FaultInjector
 from cloudd.limits import CloudLimits
-from cloudd.metrics import CloudMetrics, RequestOutcome
+from cloudd.metrics import RequestOutcome, ServiceMetrics
 from cloudd.refusals import RefusalReason, Refusals, check_refusal, decode_refusal
 from cloudd.replies import Replier, query_payload
 from cloudd.robot_book import RobotBook
@@ -71,9 +71,11 @@ class Admission:
         limits: CloudLimits,
         refusals: Refusals,
         throttled: ThrottledLog,
-        metrics: CloudMetrics | None = None,
+        metrics: ServiceMetrics | None = None,
+        who: str = "",
     ) -> None:
         self.deployment = deployment
+        self._who = who or deployment  # the log's name: with the service when several
         self._digest = digest
         self._cut_specs = cut_specs
         self._queue = queue
@@ -101,7 +103,7 @@ class Admission:
         except WireError as exc:
             self._count(robot, decode_refusal(exc))
             self._throttled.warning(
-                "%s: bad inference request for %s: %s", self.deployment, robot, exc.reason
+                "%s: bad inference request for %s: %s", self._who, robot, exc.reason
             )
             self._replies.send(query, key, error_reply(exc), delay_s)
             return
@@ -120,7 +122,7 @@ class Admission:
             return
         if not self._book.serving(robot):
             # A request that crossed a switch: the robot finishes the frame itself.
-            log.info("%s: frame %d of %s arrived in standby", self.deployment, request.frame, robot)
+            log.info("%s: frame %d of %s arrived in standby", self._who, request.frame, robot)
             reply = ErrorReply.make(
                 ErrorCode.NOT_SERVING, f"{self.deployment} does not serve {robot} now"
             )
@@ -159,7 +161,7 @@ class Admission:
         with one warning line."""
         self._count(robot, reason)
         self._throttled.warning(
-            "%s: refused frame %d of %s: %s", self.deployment, request.frame, robot, error.reason
+            "%s: refused frame %d of %s: %s", self._who, request.frame, robot, error.reason
         )
         self._replies.send(query, key, error.to_wire(), delay_s)
 

@@ -6,7 +6,10 @@ finished the frame itself by now). Once the daemon is stopping, the batch is ans
 NOT_SERVING. Otherwise each request's tensors are decoded here, off Zenoh's callback thread (one
 that does not decode is answered with the codec's error), the suffix runs once for the whole
 batch, and each request gets an `InferReply` with its own outputs, its queueing and compute
-times and the robot's epoch. A segment request (`InferRequest.end_cut`: the part of the model
+times and the robot's epoch. A run that fails (onnxruntime's error, or a handler that raised or
+returned something not arrays: `common.handlers.HandlerError`, named as the handler's failure)
+is answered INTERNAL with the reason; the robot finishes the frame itself and the next request
+is served as usual. A segment request (`InferRequest.end_cut`: the part of the model
 between two cuts) runs on its own after the batch's suffixes, and its reply carries the end
 cut's tensors. A request's slot is freed before its reply goes out, so a robot
 that sends its next frame on the reply is not refused for a slot still held.
@@ -25,12 +28,14 @@ import numpy as np
 from cloudd.admission import Job
 from cloudd.batch_queue import Batch, BatchCosts, FairQueue, Pending
 from cloudd.batch_stats import BatchStats
-from cloudd.metrics import CloudMetrics, error_outcome
+from cloudd.metrics import ServiceMetrics, error_outcome
 from cloudd.refusals import decode_refusal
 from cloudd.replies import Replier
 from cloudd.robot_book import RobotBook
 from cloudd.validate import decode_tensors
+from common.handlers import HandlerError
 from common.partition import TensorSpec, ort_reason
+from common.partition.errors import one_line
 from common.partition.runtime import SplitModel
 from common.throttled_log import ThrottledLog
 from common.wire import ErrorCode, ErrorReply, WireError, error_reply
@@ -55,9 +60,11 @@ class BatchRunner:
         replies: Replier,
         closing: threading.Event,
         throttled: ThrottledLog,
-        metrics: CloudMetrics | None = None,
+        metrics: ServiceMetrics | None = None,
+        who: str = "",
     ) -> None:
         self.deployment = deployment
+        self._who = who or deployment  # the log's name: with the service when several
         self._model = model
         self._cut_specs = cut_specs
         self._queue = queue
@@ -101,7 +108,7 @@ class BatchRunner:
                 ready.append((item, decode_tensors(request, self._cut_specs[request.cut])))
             except WireError as exc:
                 self._throttled.warning(
-                    "%s: frame %d of %s: %s", self.deployment, request.frame, item.robot, exc.reason
+                    "%s: frame %d of %s: %s", self._who, request.frame, item.robot, exc.reason
                 )
                 self._release(item)
                 if self._metrics is not None:
@@ -127,10 +134,10 @@ class BatchRunner:
         try:
             outputs = self._model.run_suffix_batch(group, [tensors for _, tensors in ready])
         except Exception as exc:
-            reason = f"suffix of cut {group} failed: {ort_reason(exc)}"
+            reason = _failure(group, exc)
             log.warning(
                 "%s: a batch of %d (%s): %s",
-                self.deployment,
+                self._who,
                 len(ready),
                 ", ".join(f"{i.robot} frame {i.payload.request.frame}" for i, _ in ready),
                 reason,
@@ -169,7 +176,7 @@ class BatchRunner:
             outputs = self._model.run_segment(start, end, tensors)
         except Exception as exc:
             reason = f"segment {start}-{end} failed: {ort_reason(exc)}"
-            log.warning("%s: %s frame %d: %s", self.deployment, item.robot, request.frame, reason)
+            log.warning("%s: %s frame %d: %s", self._who, item.robot, request.frame, reason)
             self._answer_error(item, ErrorReply.make(ErrorCode.INTERNAL, reason))
             return
         compute_s = time.monotonic() - started
@@ -225,8 +232,17 @@ class BatchRunner:
             # its replies go out (a robot that times out against it is then a network problem).
             log.info(
                 "%s: first frame of %s answered at epoch %d (frame %d)",
-                self.deployment,
+                self._who,
                 robot,
                 epoch,
                 frame,
             )
+
+
+def _failure(cut: int, exc: Exception) -> str:
+    """Why the suffix of `cut` failed, for the error reply: a handler's own failure as the
+    handler names it (`HandlerError`: it raised, or returned something not arrays), else
+    onnxruntime's reason."""
+    if isinstance(exc, HandlerError):
+        return one_line(exc)
+    return f"suffix of cut {cut} failed: {ort_reason(exc)}"

@@ -1,12 +1,16 @@
 """A cloud daemon's control key `dep/<id>/ctl`: fault settings, drain, service and standby.
 
-`Controller.on_query` decodes a `CtlRequest` and answers it with what `control` did. Service and
-standby follow the verdict of `cloudd.state` (through `RobotBook.decide`): a robot entering
-service has its service key declared before the ack, one leaving has it undeclared before the
-ack, since the registry relies on both having happened when it reads the ack. A key that cannot
-be declared undoes the verdict and is refused with the reason. A request that does not decode
-(over the request limit, `cloudd.limits`, or malformed) gets the codec's error reply and is
-counted (`cloudd.refusals`).
+`CtlKey.on_query` (one per deployment) decodes a `CtlRequest` and answers it with what the
+request's service does with it (`route`: the service's plane, `cloudd.planes`; a service this
+deployment does not serve gets a named `unknown_service` error reply). Each service's
+`Controller` carries the request out for its robots: service and standby follow the verdict of
+`cloudd.state` (through `RobotBook.decide`): a robot entering service has its service key
+declared before the ack, one leaving has it undeclared before the ack, since the registry relies
+on both having happened when it reads the ack. A key that cannot be declared undoes the verdict
+and is refused with the reason. Fault settings are the deployment's, whichever service names
+them; a drain of the whole deployment drains the robots of the service it names. A request that
+does not decode (over the request limit, `cloudd.limits`, or malformed) gets the codec's error
+reply and is counted (`cloudd.refusals`). Every reply names the service (`CtlReply.service`).
 """
 
 from __future__ import annotations
@@ -24,46 +28,37 @@ from cloudd.robot_book import RobotBook
 from cloudd.state import Verdict
 from common.session import zenoh_error_text
 from common.throttled_log import ThrottledLog
-from common.wire import WireError, error_reply
+from common.wire import ErrorReply, WireError, error_reply
 from common.wire.registry import CtlOp, CtlReply, CtlRequest, DeploymentState
 
 log = logging.getLogger(__name__)
 
 
-class Controller:
-    """Carries out a deployment's control requests; `declare_service(robot)` declares the
-    robot's service key (raising if it cannot)."""
+class CtlKey:
+    """The ctl queryable's callback: decodes each request and answers what `route(request)`
+    makes of it (the service's `Controller.control`, or a named error reply)."""
 
     def __init__(
         self,
         deployment: str,
         *,
         key: str,
-        book: RobotBook,
-        faults: FaultInjector,
+        route: Callable[[CtlRequest], CtlReply | ErrorReply],
         replies: Replier,
-        declare_service: Callable[[str], None],
         max_request_bytes: int,
         refusals: Refusals,
         throttled: ThrottledLog,
-        set_in_flight: Callable[[str, int], int | None] = lambda robot, announced: None,
     ) -> None:
         self.deployment = deployment
         self.key = key
-        self._book = book
-        self._faults = faults
+        self._route = route
         self._replies = replies
-        self._declare_service = declare_service
         self._max_request_bytes = max_request_bytes
         self._refusals = refusals
         self._throttled = throttled
-        self._set_in_flight = set_in_flight
-        # Robots whose announced frames in flight exceed the cap: counted and logged once each.
-        self._over_cap: set[str] = set()
-        self._over_cap_lock = threading.Lock()
 
     def on_query(self, query: zenoh.Query) -> None:
-        """The ctl queryable's callback: answered at once, in every fault state."""
+        """Answered at once, in every fault state."""
         try:
             request = CtlRequest.from_wire(query_payload(query), max_bytes=self._max_request_bytes)
         except WireError as exc:
@@ -71,8 +66,38 @@ class Controller:
             self._throttled.warning("%s: bad ctl request: %s", self.deployment, exc.reason)
             self._replies.send(query, self.key, error_reply(exc), 0.0)
             return
-        reply = self.control(request)
+        reply = self._route(request)
         self._replies.send(query, self.key, reply.to_wire(), 0.0)
+
+
+class Controller:
+    """Carries out a deployment's control requests for one service (`service`);
+    `declare_service(robot)` declares the robot's service key (raising if it cannot). `who`
+    names the deployment (and the service, when it serves several) in the log."""
+
+    def __init__(
+        self,
+        deployment: str,
+        *,
+        service: str,
+        book: RobotBook,
+        faults: FaultInjector,
+        declare_service: Callable[[str], None],
+        refusals: Refusals,
+        set_in_flight: Callable[[str, int], int | None] = lambda robot, announced: None,
+        who: str = "",
+    ) -> None:
+        self.deployment = deployment
+        self.service = service
+        self._who = who or deployment
+        self._book = book
+        self._faults = faults
+        self._declare_service = declare_service
+        self._refusals = refusals
+        self._set_in_flight = set_in_flight
+        # Robots whose announced frames in flight exceed the cap: counted and logged once each.
+        self._over_cap: set[str] = set()
+        self._over_cap_lock = threading.Lock()
 
     def control(self, request: CtlRequest) -> CtlReply:
         """Carry out a control request (what the ctl key does) and return the reply."""
@@ -80,8 +105,10 @@ class Controller:
         if request.op is CtlOp.FAULT:
             assert request.fault is not None  # checked by CtlRequest
             self._faults.set(request.fault)
-            log.info("%s: fault injection%s: %s", self.deployment, sender, describe(request.fault))
-            return CtlReply(ok=True, deployment=self.deployment, op=request.op)
+            log.info("%s: fault injection%s: %s", self._who, sender, describe(request.fault))
+            return CtlReply(
+                ok=True, deployment=self.deployment, op=request.op, service=self.service
+            )
         if request.op is CtlOp.DRAIN:
             return self._drain(request, sender)
         assert request.robot is not None  # checked by CtlRequest for service and standby
@@ -98,7 +125,7 @@ class Controller:
             state, epoch = st.state, st.wire_epoch
         log.info(
             "%s: drain%s of %s: draining %s",
-            self.deployment,
+            self._who,
             sender,
             request.robot or "the deployment",
             ", ".join(moved) or "no robot",
@@ -110,6 +137,7 @@ class Controller:
             robot=request.robot,
             epoch=epoch,
             state=state,
+            service=self.service,
         )
 
     def _admit_in_flight(self, robot: str, announced: int) -> None:
@@ -126,7 +154,7 @@ class Controller:
         log.warning(
             "%s: %s keeps %d frames in flight, but this deployment admits %d of its requests at "
             "once (batching.max_in_flight_per_robot): the rest are answered busy",
-            self.deployment,
+            self._who,
             robot,
             announced,
             limit,
@@ -145,7 +173,7 @@ class Controller:
             except Exception as exc:
                 self._book.restore(verdict)
                 reason = f"cannot declare the service key of {robot}: {zenoh_error_text(exc)}"
-                log.warning("%s: %s", self.deployment, reason)
+                log.warning("%s: %s", self._who, reason)
                 return self._reply(
                     request, Verdict(False, robot, verdict.before, verdict.before, reason)
                 )
@@ -154,7 +182,7 @@ class Controller:
         if verdict.ok:
             log.info(
                 "%s: %s %s at epoch %d%s",
-                self.deployment,
+                self._who,
                 robot,
                 verdict.after.state.value,
                 verdict.after.epoch,
@@ -163,7 +191,7 @@ class Controller:
         else:
             log.warning(
                 "%s: refused %s(%s, epoch %d)%s: %s",
-                self.deployment,
+                self._who,
                 request.op.value,
                 robot,
                 request.epoch,
@@ -181,4 +209,5 @@ class Controller:
             epoch=verdict.after.wire_epoch,
             state=verdict.after.state,
             reason=verdict.reason,
+            service=self.service,
         )

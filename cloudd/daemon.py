@@ -1,9 +1,26 @@
-"""The cloud daemon: serves model suffixes to robots, with one standby/service state per robot.
+"""The cloud daemon: serves its services to robots, with one standby/service state per robot and
+service.
+
+The room, in a request's order: `service_keys` (the robots' keys) -> `admission` -> `batch_queue`
+-> `workers` -> `batch_runner` -> `replies`; beside it the control side: `probe`, `control`,
+`state` and `robot_book`, `registry_link`; and `plane`/`planes`, which hold all of that once per
+service.
+
+Services: a deployment serves every service the fleet file gives it (`FleetConfig.services_of`),
+each in a plane of its own (`cloudd.plane.ServicePlane`) built from the service's view of the
+fleet (`FleetConfig.for_service`), so each service has its own model (an ONNX split, or a
+Python handler whose only cut is 0), robot book and states, service keys, controller, queue and
+workers, and its own state per robot: a deployment may serve robot-1's `detect` and stand by
+for its `segment`. The daemon keeps one Zenoh session, one liveliness token, one probe key and
+one ctl key, whose requests go to the plane of the service they name (`cloudd.planes`: none is
+the fleet's first service; a service not served here gets a named `unknown_service` error
+reply). A one-service fleet has one plane and behaves as a deployment of one model always did.
 
 Lifecycle (`common.daemon.Daemon`: startup -> main loop -> shutdown, in reverse order):
 
-1. Load the fleet's model split from the partition cache (`load_partition`; split on first use)
-   and warm one onnxruntime suffix session per cut by running it once (`cloudd.suffixes`).
+1. For each service, load its model split from the partition cache (`load_partition`; split on
+   first use) and warm one onnxruntime suffix session per cut by running it once
+   (`cloudd.suffixes`); a handler's service is opened by calling the handler once.
    Every session shares one copy of the weights (`SplitModel`), so memory stays flat in the
    number of cuts. With `batching.enabled`, each suffix is first given a batch axis and checked
    against one-item runs (`SplitModel.enable_batching`); a cut that cannot take a batch is
@@ -13,20 +30,22 @@ Lifecycle (`common.daemon.Daemon`: startup -> main loop -> shutdown, in reverse 
    background, backing off from 1 s to 4 s): the daemon says so, naming the endpoint, and serves
    meanwhile. A client session cannot open without the registry: that is retried with backoff
    until it opens or the daemon is stopped (`cloudd.registry_link`).
-3. Start the timer thread (delayed replies, held queries), then the workers and their queue
-   (`cloudd.batch_queue`: per-robot queues served round robin, an in-flight limit per robot,
-   batches of one cut; the workers' replies use the timer, so they stop before it does).
+3. Start the timer thread (delayed replies, held queries), then each service's workers and their
+   queue (`cloudd.batch_queue`: per-robot queues served round robin, an in-flight limit per
+   robot, batches of one cut; the workers' replies use the timer, so they stop before it does).
 4. Declare `dep/<id>/probe` (answered in every state, `cloudd.probe`) and `dep/<id>/ctl`
    (`cloudd.control`), and follow the registry's membership (`common.membership`): logged when
    it comes and goes.
-5. Announce the liveliness token `alive/cloud/<id>`: from now on the registry may use us.
+5. Announce the liveliness token `alive/cloud/<id>`: from now on the registry may use us (it
+   probes the deployment for each service it serves: the probe reply is its registration).
 
 Each step hands what it made to the lifecycle (`Daemon.hold`, `on_release`, `announce`), which
 releases it all at shutdown in reverse order, the token first, also after a failed startup.
 
-Every robot starts in standby: only a ctl `service(robot, epoch)` from the registry declares the
-robot's anycast key `svc/<service>/<robot>/infer` (complete=True), and the ack is sent only after
-the declaration; `standby` undeclares it, then acks. The epoch rules are in `cloudd.state`.
+Every robot starts in standby in every service: only a ctl `service(robot, epoch)` from the
+registry naming the service declares the robot's anycast key `svc/<service>/<robot>/infer`
+(complete=True), and the ack is sent only after the declaration; `standby` undeclares it, then
+acks. The epoch rules are in `cloudd.state`.
 
 Limits (`cloudd.limits`, the machine's `limits` section): a request payload, a declared tensor
 size and a probe echo over the deployment's limit get a `too_large` error reply; a robot past its
@@ -45,9 +64,9 @@ and answered as INTERNAL.
 
 Stopping: SIGINT (or `stop()`) stops at once: the token goes first, then the service keys, then
 in-flight requests finish (bounded) and the session is closed explicitly. SIGTERM (or
-`stop(drain=True)`) drains first: every robot in service becomes `draining`, the registry is asked
-on `reg/drain` to move them, and once it answers (or after DRAIN_TIMEOUT_S without an answer) the
-daemon stops as above, well within 2 s.
+`stop(drain=True)`) drains first: every robot in service, in every service, becomes `draining`,
+the registry is asked on `reg/drain` to move them, and once it answers (or after DRAIN_TIMEOUT_S
+without an answer) the daemon stops as above, well within 2 s.
 """
 
 from __future__ import annotations
@@ -56,46 +75,37 @@ import functools
 import logging
 import signal
 import threading
-import time
 from collections.abc import Callable
-from dataclasses import dataclass
 
 import zenoh
 
-from cloudd.admission import Admission, Job
-from cloudd.batch_queue import BatchCosts, BatchPolicy, FairQueue
-from cloudd.batch_runner import BatchRunner
+from cloudd.batch_queue import BatchPolicy
 from cloudd.batch_stats import BatchStats
-from cloudd.control import Controller
-from cloudd.cpu_lanes import UsageMeter, lanes_supported
+from cloudd.control import CtlKey
 from cloudd.faults import FaultInjector, describe
 from cloudd.limits import CloudLimits
 from cloudd.metrics import CloudMetrics
+from cloudd.plane import INFLIGHT_WAIT_S, DeploymentParts, ServicePlane
+from cloudd.planes import Planes
 from cloudd.probe import ProbeResponder
 from cloudd.refusals import Refusals
 from cloudd.registry_link import DRAIN_TIMEOUT_S, RegistryLink
 from cloudd.replies import Replier
-from cloudd.robot_book import RobotBook
-from cloudd.service_keys import ServiceKeys
 from cloudd.state import RobotServiceState
-from cloudd.suffixes import open_split_model, warm_suffixes
-from cloudd.workers import BatchWorkers
 from common import keys
 from common.config import FleetConfig, MachineConfig
 from common.daemon import Daemon
-from common.heap import release_freed_memory
 from common.keys import Role
 from common.membership import MembershipView
 from common.metrics import MetricsEndpoint, serve
-from common.partition import TensorSpec
 from common.partition.runtime import SplitModel
 from common.providers import ProviderCheck
+from common.wire import ErrorReply
 from common.wire.registry import (
     CAP_CTL,
     CAP_FAULT_INJECTION,
     CAP_INFER,
     CAP_PROBE,
-    PROTOCOL_VERSION,
     CtlReply,
     CtlRequest,
     FaultSpec,
@@ -109,33 +119,21 @@ log = logging.getLogger(__name__)
 
 CAPABILITIES = (CAP_INFER, CAP_PROBE, CAP_CTL, CAP_FAULT_INJECTION)
 
-INFLIGHT_WAIT_S = 0.4
-"""How long shutdown lets admitted requests finish before closing the session."""
-
-
-@dataclass(frozen=True)
-class _Started:
-    """What startup made that queries, control and draining use."""
-
-    model: SplitModel
-    session: zenoh.Session
-    queue: FairQueue[Job]
-    admission: Admission
-
 
 class CloudDaemon(Daemon):
-    """One deployment of the fleet's service: `CloudDaemon(cfg, "edge-1").run()`.
+    """One deployment of the fleet's services: `CloudDaemon(cfg, "edge-1").run()`.
 
     `fault` overrides the machine's configured fault injection at start; `drop_seed` seeds the
     drop decisions (tests). `ready` (the lifecycle's) is set once startup is done: the daemon
     serves.
     `limits` are the machine's limits, `refusals` counts what they (and the rest) refused.
 
-    The daemon keeps the lifecycle and wires its parts: `RobotBook` (per-robot state, counters,
-    service keys), `ServiceKeys` (declaring them), `Replier` (replies, delays, held queries),
-    `Controller` (the ctl key), `ProbeResponder` (the probe key), `Admission` (the service keys'
-    callbacks), `BatchRunner` (the workers' runs) and `RegistryLink` (session, membership,
-    drain).
+    The daemon keeps the lifecycle and wires its parts: `Planes` (one `ServicePlane` per service
+    served: model, robot book, service keys, controller, queue, workers), `Replier` (replies,
+    delays, held queries), `ProbeResponder` and `CtlKey` (the probe and ctl keys, dispatched to
+    the planes) and `RegistryLink` (session, membership, drain). Views without a service name
+    (`model`, `states`, `batch_stats`, ...) are the first served service's (a one-service fleet's
+    only one); `plane(name)` gives any.
     """
 
     name = "cloud"
@@ -164,63 +162,76 @@ class CloudDaemon(Daemon):
 
         self.limits = CloudLimits.of(cfg, self.machine)
         self.refusals = Refusals()
-        self._book = RobotBook(cfg.robot_ids, closing=self.closing)
-        self._service_keys = ServiceKeys(cfg.fleet, cfg.service_name, deployment, self._book)
         self._replies = Replier(deployment, self.faults, self.throttled)
+        self._planes = Planes(
+            cfg,
+            DeploymentParts(
+                deployment=deployment,
+                machine=self.machine,
+                capabilities=CAPABILITIES,
+                faults=self.faults,
+                replies=self._replies,
+                limits=self.limits,
+                refusals=self.refusals,
+                throttled=self.throttled,
+                closing=self.closing,
+            ),
+        )
         self._probe = ProbeResponder(
             deployment,
             key=keys.dep_probe(cfg.fleet, deployment),
-            profile=self.profile,
+            profile=self._planes.profile,
             faults=self.faults,
             replies=self._replies,
             limits=self.limits,
             refusals=self.refusals,
             throttled=self.throttled,
         )
-        self._controller = Controller(
+        self._ctl = CtlKey(
             deployment,
             key=keys.dep_ctl(cfg.fleet, deployment),
-            book=self._book,
-            faults=self.faults,
+            route=self._planes.control,
             replies=self._replies,
-            declare_service=self._declare_service,
             max_request_bytes=self.limits.request_bytes,
             refusals=self.refusals,
             throttled=self.throttled,
-            set_in_flight=self._set_in_flight,
         )
-        self._costs = BatchCosts()
-        self.batch_stats = BatchStats()
-        self.providers: ProviderCheck | None = None
-        """The providers the suffix sessions got (after startup; `fell_back` with
-        `providers_fallback: allow` when they did not get an accelerator asked for)."""
-
-        # Made in startup, released by the lifecycle: the model as soon as it is loaded (a probe
-        # never comes before the session, but startup may stop in between), the rest in one
-        # `_Started` once the session and the workers are up.
-        self._model: SplitModel | None = None
-        self._cut_specs: list[list[TensorSpec]] = []
-        self._started: _Started | None = None
+        # Made in startup, released by the lifecycle (the models and workers are the planes').
+        self._session: zenoh.Session | None = None
         # `/metrics` (`cloudd.metrics`), when the machine's metrics.port or `metrics_port` is set;
-        # served first in startup (before the model loads), so not part of `_Started`.
+        # served first in startup (before the models load).
         self._metrics_port = metrics_port
         self.metrics_endpoint: MetricsEndpoint | None = None
         self.metrics: CloudMetrics | None = None
 
     # -- public ----------------------------------------------------------------------------
     @property
-    def model(self) -> SplitModel:
-        """The loaded split model (after startup)."""
-        if self._model is None:
-            raise RuntimeError("the model is loaded in startup()")
-        return self._model
+    def services(self) -> list[str]:
+        """The services this deployment serves, in file order."""
+        return self._planes.names
+
+    def plane(self, service: str | None = None) -> ServicePlane:
+        """The plane of `service` (None: the first served here); UserError if not served."""
+        return self._planes.plane(service)
 
     @property
-    def _parts(self) -> _Started:
-        """The started parts (RuntimeError before startup has opened the session)."""
-        if self._started is None:
-            raise RuntimeError("the cloud daemon is not started")
-        return self._started
+    def model(self) -> SplitModel:
+        """The first service's loaded model (after startup)."""
+        model = self._planes.first.model
+        if model is None:
+            raise RuntimeError("the model is loaded in startup()")
+        return model
+
+    @property
+    def providers(self) -> ProviderCheck | None:
+        """The providers the first service's suffix sessions got (after startup; `fell_back`
+        with `providers_fallback: allow` when they did not get an accelerator asked for)."""
+        return self._planes.first.providers
+
+    @property
+    def batch_stats(self) -> BatchStats:
+        """The first service's batch sizes run so far."""
+        return self._planes.first.batch_stats
 
     def stop(self, drain: bool = False) -> None:
         """Ask the daemon to stop (thread-safe); with `drain`, as on SIGTERM."""
@@ -228,69 +239,51 @@ class CloudDaemon(Daemon):
             self._drain_on_exit = True
         super().stop()
 
-    def states(self) -> dict[str, RobotServiceState]:
-        """Every known robot's state and epoch here."""
-        return self._book.states()
+    def states(self, service: str | None = None) -> dict[str, RobotServiceState]:
+        """Every known robot's state and epoch here, in `service` (None: the first served)."""
+        return self.plane(service).states()
 
-    def served(self) -> dict[str, int]:
-        """Frames computed and answered, per robot."""
-        return self._book.served()
+    def served(self, service: str | None = None) -> dict[str, int]:
+        """Frames computed and answered, per robot, in `service` (None: the first served)."""
+        return self.plane(service).book.served()
 
-    def profile(self, echo_bytes: int = 0) -> ProbeReply:
-        """What a probe is answered with."""
-        snapshot, served = self._book.snapshot()
-        states = {robot: st.state for robot, st in snapshot.items()}
-        model = self._model
-        queue = self._started.queue if self._started is not None else None
-        return ProbeReply(
-            deployment=self.deployment,
-            protocol_version=PROTOCOL_VERSION,
-            capabilities=CAPABILITIES,
-            service=self.cfg.service_name,
-            model_digest=model.digest if model is not None else "",
-            states=states,
-            load=queue.load if queue is not None else 0,
-            capacity=queue.capacity if queue is not None else 0,
-            num_cuts=len(self._cut_specs),
-            fault=self.faults.get(),
-            echo=bytes(echo_bytes),
-            epochs={robot: st.wire_epoch for robot, st in snapshot.items()},
-            served=served,
-            refused=self.refusals.snapshot(),
-            providers=self.providers.got if self.providers is not None else (),
-            providers_fallback=self.providers is not None and self.providers.fell_back,
-        )
+    def profile(self, echo_bytes: int = 0, service: str | None = None) -> ProbeReply | ErrorReply:
+        """What a probe naming `service` (None: the fleet's first) is answered with."""
+        return self._planes.profile(service, echo_bytes)
 
-    def control(self, request: CtlRequest) -> CtlReply:
+    def control(self, request: CtlRequest) -> CtlReply | ErrorReply:
         """Carry out a control request (what the ctl key does) and return the reply."""
-        return self._controller.control(request)
+        return self._planes.control(request)
 
     # -- lifecycle -------------------------------------------------------------------------
     def startup(self) -> None:
         self._serve_metrics()
-        self._load_model()
+        for plane in self._planes:
+            self.hold(plane.open_model(), f"{plane.name} model sessions")
+            if not plane.warm(self.should_exit):
+                return
         if self.should_exit.is_set():
             return
         session = self._registry.open_session()
         if session is None:
             return  # stopped while waiting for the registry
-        self.hold(session, "zenoh session")
+        self._session = self.hold(session, "zenoh session")
         self._replies.start()
         # Delayed replies go out now; held queries are let go.
         self.on_release(self._replies.stop, what="timer thread")
         policy = BatchPolicy.from_config(self.machine.batching)
-        workers, admission = self._start_workers(policy)
-        queue = workers.queue
-        self._started = _Started(
-            model=self.model, session=session, queue=queue, admission=admission
-        )
+        for plane in self._planes:
+            metrics = self.metrics.service(plane.name) if self.metrics is not None else None
+            workers = plane.start(session, policy, self._guard_query, metrics)
+            self.on_release(plane.stop_workers, workers, what=f"{plane.name} workers")
         for key, handler, what in [
             (self._probe.key, self._probe.on_query, "probe queryable"),
-            (self._controller.key, self._controller.on_query, "ctl queryable"),
+            (self._ctl.key, self._ctl.on_query, "ctl queryable"),
         ]:
             self.hold(session.declare_queryable(key, self._guard_query(handler, key)), what)
         # Released before the ctl queryable: a ctl arriving meanwhile is refused (closing).
-        self.on_release(self._service_keys.undeclare_all, what="service queryables")
+        for plane in self._planes:
+            self.on_release(plane.undeclare_all, what=f"{plane.name} service queryables")
         self.hold(
             MembershipView(
                 session, self.cfg.fleet, roles=("registry",), on_change=self._registry.on_change
@@ -303,19 +296,9 @@ class CloudDaemon(Daemon):
             )
         )
         log.info(
-            "%s: ready: service %r, %d cuts warm, %d workers, %d slots, at most %d per robot, "
-            "%s, %s, faults: %s",
+            "%s: ready: %s; %s, faults: %s",
             self.deployment,
-            self.cfg.service,
-            len(self._cut_specs),
-            workers.workers,
-            queue.capacity,
-            policy.max_in_flight_per_robot,
-            (
-                f"batches of up to {policy.max_batch} within {policy.max_queue_delay_s * 1000:g} ms"
-                if self.machine.batching.enabled
-                else "batching off"
-            ),
+            "; ".join(plane.describe(policy) for plane in self._planes),
             self.limits.describe(),
             describe(self.faults.get()),
         )
@@ -328,7 +311,7 @@ class CloudDaemon(Daemon):
     def shutdown(self) -> None:
         """Refuse new work, then release everything startup made: the token first (the registry
         reroutes at once instead of waiting for a timeout), then in reverse order. Safe twice."""
-        self._book.close()
+        self._planes.close()
         super().shutdown()
         self.refusals.log_summary(self.deployment)
         log.info("%s: stopped", self.deployment)
@@ -339,134 +322,20 @@ class CloudDaemon(Daemon):
         if endpoint is None:
             return
         self.metrics_endpoint = endpoint
-        queue = self._queue_numbers
         self.metrics = CloudMetrics(
             endpoint.registry,
             self.deployment,
-            states=self.states,
-            queue=queue,
+            services=lambda: [plane.reading() for plane in self._planes],
             providers=self._provider_names,
-            model=self._model_names,
         )
 
     def _provider_names(self) -> tuple[str, ...]:
         """The execution providers the suffix sessions run on once loaded (the check's `got`),
         before that the ones the machine asks for, for the metrics."""
-        if self.providers is not None:
-            return self.providers.got
+        providers = self.providers
+        if providers is not None:
+            return providers.got
         return tuple(p.ort_name for p in self.machine.providers)
-
-    def _model_names(self) -> tuple[str, str]:
-        """(the fleet's model, its digest once loaded), for the metrics."""
-        model = self._model
-        return self.cfg.model_spec, model.digest if model is not None else ""
-
-    def _queue_numbers(self) -> tuple[int, int, int] | None:
-        """(requests pending, requests queued, capacity), for the metrics; None before the
-        queue exists."""
-        started = self._started
-        if started is None:
-            return None
-        queue = started.queue
-        return queue.load, queue.queued, queue.capacity
-
-    def _load_model(self) -> None:
-        started = time.monotonic()
-        log.info("%s: loading %s", self.deployment, self.cfg.model_spec)
-        model = open_split_model(self.cfg, self.machine)
-        self._model = self.hold(model, "model sessions")
-        warm = warm_suffixes(
-            model,
-            self.machine,
-            deployment=self.deployment,
-            model_name=self.cfg.model_spec,
-            stop=self.should_exit,
-        )
-        if warm is None:
-            return
-        # The warm-up's first runs allocate tensor by tensor and glibc keeps what they freed;
-        # later runs take one planned block each, so giving it back now is not undone.
-        release_freed_memory(self.deployment)
-        self._cut_specs = cut_specs = warm.cut_specs
-        self.providers = warm.providers
-        oversized = self.limits.oversized_tensors(cut_specs)
-        if oversized:
-            log.warning(
-                "%s: %s over limits.max_tensor_bytes (%d bytes): requests for these cuts will "
-                "be refused",
-                self.deployment,
-                ", ".join(oversized),
-                self.limits.tensor_bytes,
-            )
-        log.info(
-            "%s: model %s (%s) loaded: %d cuts, %.1f MB of weights, on %s, in %.1f s",
-            self.deployment,
-            model.partition.model,
-            model.digest[:12],
-            model.num_cuts,
-            model.weight_bytes / 1e6,
-            ", ".join(warm.providers.got),
-            time.monotonic() - started,
-        )
-
-    def _start_workers(self, policy: BatchPolicy) -> tuple[BatchWorkers[Job], Admission]:
-        """The queue, the workers running its batches and the service keys' admission."""
-        # Each worker may run a whole batch; `queue` slots wait beyond that.
-        slots = self.machine.workers * policy.max_batch + self.machine.queue
-        queue: FairQueue[Job] = FairQueue(
-            policy, slots=slots, costs=self._costs, batchable=self.model.batched
-        )
-        admission = Admission(
-            self.deployment,
-            digest=self.model.digest,
-            cut_specs=self._cut_specs,
-            queue=queue,
-            book=self._book,
-            faults=self.faults,
-            replies=self._replies,
-            limits=self.limits,
-            refusals=self.refusals,
-            throttled=self.throttled,
-            metrics=self.metrics,
-        )
-        runner = BatchRunner(
-            self.deployment,
-            model=self.model,
-            cut_specs=self._cut_specs,
-            queue=queue,
-            costs=self._costs,
-            stats=self.batch_stats,
-            book=self._book,
-            replies=self._replies,
-            closing=self.closing,
-            throttled=self.throttled,
-            metrics=self.metrics,
-        )
-        yields = self.machine.batching.heavy_robots_low_priority and lanes_supported()
-        workers = BatchWorkers(
-            queue,
-            runner.run,
-            self.machine.workers,
-            name=f"{self.deployment}-worker",
-            meter=UsageMeter() if yields else None,
-        )
-        workers.start()
-        self.on_release(self._stop_workers, workers, what="workers")
-        return workers, admission
-
-    # -- service keys ----------------------------------------------------------------------
-    def _set_in_flight(self, robot: str, announced: int) -> int | None:
-        """The Controller passes on the frames in flight a robot announced; the limit now in
-        force for it (None before the queue exists)."""
-        started = self._started
-        return None if started is None else started.queue.set_in_flight(robot, announced)
-
-    def _declare_service(self, robot: str) -> None:
-        """Declare `robot`'s service keys (`cloudd.service_keys`; the Controller calls this
-        before acking service)."""
-        self._service_keys.declare(
-            robot, self._parts.session, self._parts.admission, self._guard_query
-        )
 
     def _guard_query(
         self, handler: Callable[[zenoh.Query], None], key: str
@@ -476,28 +345,13 @@ class CloudDaemon(Daemon):
         return self.guarded(handler, what=f"a query on {key}", on_error=on_error)
 
     # -- shutdown steps --------------------------------------------------------------------
-    def _stop_workers(self, workers: BatchWorkers[Job]) -> None:
-        if not workers.shutdown(INFLIGHT_WAIT_S):
-            log.warning(
-                "%s: %d request(s) still running after %.1f s; closing anyway",
-                self.deployment,
-                workers.queue.load,
-                INFLIGHT_WAIT_S,
-            )
-        self.batch_stats.log_summary(self.deployment)
-        if workers.low_runs:
-            log.info(
-                "%s: %d batch(es) of robots using far more than the others ran at low priority",
-                self.deployment,
-                workers.low_runs,
-            )
-
     def _drain(self) -> None:
-        """Mark every robot draining and ask the registry to move them; bounded in time."""
-        if self._started is None:
+        """Mark every robot draining in every service and ask the registry to move them;
+        bounded in time."""
+        session = self._session
+        if session is None:
             return  # stopped before the session was open: nothing to drain
-        session = self._started.session
-        serving = self._book.drain_all()
+        serving = self._planes.drain_all()
         log.info(
             "%s: draining (serving %s); asking the registry to move them",
             self.deployment,
@@ -506,6 +360,6 @@ class CloudDaemon(Daemon):
         moved = self._registry.drain(session)
         if moved:
             self.drained.set()
-        left = self._book.serving_robots()
+        left = self._planes.serving()
         if left:
             log.warning("%s: still serving %s at exit", self.deployment, ", ".join(left))

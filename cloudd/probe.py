@@ -6,7 +6,10 @@ An empty probe asks for the profile alone; a `ProbeRequest` carries padding up a
 `echo_bytes` bytes back, so the prober can measure transfer both ways. A probe over the
 request limit, or asking for more echo than the deployment's cap (`cloudd.limits`), gets a
 `too_large` error reply and is counted (`cloudd.refusals`): a probe cannot make the deployment
-send back an arbitrarily large payload.
+send back an arbitrarily large payload. A deployment serving several services answers with the
+profile of the one the request names (`ProbeRequest.service`; none, or an empty probe: the
+fleet's first service); one it does not serve gets a named `unknown_service` error reply
+(`cloudd.planes`).
 """
 
 from __future__ import annotations
@@ -20,19 +23,20 @@ from cloudd.limits import CloudLimits
 from cloudd.refusals import RefusalReason, Refusals, decode_refusal
 from cloudd.replies import Replier, query_payload
 from common.throttled_log import ThrottledLog
-from common.wire import WireError, error_reply
+from common.wire import ErrorReply, WireError, error_reply
 from common.wire.registry import ProbeReply, ProbeRequest
 
 
 class ProbeResponder:
-    """Answers the probe key with `profile(echo_bytes)`, under the injected faults."""
+    """Answers the probe key with `profile(service, echo_bytes)` (the named service's profile,
+    or an error reply), under the injected faults."""
 
     def __init__(
         self,
         deployment: str,
         *,
         key: str,
-        profile: Callable[[int], ProbeReply],
+        profile: Callable[[str | None, int], ProbeReply | ErrorReply],
         faults: FaultInjector,
         replies: Replier,
         limits: CloudLimits,
@@ -57,6 +61,7 @@ class ProbeResponder:
         delay_s = fault.delay_ms / 1000.0
         payload = query_payload(query)
         echo_bytes = 0
+        service: str | None = None
         if payload:  # an empty probe asks for the profile alone
             try:
                 request = ProbeRequest.from_wire(payload, max_bytes=self._limits.request_bytes)
@@ -76,6 +81,6 @@ class ProbeResponder:
                 )
                 self._replies.send(query, self.key, refusal.to_wire(), delay_s)
                 return
-            echo_bytes = request.echo_bytes
-        reply = self._profile(echo_bytes)
+            echo_bytes, service = request.echo_bytes, request.service
+        reply = self._profile(service, echo_bytes)
         self._replies.send(query, self.key, reply.to_wire(), delay_s)

@@ -32,6 +32,8 @@ class RefusalReason(str, enum.Enum):
     QUEUE_FULL = "queue_full"  # busy: every worker and queue slot taken
     STOPPING = "stopping"  # busy: the deployment is shutting down
     BAD_REQUEST = "bad_request"  # any other request that does not decode or fit the model
+    # A probe or ctl naming a service this deployment does not serve (or the fleet lacks).
+    UNKNOWN_SERVICE = "unknown_service"
 
     def __str__(self) -> str:
         return self.value

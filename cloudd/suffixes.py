@@ -27,7 +27,7 @@ import numpy as np
 
 from common.config import FleetConfig, MachineConfig
 from common.errors import UserError
-from common.fleet_model import fleet_partition
+from common.fleet_model import fleet_split_model
 from common.partition import TensorSpec, ort_reason
 from common.partition.runtime import SplitModel
 from common.providers import ProviderCheck, describe, enforce, ort_providers, prepare
@@ -52,8 +52,8 @@ def open_split_model(cfg: FleetConfig, machine: MachineConfig) -> SplitModel:
     prepare(machine.providers)
     gpu = machine.gpu_serving_on
     batching = machine.batching
-    return SplitModel(
-        fleet_partition(cfg),
+    return fleet_split_model(
+        cfg,
         providers=ort_providers(machine.providers),
         threads=machine.threads or None,
         lazy=True,

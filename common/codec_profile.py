@@ -225,10 +225,11 @@ def candidate_codecs(specs: Sequence[TensorSpec], fidelity: Fidelity) -> list[st
             names += LOSSY_FEATURE_CODECS
     if fidelity.codecs is not None:
         names += [n for n in fidelity.codecs if n not in names]
-    return [n for n in names if fidelity.allows(n) and _applies(n, specs)]
+    return [n for n in names if fidelity.allows(n) and codec_applies(n, specs)]
 
 
-def _applies(name: str, specs: Sequence[TensorSpec]) -> bool:
+def codec_applies(name: str, specs: Sequence[TensorSpec]) -> bool:
+    """Whether codec `name` can carry every tensor of a cut carrying `specs`."""
     codec = parse_codec(name)
     return all(codec.applies_to(np.dtype(s.dtype), tuple(s.shape)) for s in specs)
 
@@ -388,7 +389,7 @@ def profile_codecs(
         crossings = [model.run_prefix(k, f) for f in frames]
         wanted = set(required.get(cut.index, ()))
         names = candidate_codecs(specs, fidelity)
-        names += [n for n in sorted(wanted) if n not in names and _applies(n, specs)]
+        names += [n for n in sorted(wanted) if n not in names and codec_applies(n, specs)]
 
         def suffix(tensors: Mapping[str, np.ndarray], k: int = k) -> Mapping[str, np.ndarray]:
             return model.run_suffix(k, tensors)

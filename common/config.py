@@ -60,6 +60,7 @@ from common.providers import (
 )
 from common.source_spec import SourceError, parse_source
 from common.wire.codec import DEFAULT_MAX_PAYLOAD_BYTES
+from common.wire.registry import DeploymentState
 from common.yaml_files import format_validation_error, read_yaml
 
 DEFAULT_REGISTRY_ENDPOINT = f"tcp/127.0.0.1:{DEFAULT_REGISTRY_PORT}"
@@ -73,7 +74,11 @@ MAX_REQUEST_BYTES_LIMIT = 16 * 1024 * 1024
 
 LatencyStat = Literal["median", "mean", "p95", "max", "stddev"]
 LATENCY_STATS: tuple[str, ...] = typing.get_args(LatencyStat)
-InitialState = Literal["robot", "service", "standby"]
+ROBOT_STATE = "robot"
+"""initial_policy's word for a robot (a robot has no deployment state)."""
+INITIAL_CLOUD_STATES = (DeploymentState.SERVICE, DeploymentState.STANDBY)
+"""A cloud's states at start, in the wire's words (draining is no state to start in)."""
+INITIAL_STATES = (ROBOT_STATE, *(s.value for s in INITIAL_CLOUD_STATES))
 
 
 def _yaml_toggle(value: Any) -> Any:
@@ -508,8 +513,9 @@ class MachineConfig(_Model):
         description=(
             "Robot: frame source, a spec of common.source_spec: synthetic[:OPTIONS], "
             "photo[:NAME], video:PATH[,loop=false], bag:PATH[:TOPIC] (a rosbag2 recording), "
-            "camera:INDEX, stereo:world|motorcycle|LEFT,RIGHT[,OPTIONS] or zenoh (frames an "
-            "application publishes on ef/<fleet>/in/<robot>)."
+            "camera:INDEX|/dev/videoINDEX, stereo:world|motorcycle|LEFT,RIGHT[,OPTIONS], zenoh "
+            "(frames an application publishes on ef/<fleet>/in/<robot>) or ros2:TOPIC[,OPTIONS] "
+            "(a ROS 2 image topic)."
         ),
     )
     fps: float | None = Field(
@@ -744,28 +750,51 @@ class ZenohConfig(_Model):
     )
 
 
+def _cloud_state(value: Any) -> DeploymentState | None:
+    """The cloud state at start `value` names (service, standby), else None."""
+    return next((state for state in INITIAL_CLOUD_STATES if state.value == value), None)
+
+
 def _initial_entry(value: Any) -> Any:
     """A state for every robot, or a map robot -> service|standby (a cloud serving robots
-    differently)."""
-    states = typing.get_args(InitialState)
+    differently); a cloud's states become `DeploymentState`s here, where the text enters."""
     if isinstance(value, str):
-        if value not in states:
-            raise ValueError(f"{value!r} is not a state; expected one of {', '.join(states)}")
-        return value
+        if value == ROBOT_STATE:
+            return value
+        state = _cloud_state(value)
+        if state is None:
+            raise ValueError(
+                f"{value!r} is not a state; expected one of {', '.join(INITIAL_STATES)}"
+            )
+        return state
     if isinstance(value, dict):
-        for robot, state in value.items():
-            if not isinstance(robot, str) or state not in ("service", "standby"):
+        states: dict[str, DeploymentState] = {}
+        for robot, state_text in value.items():
+            state = _cloud_state(state_text) if isinstance(robot, str) else None
+            if state is None:
                 raise ValueError(
-                    f"per-robot entry {robot!r}: {state!r}; expected <robot id>: service|standby"
+                    f"per-robot entry {robot!r}: {state_text!r}; "
+                    "expected <robot id>: service|standby"
                 )
-        return value
+            states[robot] = state
+        return states
     raise ValueError(
-        f"expected a state ({', '.join(states)}) or a map of robot id to service|standby, "
-        f"got {type(value).__name__}"
+        f"expected a state ({', '.join(INITIAL_STATES)}) or a map of robot id to "
+        f"service|standby, got {type(value).__name__}"
     )
 
 
-InitialEntry = Annotated[str | dict[str, str], BeforeValidator(_initial_entry)]
+def _entry_text(entry: Any) -> str:
+    """An initial_policy entry as the file wrote it (a state's word, not the enum's repr)."""
+    if isinstance(entry, dict):
+        entry = {robot: getattr(state, "value", state) for robot, state in entry.items()}
+    return repr(getattr(entry, "value", entry))
+
+
+InitialEntry = Annotated[
+    Literal["robot"] | DeploymentState | dict[str, DeploymentState],
+    BeforeValidator(_initial_entry),
+]
 
 
 class FidelityConfig(_Model):
@@ -970,6 +999,13 @@ class FleetConfig(_Model):
         for name, svc in self.services.items():
             if svc.zoo_model is not None:
                 validate_id(svc.zoo_model, f"services.{name}.model: zoo model name")
+            if svc.handler is not None:
+                from common.handlers import import_handler
+
+                try:
+                    import_handler(svc.handler, _base_dir(info))
+                except UserError as exc:
+                    raise ValueError(f"services.{name}.handler: {exc}") from None
         self._check_machine_services()
         self._check_initial_policy()
         self._check_tls()
@@ -1045,11 +1081,12 @@ class FleetConfig(_Model):
                 raise ValueError(
                     f"initial_policy: unknown machine {machine_id!r}; known machines: {known}"
                 )
-            if machine.role is Role.ROBOT and entry != "robot":
+            if machine.role is Role.ROBOT and entry != ROBOT_STATE:
                 raise ValueError(
-                    f"initial_policy.{machine_id}: a robot's state is 'robot', not {entry!r}"
+                    f"initial_policy.{machine_id}: a robot's state is 'robot', "
+                    f"not {_entry_text(entry)}"
                 )
-            if machine.role is Role.CLOUD and entry == "robot":
+            if machine.role is Role.CLOUD and entry == ROBOT_STATE:
                 raise ValueError(
                     f"initial_policy.{machine_id}: a cloud is 'service' or 'standby', not 'robot'"
                 )
@@ -1066,7 +1103,9 @@ class FleetConfig(_Model):
             if not offered and not single:
                 continue  # no cloud serves it: its robots run it themselves (a warning at start)
             for robot in self.robots_of(name):
-                serving = [d for d in offered if self.initial_state(d, robot) == "service"]
+                serving = [
+                    d for d in offered if self.initial_state(d, robot) is DeploymentState.SERVICE
+                ]
                 if len(serving) != 1:
                     found = ", ".join(serving) if serving else "none"
                     of = "" if single else f" for service {name!r}"
@@ -1149,6 +1188,13 @@ class FleetConfig(_Model):
                 f"service {self.service_name!r} is a handler ({self.handler}), not an ONNX model"
             )
         return model
+
+    @property
+    def runs(self) -> str:
+        """What the (first) service runs, for people: its model (a path or zoo:NAME) or its
+        handler (module:function)."""
+        svc = self.service_config
+        return svc.model if svc.model is not None else str(svc.handler)
 
     @property
     def handler(self) -> str | None:
@@ -1297,17 +1343,20 @@ class FleetConfig(_Model):
             )
         return machine
 
-    def initial_state(self, deployment: str, robot: str) -> str:
-        """'service' or 'standby': the state of `deployment` for `robot` at start."""
-        entry = self.initial_policy.get(deployment, "standby")
+    def initial_state(self, deployment: str, robot: str) -> DeploymentState:
+        """SERVICE or STANDBY: the state of cloud `deployment` for `robot` at start (a machine
+        initial_policy does not list is standby)."""
+        entry = self.initial_policy.get(deployment, DeploymentState.STANDBY)
         if isinstance(entry, dict):
-            return entry.get(robot, "standby")
-        return entry
+            return entry.get(robot, DeploymentState.STANDBY)
+        if isinstance(entry, DeploymentState):
+            return entry
+        return DeploymentState.STANDBY  # `robot`: a robot serves nobody
 
     def initial_service(self, robot: str) -> str | None:
         """The deployment serving `robot` at start (None when the fleet has no cloud for it)."""
         for deployment in self.deployment_ids:
-            if self.initial_state(deployment, robot) == "service":
+            if self.initial_state(deployment, robot) is DeploymentState.SERVICE:
                 return deployment
         return None
 

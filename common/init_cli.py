@@ -120,7 +120,10 @@ ROBOT_TEMPLATE = """\
   {id}:
     role: robot
     listen: [{proto}/127.0.0.1:0]
-    source: synthetic   # or video:PATH, camera:INDEX
+    # Frame source (docs/robot.md): synthetic, photo[:NAME], video:PATH, bag:PATH[:TOPIC] (a
+    # rosbag2 recording), camera:0 or camera:/dev/video0, zenoh (frames an application
+    # publishes), ros2:TOPIC (a ROS 2 image topic), stereo:world (a two-image model).
+    source: synthetic
     fps: 10
     # uplink_mbit: 2    # pace the uplink in the application (single-host emulation)
 {tls}"""
@@ -204,10 +207,9 @@ def write_fleet(
     is false."""
     # Heavy imports (pydantic, the wire codec, cryptography) where the command runs:
     # `elasticfog --help` must stay fast.
-    import yaml
-
     from common.config import ZOO_PREFIX, fleet_from_dict
     from common.keys import validate_id
+    from common.yaml_files import parse_yaml
 
     validate_id(fleet, "fleet name")
     if not 1 <= port <= 65535:
@@ -227,7 +229,7 @@ def write_fleet(
     if target.exists() and not force:
         raise UserError(f"{target}: already exists; use --force to overwrite it")
     text = render_fleet(port=port, fleet=fleet, model=model, robots=robots, tls=tls)
-    fleet_from_dict(yaml.safe_load(text), source=target)  # what we write must load
+    fleet_from_dict(parse_yaml(text, str(target)), source=target)  # what we write must load
     if tls:
         write_certs(
             directory, [REGISTRY_ID, *CLOUD_IDS, *robot_ids(robots)], fleet=fleet, force=force

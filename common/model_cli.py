@@ -428,8 +428,9 @@ def prep_cmd(
     rgb: bool = typer.Option(
         True,
         "--rgb/--bgr",
-        help="Channel order of the camera image; the model is taken to expect RGB, so --bgr "
-        "adds the reorder to the graph (OpenCV frames are BGR).",
+        help="Channel order of the camera image. The robot daemon feeds RGB: keep the default "
+        "for a model it runs. --bgr adds a BGR→RGB reorder to the graph (the model is taken to "
+        "expect RGB), for a program that feeds OpenCV's BGR frames as they come.",
     ),
     input_shape: str | None = typer.Option(
         None, "--input-shape", help="HxW: fixes a dynamic height and width (e.g. 224x224)."
@@ -488,11 +489,12 @@ def _fmt_values(values: tuple[float, ...]) -> str:
 def zoo_list_cmd(
     as_json: bool = typer.Option(False, "--json", help="Print the list as JSON."),
 ) -> None:
-    """List the zoo models."""
+    """List the zoo models (their weights are seeded, not trained)."""
     from common.zoo import (
         CAMERA_ORDER,
         DEFAULT_INPUT_SHAPE,
         DEFAULT_ZOO_MODEL,
+        WEIGHTS_NOTE,
         ZOO_INPUT_DTYPE,
         all_models,
         file_input_shape,
@@ -512,7 +514,8 @@ def zoo_list_cmd(
     table = Table(
         title=f"model zoo (default image {format_shape(DEFAULT_INPUT_SHAPE)}: input "
         f"{ZOO_INPUT_DTYPE} {format_shape(file_input_shape(DEFAULT_INPUT_SHAPE))}, "
-        f"{CAMERA_ORDER.upper()})"
+        f"{CAMERA_ORDER.upper()})",
+        caption=WEIGHTS_NOTE,
     )
     table.add_column("name")
     table.add_column("description")

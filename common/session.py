@@ -34,9 +34,10 @@ What every session gets, and why (zenoh 1.10; keys checked against the installed
 
 A peer that cannot reach its connect endpoints still opens and keeps retrying in the background
 (daemons must start before the registry and survive its restarts); a client fails at once, or
-after `connect_timeout_s` — what a CLI query wants. Callers own the returned session and close
-it (`with open_session(...) as session:`): a session still holding callbacks at interpreter exit
-hangs the process.
+after `connect_timeout_s` — what a CLI query wants — with one line naming the endpoints and what
+to start or check there (`start_registry_hint`), never zenoh's own text. Callers own the returned
+session and close it (`with open_session(...) as session:`): a session still holding callbacks at
+interpreter exit hangs the process.
 """
 
 from __future__ import annotations
@@ -62,6 +63,10 @@ ZENOH_RX_WORKER_THREADS = 16
 ZENOH_RUNTIME_ENV = "ZENOH_RUNTIME"
 LOG_LEVEL_DEFAULT = "error"
 MODES = ("peer", "client", "router")
+_UNREACHABLE_TEXT = "Unable to connect to any of"
+"""How zenoh 1.x words a client that reached none of its connect endpoints (`zenoh.ZError` has no
+kind to test): `Unable to connect to any of [Single(tcp/...)]. Timeout!`. `open_session` turns it
+into a line naming the endpoints and what to start (tests/integration/test_registry_views.py)."""
 
 _log_lock = threading.Lock()
 _log_ready = False
@@ -268,6 +273,11 @@ def open_session(
     try:
         return zenoh.open(_to_config(settings))
     except zenoh.ZError as exc:
+        if settings["connect/endpoints"] and _UNREACHABLE_TEXT in str(exc):
+            raise UserError(
+                f"cannot reach {', '.join(settings['connect/endpoints'])}: nothing answers "
+                f"there; {start_registry_hint(cfg)}"
+            ) from None
         where = []
         if settings.get("listen/endpoints"):
             where.append(f"listening on {', '.join(settings['listen/endpoints'])}")
@@ -277,6 +287,20 @@ def open_session(
         raise UserError(
             f"cannot open a Zenoh {settings['mode']} session{context}: {zenoh_error_text(exc)}"
         ) from None
+
+
+def start_registry_hint(cfg: FleetConfig | None = None) -> str:
+    """What to start or check when nothing, or no registry, answers at the fleet's endpoint: the
+    one wording of every client that meets the fleet there (`open_session` when a client cannot
+    connect, the views CLI when no registry replies)."""
+    config = cfg.source_path if cfg is not None else None
+    command = "elasticfog registry" + (f" --config {config}" if config is not None else "")
+    if cfg is not None and not cfg.registry.embedded_router:
+        router = "and the fleet's Zenoh router (registry.embedded_router is false)"
+    else:
+        router = "(it hosts the fleet's router)"
+    where = f"registry.endpoint in {config}" if config is not None else "the endpoint"
+    return f"start `{command}` there {router}, or check {where}"
 
 
 def zenoh_error_text(exc: BaseException) -> str:

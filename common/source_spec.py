@@ -37,6 +37,9 @@ VIDEO_PREFIX = "video:"
 BAG_PREFIX = "bag:"
 VIDEO_OPTIONS = ("loop",)
 CAMERA_PREFIX = "camera:"
+CAMERA_FORM = "camera:INDEX|/dev/videoINDEX"
+# `camera:/dev/video0`, what a Linux user types first: the V4L2 device of index 0.
+_VIDEO_DEVICE = re.compile(r"/dev/video(\d+)")
 STEREO_PREFIX = "stereo:"
 # `stereo:world`: pairs rendered in nav's world; `stereo:motorcycle`: Middlebury's real pair.
 STEREO_WORLD = "world"
@@ -86,7 +89,8 @@ class SourceSpec:
     def needs_session(self) -> bool:
         """Whether the source receives its frames over the robot daemon's Zenoh session: it is
         opened once the session is open (`robotd.sources.frame_sources.SourceSession`), and is not
-        opened a second time for the start's calibration frames."""
+        opened a second time for the start's calibration frames (its codecs are measured on the
+        first frames it serves, `robotd.robot_profile.FirstFramesRefinement`)."""
         return False
 
     def __str__(self) -> str:
@@ -140,9 +144,11 @@ class BagSpec(SourceSpec):
 
 @dataclass(frozen=True)
 class CameraSpec(SourceSpec):
-    """`camera:N`."""
+    """`camera:N` or `camera:/dev/videoN` (`device`: the path as written, None for an index);
+    either way OpenCV opens the camera of index N."""
 
     index: int = 0
+    device: str | None = None
 
 
 @dataclass(frozen=True)
@@ -332,9 +338,16 @@ def _parse_bag(spec: str, args: str) -> BagSpec:
 
 
 def _parse_camera(spec: str, args: str) -> CameraSpec:
-    if not args.strip().isdigit():
-        raise SourceError(f"source {spec!r}: camera needs an index, e.g. camera:0")
-    return CameraSpec(spec, index=int(args.strip()))
+    text = args.strip()
+    if text.isdigit():
+        return CameraSpec(spec, index=int(text))
+    device = _VIDEO_DEVICE.fullmatch(text)
+    if device is None:
+        raise SourceError(
+            f"source {spec!r}: camera needs an index or a video device, e.g. camera:0 or "
+            "camera:/dev/video0"
+        )
+    return CameraSpec(spec, index=int(device.group(1)), device=text)
 
 
 STEREO_FORMS = (
@@ -448,7 +461,7 @@ KINDS: dict[str, SourceKind] = {
         ),
         SourceKind("video", "video:PATH[,loop=false]", _parse_video),
         SourceKind("bag", "bag:PATH[:TOPIC]", _parse_bag),
-        SourceKind("camera", "camera:INDEX", _parse_camera),
+        SourceKind("camera", CAMERA_FORM, _parse_camera),
         SourceKind("stereo", STEREO_FORMS, _parse_stereo),
         SourceKind(ZENOH, ZENOH, _parse_zenoh),
         SourceKind(ROS2, ROS2_FORM, _parse_ros2),
@@ -481,14 +494,6 @@ def parse_source(spec: str | SourceSpec) -> SourceSpec:
 def needs_session(spec: str | SourceSpec) -> bool:
     """Whether source `spec` receives its frames over the daemon's Zenoh session."""
     return parse_source(spec).needs_session
-
-
-def calibration_source(spec: str | SourceSpec) -> SourceSpec:
-    """The source the start's codec measurement reads its frames from: the robot's own, except
-    for a source fed over the session (no frame may have arrived yet, and frames taken for the
-    measurement would be lost to the run), measured on the camera-like photographs instead."""
-    parsed = parse_source(spec)
-    return parse_source(DEFAULT_CAMERA_SOURCE) if parsed.needs_session else parsed
 
 
 def parse_ros2_source(spec: str | SourceSpec) -> Ros2Spec:

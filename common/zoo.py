@@ -97,6 +97,12 @@ DEFAULT_INPUT_SHAPE: tuple[int, int, int] = (3, 240, 320)
 # the robot (stem + max pool already halve the input), so the best cut moves visibly with the
 # uplink bandwidth and robot CPU (figures in docs/partitioning.md).
 DEFAULT_ZOO_MODEL = "resnet"
+WEIGHTS_NOTE = (
+    "The CNNs' weights are seeded, not trained: their graphs, sizes and times are the real "
+    "networks', their outputs (a top-5, a class index) mean nothing. For real predictions give "
+    "a trained ONNX file (model: PATH, --model PATH)."
+)
+"""What `elasticfog model zoo list` prints under the table: a top-5 of a zoo model is no class."""
 # The spatial dimensions are divided by 32 in every zoo model; smaller inputs would vanish.
 MIN_SPATIAL_PX = 32
 MAX_SPATIAL_PX = 4096

@@ -475,7 +475,7 @@ def demo(
         DEFAULT_CAMERA_SOURCE,
         "--source",
         help="Frame source of the robot: photo (real photographs through a moving camera), "
-        "synthetic, video:PATH or camera:N.",
+        "synthetic, video:PATH or camera:N|/dev/videoN.",
     ),
     compare: bool = typer.Option(
         False, "--compare", help="Run the script again with the robot and cloud:jpeg80 policies."

@@ -31,15 +31,14 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from common.errors import UserError
+from common.yaml_files import format_validation_error, read_yaml
 from robotd.emulation import (
     MAX_SLOWDOWN,
     Phase,
     PhaseSpec,
     check_unique_names,
-    read_yaml,
     resolve_phases,
 )
-from robotd.policies.base import one_line_validation_error
 
 DEFAULT_SCRIPT = Path(__file__).resolve().parent / "demo_scripts" / "default.yaml"
 SINGLE_PHASE_NAME = "run"
@@ -136,7 +135,7 @@ def script_from_dict(data: Any, source: str) -> DemoScript:
     try:
         parsed = DemoScriptFile.model_validate(data)
     except ValidationError as exc:
-        raise UserError(one_line_validation_error(source, exc)) from None
+        raise UserError(f"{source}: {format_validation_error(exc, DemoScriptFile)}") from None
     phases = resolve_phases(parsed.phases, uplink_mbit=parsed.uplink_mbit, slowdown=parsed.slowdown)
     kill_at = next(
         (p.first for p, s in zip(phases, parsed.phases, strict=True) if s.kill_service), None

@@ -59,6 +59,7 @@ def write_local_fleet(
 
     from common.config import load_fleet
     from common.init_cli import DEFAULT_MODEL, write_fleet
+    from common.yaml_files import read_yaml
 
     path = write_fleet(
         Path(directory),
@@ -69,7 +70,7 @@ def write_local_fleet(
         tls=tls,
     )
     if changes:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+        data = read_yaml(path)
         merge_into(data, changes)
         path.write_text(yaml.safe_dump(data, sort_keys=False), encoding="utf-8")
         load_fleet(path)  # a bad change fails here, naming the field
@@ -97,7 +98,9 @@ class LocalFleet:
     its liveliness token is up; cloud: its token is up and, if the registry runs, the registry lists
     it as alive; robot: its token), and talk to them as any other machine would — probe and ctl
     keys, the registry's views, the robots' telemetry. The observer session is a peer like the
-    daemons, so it keeps seeing the robots and clouds when the registry is gone.
+    daemons, so it keeps seeing the robots and clouds when the registry is gone. `argv0`: the
+    command that runs the daemons' CLI (None: this installation's, `deploy.procs.elasticfog_argv`),
+    e.g. the `elasticfog` of a virtual environment installed as a robot host installs it.
     """
 
     def __init__(
@@ -107,9 +110,11 @@ class LocalFleet:
         *,
         env: dict[str, str] | None = None,
         startup_timeout_s: float = 60.0,
+        argv0: Sequence[str] | None = None,
     ) -> None:
         from common.config import load_fleet
 
+        self.argv0 = argv0
         self.config = Path(config)
         self.cfg = load_fleet(self.config)
         self.fleet = self.cfg.fleet
@@ -186,7 +191,9 @@ class LocalFleet:
         """`elasticfog registry --config F [args]`; with `wait`, until it is ready."""
         from common import keys
 
-        proc = self.procs.start(self._name("registry"), ["registry", *self._config_args, *args])
+        proc = self.procs.start(
+            self._name("registry"), ["registry", *self._config_args, *args], argv0=self.argv0
+        )
         if wait:
             host, port = self.registry_host_port
             wait_until(
@@ -206,7 +213,9 @@ class LocalFleet:
     def start_cloud(self, cloud_id: str, *args: str) -> DaemonProc:
         """`elasticfog cloud --config F --id ID [args]`, not waited for (see `wait_clouds`)."""
         return self.procs.start(
-            self._name(cloud_id), ["cloud", *self._config_args, "--id", cloud_id, *args]
+            self._name(cloud_id),
+            ["cloud", *self._config_args, "--id", cloud_id, *args],
+            argv0=self.argv0,
         )
 
     def start_clouds(
@@ -253,7 +262,7 @@ class LocalFleet:
             cli += ["--frames", str(frames)]
         if telemetry is not None:
             cli += ["--telemetry", str(telemetry)]
-        proc = self.procs.start(self._name(robot_id), [*cli, *args])
+        proc = self.procs.start(self._name(robot_id), [*cli, *args], argv0=self.argv0)
         if wait:
             self.tokens.wait_for(
                 [keys.alive_robot(self.fleet, robot_id)],

@@ -32,12 +32,9 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from types import FrameType
-from typing import IO, TYPE_CHECKING, Any, TypeVar
+from typing import IO, Any
 
 from common.errors import UserError
-
-if TYPE_CHECKING:
-    pass
 
 log = logging.getLogger(__name__)
 
@@ -52,8 +49,6 @@ WATCH_INTERVAL_S = 0.05
 
 LOG_TAIL_LINES = 40
 """Lines of a daemon's log shown when it fails (tests attach this much)."""
-
-T = TypeVar("T")
 
 
 class DaemonError(UserError):
@@ -341,25 +336,3 @@ def free_tcp_port(host: str = "127.0.0.1") -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
         sock.bind((host, 0))
         return int(sock.getsockname()[1])
-
-
-# Names that lived here before the split, for code written against the old layout.
-_MOVED = {
-    "wait_until": "deploy.readiness",
-    "check_procs": "deploy.readiness",
-    "TokenWatch": "deploy.readiness",
-    "TelemetryTap": "deploy.telemetry_tap",
-    "merge_into": "deploy.local_fleet",
-    "write_local_fleet": "deploy.local_fleet",
-    "link_protocol": "deploy.local_fleet",
-    "observer_identity": "deploy.local_fleet",
-    "LocalFleet": "deploy.local_fleet",
-}
-
-
-def __getattr__(name: str) -> Any:
-    if name in _MOVED:
-        import importlib
-
-        return getattr(importlib.import_module(_MOVED[name]), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

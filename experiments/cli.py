@@ -355,6 +355,52 @@ def anycast(
     _run(options, lambda: ac.run(options), ac.markdown, ac.plot, as_json, _as_is)
 
 
+@testbed_command("services", fixed={"model": DEFAULT_MODEL, "input_shape": None, "tls": False})
+def services(
+    options: Any,
+    as_json: bool,
+    rounds: int | None = typer.Option(
+        None,
+        "--rounds",
+        help="Rounds, each a joint and an independent run (default 3, 1 with --quick).",
+    ),
+    fps: float = typer.Option(5.0, "--fps", help="Frames per second of every service."),
+    uncontended_mbit: float = typer.Option(
+        20.0, "--uncontended-mbit", help="The robot's uplink cap in the first phase, Mbit/s."
+    ),
+    contended_mbit: float = typer.Option(
+        2.0, "--contended-mbit", help="The cap the uplink drops to for the second phase, Mbit/s."
+    ),
+    phase_s: float | None = typer.Option(
+        None, "--phase-s", help="Seconds of each phase (default 20, 8 with --quick)."
+    ),
+) -> None:
+    """Three services on one robot (a classifier, a dense model, a handler) sharing its uplink
+    and CPU: joint decisions against independent ones, on an uncontended then a contended
+    uplink. --frames: frames of each service per run (default: enough for both phases)."""
+    from experiments import services as sv
+
+    settings = _guard(
+        lambda: sv.plan(
+            options,
+            rounds=rounds,
+            fps=fps,
+            uncontended_mbit=uncontended_mbit,
+            contended_mbit=contended_mbit,
+            phase_s=phase_s,
+        )
+    )
+    _run(
+        options,
+        lambda: sv.run(options, settings),
+        sv.markdown,
+        sv.plot,
+        as_json,
+        sv.ServicesResult.public,
+        tls_key=False,
+    )
+
+
 @bench_app.command("nav")
 def nav(
     resolutions: str = typer.Option(

@@ -27,6 +27,7 @@ import yaml
 from common.config import FleetConfig, fleet_from_dict
 from common.defaults import DEFAULT_CAMERA_SOURCE
 from common.fleet_tls import tls_settings, write_certs
+from common.yaml_files import read_yaml
 from deploy.local_fleet import merge_into
 
 from .defaults import DEFAULT_INPUT_SHAPE, DEFAULT_MODEL
@@ -75,6 +76,9 @@ class FleetSpec:
     robot_threads: int = 1
     cloud_threads: int = 1
     cloud_workers: int = 1
+    services: Mapping[str, Mapping[str, Any]] | None = None
+    """Several services (fleet.yaml's `services:`, name -> {model|handler, overrides}), written
+    in place of the one-service form's `service`, `model` and `input_shape`; None: that form."""
     changes: Mapping[str, Any] = field(default_factory=dict)
     """Merged into the mapping last (nested mappings merge, other values replace)."""
 
@@ -118,6 +122,7 @@ def fleet_dict(
         "fleet": spec.fleet,
         "service": SERVICE,
         "model": spec.model,
+        "services": {name: dict(svc) for name, svc in (spec.services or {}).items()},
         "registry": {
             "endpoint": registry,
             "listen": [registry],
@@ -131,8 +136,12 @@ def fleet_dict(
         "policy": {"kind": spec.policy},
         "zenoh": {"mode": "peer", "lease_ms": spec.lease_ms, "shared_memory": False},
     }
-    if spec.input_shape is not None:
-        data["input_shape"] = list(spec.input_shape)
+    if spec.services:
+        del data["service"], data["model"]  # the services name their own
+    else:
+        del data["services"]
+        if spec.input_shape is not None:
+            data["input_shape"] = list(spec.input_shape)
     if tls:
         merge_into(data, tls_settings(REGISTRY_ID, machines))
     return merge_into(data, dict(spec.changes))
@@ -154,7 +163,7 @@ def write_robot_variant(config: Path, policy: str) -> tuple[Path, str]:
     if policy not in POLICY_VARIANTS:
         return config, policy
     kind, params = POLICY_VARIANTS[policy]
-    data = yaml.safe_load(config.read_text(encoding="utf-8"))
+    data = read_yaml(config)  # the user's fleet file: a key given twice is refused
     data["policy"] = {"kind": kind, "params": params}
     path = config.with_name(f"{config.stem}.{policy}.yaml")
     fleet_from_dict(data, source=path)

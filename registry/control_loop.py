@@ -6,7 +6,10 @@ and the measurements) and hands out decisions: `handle` acts on one event at onc
 change, a probe outcome, a robot to evaluate, a queued drain or reroute), `schedule_all` is one
 scheduling round (every live robot evaluated, moves carried out), `refresh_deployments` submits
 the probes that are due. Every route that changes is counted in `metrics` (`registry.metrics`,
-off unless the daemon serves them). It opens nothing and runs no thread: the daemon
+off unless the daemon serves them). A control loop routes one service (its `cfg` is that
+service's view of the fleet, `FleetConfig.for_service`): the registry daemon runs one per service
+(`registry.plane`) and dispatches each event to the planes it concerns (`registry.planes`). It
+opens nothing and runs no thread: the daemon
 (`registry.daemon`) makes the parts at startup, feeds it from its queue and ticks it; the
 registry simulation (`benchmarks/registry_sim_fleet.py`) drives it with simulated parts and time.
 
@@ -49,9 +52,11 @@ log = logging.getLogger("registry.daemon")  # one logger for the registry's line
 
 @dataclass(frozen=True)
 class Evaluate:
-    """Evaluate one robot now (its telemetry reported a timeout run)."""
+    """Evaluate one robot now (its telemetry reported a timeout run) for `service` (None: the
+    fleet's first)."""
 
     robot: str
+    service: str | None = None
 
 
 Event = MemberChange | Probed | Evaluate | QueuedRequest
@@ -104,7 +109,9 @@ class ControlLoop:
                 reply = drain(request, rib, self.registrar, self.evaluate)
             else:
                 assert isinstance(request, msg.RerouteRequest)
-                reply = reroute(request, rib, self.measurements, self.evaluate)
+                reply = reroute(
+                    request, rib, self.measurements, self.evaluate, service=self.service
+                )
             payload = reply.to_wire()
         except Exception as exc:
             self.throttled.error("registry: unexpected error in %s", event.key, exc_info=True)
@@ -185,7 +192,7 @@ class ControlLoop:
                 pool = route.pool if row is not None and row.alive else None
                 self.measurements.set_route(result.robot, result.deployment, result.epoch, pool)
                 if result.changed:
-                    self.metrics.route_change(RESTORE, None)
+                    self.metrics.route_change(RESTORE, None, service=self.service)
                 else:
                     # Tell the robot again (receivers ignore an epoch they hold already).
                     self._publish(route.robot, deployment, result.epoch, "restore", pool=route.pool)
@@ -280,7 +287,7 @@ class ControlLoop:
         else:
             result = carry_out(scheduler, switcher, decision)
         if result.changed:
-            self.metrics.route_change(decision.reason.value, result.previous)
+            self.metrics.route_change(decision.reason.value, result.previous, service=self.service)
         if result.changed and decision.reason is Reason.NO_CAPACITY:
             self.measurements.set_route(result.robot, None, result.epoch)
             log.info(
@@ -314,6 +321,8 @@ class ControlLoop:
         pool: tuple[str, ...] = (),
     ) -> None:
         try:
-            self.transport.publish_route(route_change(robot, deployment, epoch, reason, pool=pool))
+            self.transport.publish_route(
+                route_change(robot, deployment, epoch, reason, pool=pool, service=self.service)
+            )
         except TransportError as exc:
             log.warning("%s", exc)

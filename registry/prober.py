@@ -5,7 +5,8 @@ three times for a registration: the control loop must not wait on it. `RegistryP
 on a small pool and hands each outcome, a `Probed`, to a callback (the daemon queues it for the
 control loop, which alone decides). `close()` cancels the probes not started, lets the running
 ones finish (they stop retrying once the daemon is closing) and waits for them; after it, nothing
-is probed.
+is probed. A prober probes for one service (`ProbeRequest.service`: each service's plane has its
+own), and its outcomes name it.
 """
 
 from __future__ import annotations
@@ -28,17 +29,19 @@ PROBE_WORKERS = 2
 @dataclass(frozen=True)
 class Probed:
     """A probe's outcome: the reply, or None and why (`error`). `refresh`: a probe of a
-    deployment accepted already (load and repair), not a registration."""
+    deployment accepted already (load and repair), not a registration. `service`: the service
+    it was probed for (None: the fleet's first)."""
 
     deployment: str
     reply: msg.ProbeReply | None
     error: str
     refresh: bool
+    service: str | None = None
 
 
 class RegistryProber:
-    """`RegistryProber(transport, sender, on_probed, closing)`; `submit(deployment,
-    refresh=...)`."""
+    """`RegistryProber(transport, sender, on_probed, closing, service="vision")`;
+    `submit(deployment, refresh=...)`."""
 
     def __init__(
         self,
@@ -48,9 +51,11 @@ class RegistryProber:
         closing: threading.Event,
         *,
         timeout_s: float = PROBE_TIMEOUT_S,
+        service: str | None = None,
     ) -> None:
         self.transport = transport
         self.sender = sender
+        self.service = service
         self.timeout_s = timeout_s
         self._on_probed = on_probed
         self._closing = closing
@@ -78,7 +83,9 @@ class RegistryProber:
         for _ in range(attempts):
             if self._closing.is_set():
                 return
-            request = msg.ProbeRequest(sender=self.sender, sent_at=time.time())
+            request = msg.ProbeRequest(
+                sender=self.sender, sent_at=time.time(), service=self.service
+            )
             try:
                 reply = self.transport.probe(deployment, request, self.timeout_s)
             except TransportError as exc:
@@ -87,4 +94,4 @@ class RegistryProber:
                 break
             if error == "no reply":
                 error = f"no probe reply within {self.timeout_s:g} s ({attempts} tries)"
-        self._on_probed(Probed(deployment, reply, error, refresh))
+        self._on_probed(Probed(deployment, reply, error, refresh, self.service))

@@ -13,6 +13,9 @@ registration state of every cloud whose token is alive (`pending` until its prob
 then `accepted` or `refused`), which deployments were accepted in this run, and the model digest
 each robot registered with. The control loop writes; the views and `reg/register` read from
 Zenoh callback threads, hence the lock.
+A registrar admits for one service (each service's plane has its own): a deployment's probe reply
+must be for it, and the routes it tells are that service's. A request for a service the fleet
+does not serve is refused by the daemon's dispatch with `refuse_service`, recorded like any.
 A refusal is an event in the RIB and one warning naming the machine and the reason; nothing is ever
 routed to a refused deployment.
 """
@@ -237,6 +240,7 @@ class Registrar:
                     reason=self._route_reason(row),
                     at=time.time(),
                     pool=row.pool,
+                    service=self.service,
                 )
         return msg.RegisterReply(
             accepted=reason is None,
@@ -263,6 +267,7 @@ class Registrar:
             epoch=self.rib.issued_epoch(request.id),
             reason=msg.NO_CAPACITY_REASON,
             at=time.time(),
+            service=self.service,
         )
 
     def _route_reason(self, row: RibRouteRow) -> str:
@@ -278,6 +283,16 @@ class Registrar:
             if event.epoch == row.epoch and code in ROUTE_REASONS:
                 return code
         return CURRENT_ROUTE_REASON
+
+    def refuse_service(self, request: msg.RegisterRequest, reason: str) -> msg.RegisterReply:
+        """Refuse a request this registrar's service cannot take (`reason`: e.g. a service the
+        fleet does not serve), unless the checks that come first (protocol, capabilities)
+        refuse it already, as `register` would; recorded like any refusal."""
+        final = msg.check_registration(request, service=request.service) or reason
+        self.refuse(Role(request.role), request.id, final)
+        return msg.RegisterReply(
+            accepted=False, reason=final, protocol_version=msg.PROTOCOL_VERSION
+        )
 
     def register(self, request: msg.RegisterRequest) -> str | None:
         """Check a `reg/register` request; the reason to refuse it (recorded), or None. An

@@ -10,7 +10,7 @@ query at once (a querier waits for the final reply), tolerating a querier that w
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import Any
 
 import zenoh
@@ -24,6 +24,26 @@ log = logging.getLogger(__name__)
 
 INTERNAL_REASON = "internal error; see the registry log"
 LIMIT_FIELD = "registry.max_request_bytes"
+
+
+class UnknownService(WireError):
+    """A request or publication naming a service this fleet does not serve: refused (an error
+    reply, or a dropped publication), the reason naming the fleet's services."""
+
+    code = ErrorCode.UNKNOWN_SERVICE
+
+
+def unknown_service(name: str, services: Iterable[str]) -> UnknownService:
+    """The refusal of `name`, listing the fleet's services."""
+    return UnknownService(f"unknown service {name!r}; this fleet's services: {', '.join(services)}")
+
+
+def check_service(name: str | None, services: Iterable[str]) -> None:
+    """UnknownService unless `name` is None (a peer of a one-service fleet: the first service)
+    or one of `services`."""
+    known = tuple(services)
+    if name is not None and name not in known:
+        raise unknown_service(name, known)
 
 
 def check_size(data: bytes, max_bytes: int, what: str) -> None:

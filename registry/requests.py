@@ -2,7 +2,10 @@
 control loop, acted on there and answered with the outcome.
 
 Both move robots, and only the control loop decides and switches, so a callback does no more
-than decode the query strictly (`registry.replies.decode_query`) and queue a `QueuedRequest`.
+than decode the query strictly (`registry.replies.decode_query`), refuse a reroute for a service
+the fleet does not serve (`UnknownService`, answered like bad input) and queue a `QueuedRequest`.
+A drain is for every service the deployment serves; a reroute for its `service` (None: the
+fleet's first).
 The control loop hands it to `drain` or `reroute` with the daemon's own evaluation of a robot
 (`evaluate`: ask the scheduler, carry out its decision), so what a request does is what a
 scheduling round would do. Requests still queued when the registry stops are refused
@@ -14,7 +17,7 @@ from __future__ import annotations
 import logging
 import queue
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import zenoh
@@ -24,7 +27,7 @@ from common.wire import ErrorCode, ErrorReply, Message
 from common.wire import registry as msg
 from registry.measurements import Measurements
 from registry.registration import Registrar
-from registry.replies import answer, decode_query, refusal
+from registry.replies import answer, check_service, decode_query, refusal
 from registry.rib import Rib
 from registry.switch import SwitchResult
 
@@ -48,17 +51,25 @@ class QueuedRequest:
 class RequestQueue:
     """The drain and reroute queryables' callbacks: `on_drain(query)`, `on_reroute(query)`
     decode and hand a `QueuedRequest` to `put` (bad input raises `WireError`, which the
-    daemon's guard answers)."""
+    daemon's guard answers). `services`: the fleet's (empty: any)."""
 
     def __init__(
-        self, fleet: str, put: Callable[[QueuedRequest], None], *, max_request_bytes: int
+        self,
+        fleet: str,
+        put: Callable[[QueuedRequest], None],
+        *,
+        max_request_bytes: int,
+        services: Sequence[str] = (),
     ) -> None:
         self.fleet = fleet
         self.max_request_bytes = max_request_bytes
+        self.services = tuple(services)
         self._put = put
 
     def on_reroute(self, query: zenoh.Query) -> None:
         request = decode_query(query, msg.RerouteRequest, max_bytes=self.max_request_bytes)
+        if self.services:
+            check_service(request.service, self.services)
         self._put(QueuedRequest(request, query, keys.reg_reroute(self.fleet)))
 
     def on_drain(self, query: zenoh.Query) -> None:
@@ -104,10 +115,32 @@ def drain(request: msg.DrainRequest, rib: Rib, registrar: Registrar, evaluate: E
     return msg.DrainReply(ok=not stuck, moved=tuple(moved), reason=reason)
 
 
+def combine_drains(replies: Sequence[tuple[str, Message]]) -> Message:
+    """One reply to a drain acted on by every service's plane ((service, its reply) each): the
+    robots moved in any, `ok` when every plane that knows the deployment moved them all. A
+    deployment no plane knows gets the first plane's refusal."""
+    drained = [(s, r) for s, r in replies if isinstance(r, msg.DrainReply)]
+    if not drained:
+        return replies[0][1]
+    if len(drained) == 1:
+        return drained[0][1]
+    moved = dict.fromkeys(robot for _, r in drained for robot in r.moved)
+    reasons = [f"{service}: {r.reason}" for service, r in drained if r.reason]
+    return msg.DrainReply(
+        ok=all(r.ok for _, r in drained), moved=tuple(moved), reason="; ".join(reasons)
+    )
+
+
 def reroute(
-    request: msg.RerouteRequest, rib: Rib, measurements: Measurements, evaluate: Evaluate
+    request: msg.RerouteRequest,
+    rib: Rib,
+    measurements: Measurements,
+    evaluate: Evaluate,
+    *,
+    service: str | None = None,
 ) -> Message:
-    """A robot's request for another deployment: answered with its route afterwards."""
+    """A robot's request for another deployment: answered with its route afterwards (for
+    `service`, the plane's that acts on it)."""
     robot = request.robot
     if rib.robot(robot) is None:
         return ErrorReply.make(
@@ -129,14 +162,27 @@ def reroute(
         now.epoch if now else 0,
         "rerouted" if moved else "current route",
         pool=now.pool if now else (),
+        service=service,
     )
 
 
 def route_change(
-    robot: str, deployment: str | None, epoch: int, reason: str, *, pool: tuple[str, ...] = ()
+    robot: str,
+    deployment: str | None,
+    epoch: int,
+    reason: str,
+    *,
+    pool: tuple[str, ...] = (),
+    service: str | None = None,
 ) -> msg.RouteChange:
-    """A robot's route as of now, for a reroute's reply, a registration reply or a publication
-    on its route key."""
+    """A robot's route (for `service`) as of now, for a reroute's reply, a registration reply or
+    a publication on its route key."""
     return msg.RouteChange(
-        robot=robot, deployment=deployment, epoch=epoch, reason=reason, at=time.time(), pool=pool
+        robot=robot,
+        deployment=deployment,
+        epoch=epoch,
+        reason=reason,
+        at=time.time(),
+        pool=pool,
+        service=service,
     )

@@ -25,10 +25,11 @@ a newer epoch (the RIB was restored from an older file) raises the RIB's epoch p
 that deployment once.
 
 The messages are the wire's (`CtlRequest`, `CtlReply`, `RouteChange` of common/wire/registry.py),
-so there is one definition of each. The transport is abstract (`SwitchTransport`): the registry
-daemon plugs Zenoh in (registry/transport.py: queries on `ef/<fleet>/dep/<id>/ctl`, a publication
-on `ef/<fleet>/route/<robot>`); tests plug in a fake. One `Switcher` is driven by one thread (the
-registry's control loop); the RIB serializes its own writes.
+so there is one definition of each; a switcher works for one service (`service`: each service's
+plane has its own), named in every request and route change it sends. The transport is abstract
+(`SwitchTransport`): the registry daemon plugs Zenoh in (registry/transport.py: queries on
+`ef/<fleet>/dep/<id>/ctl`, a publication on `ef/<fleet>/route/<robot>`); tests plug in a fake. One
+`Switcher` is driven by one thread (the registry's control loop); the RIB serializes its own writes.
 """
 
 from __future__ import annotations
@@ -126,6 +127,7 @@ class Switcher:
         clock: Callable[[], float] = time.time,
         pools: PoolPlanner | None = None,
         in_flight: Callable[[str], int | None] | None = None,
+        service: str | None = None,
     ) -> None:
         if not ctl_timeout_s > 0:
             raise ValueError(f"ctl_timeout_s must be > 0, got {ctl_timeout_s!r}")
@@ -140,6 +142,8 @@ class Switcher:
         # The frames in flight a robot announced at registration, passed on with service and
         # standby so the deployment admits as many of its requests (None: not known).
         self._in_flight = in_flight
+        # The service whose routes these are (None: a one-service peer's, unnamed).
+        self.service = service
 
     def apply(self, decision: RouteDecision) -> SwitchResult:
         """Carry out a scheduler decision; a decision about a route that changed meanwhile is
@@ -405,6 +409,7 @@ class Switcher:
             sender=self.sender,
             reason=reason,
             max_in_flight=in_flight,
+            service=self.service,
         )
 
     def _change(
@@ -422,6 +427,7 @@ class Switcher:
             reason=reason,
             at=self._clock(),
             pool=pool,
+            service=self.service,
         )
 
     def _request(self, deployment: str, request: CtlRequest) -> _Answer:
@@ -435,6 +441,11 @@ class Switcher:
             return _Answer(
                 SwitchOutcome.STALE,
                 f"reply is for {reply.deployment}/{reply.robot}, not {deployment}/{request.robot}",
+            )
+        if None not in (reply.service, request.service) and reply.service != request.service:
+            return _Answer(
+                SwitchOutcome.STALE,
+                f"reply is for service {reply.service}, not {request.service}",
             )
         if not reply.ok:
             # A refusal carries the deployment's own state and epoch, whatever was asked.

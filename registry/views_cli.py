@@ -5,10 +5,13 @@ Each command opens a Zenoh *client* session to the registry's endpoint (`registr
 `--config F`, or `--connect ENDPOINT` with `--fleet NAME`), queries one read-only view
 (`ef/<fleet>/rib/<view>`) and prints it as a table, or as plain JSON on stdout with `--json` (a
 list of row objects). `watch` redraws a live table of the robots (their deployment, its state,
-the epoch, the latency window against the bound, the cut chosen) until Ctrl-C.
+the epoch, the latency window against the bound, the cut chosen) until Ctrl-C. Routing is per
+(robot, service): every row names its service (a column when the rows hold several), and
+`--service NAME` shows one service's rows only.
 
 An unreachable endpoint, or a router where no registry answers within `--timeout`, is one line
-naming the endpoint on stderr and exit code 2; so is a refusal from the registry.
+naming the endpoint and what to start there (`common.session.start_registry_hint`) on stderr and
+exit code 2; so is a refusal from the registry.
 """
 
 from __future__ import annotations
@@ -62,14 +65,14 @@ def resolve_target(config: Path | None, connect: str | None, fleet: str | None =
     from pydantic import TypeAdapter, ValidationError
 
     from common.config import Endpoint, load_fleet
+    from common.yaml_files import format_validation_error
 
     cfg = load_fleet(config) if config is not None else None
     if connect is not None:
         try:
             endpoint = TypeAdapter(Endpoint).validate_python(connect)
         except ValidationError as exc:
-            problem = exc.errors(include_url=False)[0]["msg"].removeprefix("Value error, ")
-            raise UserError(f"--connect: {problem}") from None
+            raise UserError(f"--connect: {format_validation_error(exc)}") from None
     elif cfg is not None:
         endpoint = cfg.registry.endpoint
     else:
@@ -123,7 +126,7 @@ class RegistryClient:
         import zenoh
 
         from common import keys
-        from common.session import zenoh_error_text
+        from common.session import start_registry_hint, zenoh_error_text
         from common.wire import ErrorReply, WireError, decode
         from common.wire.registry import RIB_VIEW_REPLIES
 
@@ -150,8 +153,8 @@ class RegistryClient:
         except WireError as exc:
             raise UserError(f"{where} sent an unreadable {name} view: {exc}") from None
         raise UserError(
-            f"no reply from {where} within {self.timeout_s:g} s on {key} "
-            "(is `elasticfog registry` running there, for this fleet?)"
+            f"no reply from {where} within {self.timeout_s:g} s on {key}: a router answers but "
+            f"no registry of this fleet; {start_registry_hint(self.target.cfg)}"
         )
 
 
@@ -177,6 +180,25 @@ JSON_OPTION = typer.Option(False, "--json", help="Print plain JSON (a list of ro
 TIMEOUT_OPTION = typer.Option(
     VIEW_TIMEOUT_S, "--timeout", min=0.1, help="Seconds to wait for the registry's answer."
 )
+SERVICE_OPTION = typer.Option(
+    None, "--service", help="Only this service's rows (default: every service's)."
+)
+
+
+def _query(service: str | None, **filters: Any) -> RibQuery | None:
+    """The view's filters (None: none), or exit 2 naming a bad value."""
+    from common.wire import WireError
+    from common.wire.registry import RibQuery
+
+    if service is None and not filters:
+        return None
+    for option, fields in (("--robot", filters), ("--service", {**filters, "service": service})):
+        try:
+            query = RibQuery(**fields)
+        except WireError as exc:
+            typer.echo(f"error: {option}: {exc}", err=True)
+            raise typer.Exit(2) from None
+    return query
 
 
 def _show(
@@ -214,9 +236,11 @@ def routes(
     fleet: str | None = FLEET_OPTION,
     as_json: bool = JSON_OPTION,
     timeout: float = TIMEOUT_OPTION,
+    service: str | None = SERVICE_OPTION,
 ) -> None:
-    """Which deployment serves each robot, under which epoch, since when and why."""
-    _show("routes", config, connect, fleet, as_json, timeout)
+    """Which deployment serves each robot (for each service), under which epoch, since when
+    and why."""
+    _show("routes", config, connect, fleet, as_json, timeout, _query(service))
 
 
 def deployments(
@@ -225,9 +249,11 @@ def deployments(
     fleet: str | None = FLEET_OPTION,
     as_json: bool = JSON_OPTION,
     timeout: float = TIMEOUT_OPTION,
+    service: str | None = SERVICE_OPTION,
 ) -> None:
-    """Every deployment the registry knows: alive, load, its state for each robot, its model."""
-    _show("deployments", config, connect, fleet, as_json, timeout)
+    """Every deployment the registry knows (a row per service it serves): alive, load, its
+    state for each robot, its model."""
+    _show("deployments", config, connect, fleet, as_json, timeout, _query(service))
 
 
 def robots(
@@ -236,9 +262,11 @@ def robots(
     fleet: str | None = FLEET_OPTION,
     as_json: bool = JSON_OPTION,
     timeout: float = TIMEOUT_OPTION,
+    service: str | None = SERVICE_OPTION,
 ) -> None:
-    """Every robot: its deployment and epoch, its latency window against the bound, its cut."""
-    _show("robots", config, connect, fleet, as_json, timeout)
+    """Every robot (a row per service it uses): its deployment and epoch, its latency window
+    against the bound, its cut."""
+    _show("robots", config, connect, fleet, as_json, timeout, _query(service))
 
 
 def events(
@@ -249,17 +277,18 @@ def events(
     timeout: float = TIMEOUT_OPTION,
     limit: int = typer.Option(DEFAULT_EVENTS, "--limit", min=1, help="Newest events to show."),
     robot: str | None = typer.Option(None, "--robot", help="Only this robot's events."),
+    service: str | None = SERVICE_OPTION,
 ) -> None:
     """The registry's event log (every transition, with its reason), oldest first."""
-    from common.wire import WireError
-    from common.wire.registry import RibQuery
-
-    try:
-        query = RibQuery(robot=robot, limit=limit)
-    except WireError as exc:
-        typer.echo(f"error: --robot: {exc}", err=True)
-        raise typer.Exit(2) from None
-    _show("events", config, connect, fleet, as_json, timeout, query)
+    _show(
+        "events",
+        config,
+        connect,
+        fleet,
+        as_json,
+        timeout,
+        _query(service, robot=robot, limit=limit),
+    )
 
 
 @contextmanager
@@ -291,6 +320,7 @@ def watch(
         0, "--count", min=0, help="Stop after this many refreshes (0: until Ctrl-C)."
     ),
     timeout: float = TIMEOUT_OPTION,
+    service: str | None = SERVICE_OPTION,
 ) -> None:
     """A live table of the robots: deployment, state, epoch, latency window vs bound, cut."""
     from rich.live import Live
@@ -298,28 +328,30 @@ def watch(
     from registry.views_render import watch_screen
 
     stop = threading.Event()
+    query = _query(service)
     try:
         target = resolve_target(config, connect, fleet)
         client = RegistryClient(target, timeout_s=timeout)
     except UserError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(exc.exit_code) from None
+    where = f"fleet {target.fleet} at {target.endpoint}"
     with client, _stop_on_signals(stop):
         try:
-            rows = client.view("robots")
+            rows = client.view("robots", query)
         except UserError as exc:
             typer.echo(f"error: {exc}", err=True)
             raise typer.Exit(exc.exit_code) from None
         error: str | None = None
         shown = 0
-        with Live(watch_screen(target, rows, None, time.time()), auto_refresh=False) as live:
+        with Live(watch_screen(where, rows, None, time.time()), auto_refresh=False) as live:
             while True:
                 shown += 1
-                live.update(watch_screen(target, rows, error, time.time()), refresh=True)
+                live.update(watch_screen(where, rows, error, time.time()), refresh=True)
                 if (count and shown >= count) or stop.wait(interval):
                     break
                 try:
-                    rows, error = client.view("robots"), None
+                    rows, error = client.view("robots", query), None
                 except UserError as exc:
                     # Keep the last table; the registry may be restarting.
                     error = str(exc)

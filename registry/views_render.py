@@ -1,6 +1,8 @@
 """The registry's views as rich tables, for `elasticfog routes|deployments|robots|events|watch`
 (`registry.views_cli`): a table per view and the `watch` screen. Apart from the commands so that
-building the CLI (`elasticfog --help`) does not import the tables.
+building the CLI (`elasticfog --help`) does not import the tables. Routing is per (robot,
+service): when the rows hold several services, the routes, robots, events and profiles tables
+show a service column (the deployments table always does).
 """
 
 from __future__ import annotations
@@ -17,7 +19,6 @@ DIGEST_SHOWN_CHARS = 12
 
 if TYPE_CHECKING:
     from common.wire.registry import DeploymentRow, EventRow, ProfileRow, RobotRow, RouteRow
-    from registry.views_cli import Target
 
 
 # -- tables -------------------------------------------------------------------------------------
@@ -59,15 +60,35 @@ def _table(title: str, *columns: str) -> Table:
     return table
 
 
+def _services(rows: Sequence[Any]) -> bool:
+    """Whether `rows` name more than one service (then a table shows a service column)."""
+    return len({r.service for r in rows}) > 1
+
+
+def _service(row: Any) -> str:
+    return row.service or "-"
+
+
 def routes_table(rows: Sequence[RouteRow], now: float) -> Table:
-    """Robot → deployment (and its round-robin pool, if any), epoch, since when and why."""
+    """Robot (and service) → deployment (and its round-robin pool, if any), epoch, since when
+    and why."""
     pooled = any(len(r.pool) > 1 for r in rows)
-    columns = ["robot", "deployment", *(["pool"] if pooled else []), "epoch", "since", "reason"]
+    several = _services(rows)
+    columns = [
+        "robot",
+        *(["service"] if several else []),
+        "deployment",
+        *(["pool"] if pooled else []),
+        "epoch",
+        "since",
+        "reason",
+    ]
     table = _table("routes", *columns)
     for r in rows:
         pool = [", ".join(r.pool) or "-"] if pooled else []
         table.add_row(
             r.robot,
+            *([_service(r)] if several else []),
             r.deployment or Text("local", style="yellow"),
             *pool,
             str(r.epoch),
@@ -118,11 +139,13 @@ def deployments_table(rows: Sequence[DeploymentRow], now: float) -> Table:
 
 
 def robots_table(rows: Sequence[RobotRow], now: float, title: str = "robots") -> Table:
-    """Robots: deployment, its state, epoch, latency window against the bound, cut chosen, and
-    the reason of the robot's last route change."""
+    """Robots (a row per service each uses): deployment, its state, epoch, latency window
+    against the bound, cut chosen, and the reason of the robot's last route change."""
+    several = _services(rows)
     table = _table(
         title,
         "robot",
+        *(["service"] if several else []),
         "alive",
         "deployment",
         "state",
@@ -137,6 +160,7 @@ def robots_table(rows: Sequence[RobotRow], now: float, title: str = "robots") ->
         style = {"service": "green", "draining": "yellow", "local": "yellow"}.get(state, "")
         table.add_row(
             r.id,
+            *([_service(r)] if several else []),
             Text("yes", style="green") if r.alive else Text("no", style="dim"),
             r.deployment or Text("local", style="yellow"),
             Text(state, style=style),
@@ -151,11 +175,14 @@ def robots_table(rows: Sequence[RobotRow], now: float, title: str = "robots") ->
 
 def events_table(rows: Sequence[EventRow], now: float) -> Table:
     """The event log, oldest first."""
-    table = _table("events", "seq", "time", "kind", "robot", "deployment", "epoch", "reason")
+    several = _services(rows)
+    columns = ["seq", "time", *(["service"] if several else []), "kind", "robot", "deployment"]
+    table = _table("events", *columns, "epoch", "reason")
     for e in rows:
         table.add_row(
             str(e.seq),
             _clock(e.at),
+            *([_service(e)] if several else []),
             e.kind,
             e.robot or "-",
             e.deployment or "-",
@@ -166,11 +193,14 @@ def events_table(rows: Sequence[EventRow], now: float) -> Table:
 
 
 def profiles_table(rows: Sequence[ProfileRow], now: float) -> Table:
-    """Probe profiles per robot × deployment."""
-    table = _table("profiles", "robot", "deployment", "n", "median", "p95", "max", "updated")
+    """Probe profiles per robot × deployment (× service)."""
+    several = _services(rows)
+    columns = ["robot", *(["service"] if several else []), "deployment"]
+    table = _table("profiles", *columns, "n", "median", "p95", "max", "updated")
     for p in rows:
         table.add_row(
             p.robot,
+            *([_service(p)] if several else []),
             p.deployment,
             str(p.samples),
             _ms(p.median_s),
@@ -181,9 +211,10 @@ def profiles_table(rows: Sequence[ProfileRow], now: float) -> Table:
     return table
 
 
-def watch_screen(target: Target, rows: Sequence[RobotRow], error: str | None, now: float) -> Group:
-    """The `watch` screen: a title line and the robots table."""
-    head = Text(f"fleet {target.fleet} at {target.endpoint}  {_clock(now)}", style="bold")
+def watch_screen(where: str, rows: Sequence[RobotRow], error: str | None, now: float) -> Group:
+    """The `watch` screen: a title line (`where`: the fleet and its endpoint) and the robots
+    table."""
+    head = Text(f"{where}  {_clock(now)}", style="bold")
     if error is not None:
         head.append(f"  {error}", style="red")
     return Group(head, robots_table(rows, now, title=""))

@@ -13,6 +13,7 @@ default info). Bad input is one line on stderr and exit code 2.
 
 from __future__ import annotations
 
+import enum
 import json
 from pathlib import Path
 from typing import NoReturn
@@ -23,6 +24,13 @@ from rich.markup import escape
 
 from common.errors import UserError
 from common.logs import DEFAULT_LOG_LEVEL, LOG_LEVEL_ENV, LOG_LEVEL_HELP, logging_to_stderr
+
+
+class Decisions(str, enum.Enum):
+    """How the decisions of a robot's services relate (`--decisions`)."""
+
+    JOINT = "joint"
+    INDEPENDENT = "independent"
 
 
 def register(app: typer.Typer) -> None:
@@ -66,10 +74,10 @@ def robot_command(
         "--source",
         help="synthetic[:key=F,every=N], photo[:NAME][,motion=M] (real photographs through a "
         "moving camera), video:PATH[,loop=false], bag:PATH[:TOPIC] (a rosbag2 recording), "
-        "camera:N, a stereo pair for a two-image model: stereo:world, stereo:motorcycle, "
-        "stereo:LEFT,RIGHT, zenoh (frames an application publishes on ef/<fleet>/in/<robot>) "
-        "or a ROS 2 image topic ros2:TOPIC[,type=image|compressed][,domain=ID]; default: the "
-        "machine's.",
+        "camera:N|/dev/videoN, a stereo pair for a two-image model: stereo:world, "
+        "stereo:motorcycle, stereo:LEFT,RIGHT, zenoh (frames an application publishes on "
+        "ef/<fleet>/in/<robot>) or a ROS 2 image topic "
+        "ros2:TOPIC[,type=image|compressed][,domain=ID]; default: the machine's.",
     ),
     frames: int | None = typer.Option(
         None, "--frames", help="Stop after this many frames (default: run until Ctrl-C)."
@@ -140,6 +148,13 @@ def robot_command(
         "Foxglove and MCAP readers.",
     ),
     seed: int = typer.Option(0, "--seed", help="Seed of the synthetic and photo frame sources."),
+    decisions: Decisions = typer.Option(
+        Decisions.JOINT,
+        "--decisions",
+        help="A robot using several services: 'joint' decisions share the robot's uplink and "
+        "CPU by priority (a service gives way where the share the others leave it cannot "
+        "carry its frame in time); 'independent': each service's policy is blind to the others.",
+    ),
     json_out: bool = typer.Option(False, "--json", help="Print the summary as JSON on stdout."),
     log_level: str = typer.Option(
         DEFAULT_LOG_LEVEL, "--log-level", envvar=LOG_LEVEL_ENV, help=LOG_LEVEL_HELP
@@ -181,14 +196,28 @@ def robot_command(
                 results_ros2=results_ros2,
                 record=record,
             )
-            daemon = RobotDaemon(cfg, robot_id, options)
-            code = daemon.run()
+            from common.keys import Role
+
+            cfg.machine(robot_id, role=Role.ROBOT)  # the id, before the services it uses
+            services = cfg.services_of(robot_id)
+            if len(services) > 1:
+                from robotd.services import RobotServices
+
+                robot = RobotServices(cfg, robot_id, options, joint=decisions is Decisions.JOINT)
+                code = robot.run()
+                summary, lines = robot.summary_json(), robot.summary_lines()
+                abandoned = robot.exit_if_abandoned
+            else:
+                daemon = RobotDaemon(cfg.for_service(services[0]), robot_id, options)
+                code = daemon.run()
+                summary, lines = daemon.summary.to_json(), daemon.summary.lines()
+                abandoned = daemon.exit_if_abandoned
     except UserError as exc:
         _fail(exc)
     if json_out:
-        typer.echo(json.dumps(daemon.summary.to_json()))
+        typer.echo(json.dumps(summary))
     else:
-        for line in daemon.summary.lines():
+        for line in lines:
             typer.echo(line)
-    daemon.exit_if_abandoned(code)
+    abandoned(code)
     raise typer.Exit(code)

@@ -3,7 +3,9 @@
 Lifecycle (`common.daemon.Daemon`: startup -> main loop -> shutdown, in reverse order):
 
 1. Load the split model (one set of shared-weight onnxruntime sessions, every cut warmed up),
-   start the low-priority local-run thread, build the policy from a robot-side profile, return
+   start the low-priority local-run thread, build the policy from a robot-side profile (a source
+   fed over the session has no frame yet: raw actions until the frame loop has measured the
+   codecs on its first frames, `robotd.robot_profile.FirstFramesRefinement`), return
    the heap memory those runs freed to the system (`common.heap`), open the `--telemetry` file.
 2. Open a Zenoh *peer* session connected to the registry endpoint only (the robot's config names
    no cloud host: it finds deployments through the registry's router and queries its anycast
@@ -49,6 +51,7 @@ import logging
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -84,7 +87,8 @@ from robotd.metrics import RobotMetrics
 from robotd.policies import Objective, Policy
 from robotd.results.sinks import ResultSink, open_result_sinks
 from robotd.robot_model import RobotModel, open_split_model
-from robotd.robot_profile import build_policy, robot_profile, warm_up
+from robotd.robot_profile import FirstFramesRefinement, build_policy, robot_profile, warm_up
+from robotd.shared_budget import ServiceShare
 from robotd.sources.frame_sources import FrameSource, SourceSession
 from robotd.telemetry import RunSummary, TelemetryFile
 from robotd.telemetry_sink import TelemetrySink
@@ -156,14 +160,21 @@ class _Started:
     """What startup made that the frame loop, the callbacks and shutdown use."""
 
     model: SplitModel
-    policy: Policy
     link: RegistryLink
     loop: FrameLoop
 
 
 class RobotDaemon(Daemon):
-    """`elasticfog robot`. `policy` and `on_result` let tests replace the policy and see each
-    frame's outputs; `__init__` does no I/O."""
+    """`elasticfog robot` for one service: `config` is a one-service fleet or a service's view
+    (`FleetConfig.for_service`). `policy` and `on_result` let tests replace the policy and see
+    each frame's outputs; `__init__` does no I/O.
+
+    A robot using several services runs one daemon per service in one process
+    (`robotd.services.RobotServices`), which hands each its share of what they have in common:
+    `source` (the service's feed of the robot's one capture: not opened or closed here),
+    `uplink` (the one emulated uplink they share), `telemetry_file` (one file for all) and
+    `announce_robot` (only one of them announces the robot's token) and `budget` (the service's
+    share of the robot's uplink and CPU, `robotd.shared_budget`: it wraps the policy)."""
 
     name = "robot"
 
@@ -175,9 +186,20 @@ class RobotDaemon(Daemon):
         *,
         policy: Policy | None = None,
         on_result: Callable[[FrameResult], None] | None = None,
+        source: FrameSource | None = None,
+        uplink: TokenBucket | None = None,
+        telemetry_file: TelemetryFile | None = None,
+        announce_robot: bool = True,
+        budget: ServiceShare | None = None,
     ) -> None:
         super().__init__()
         self.config = config
+        self.service = config.service_name
+        self._given_source = source
+        self._given_uplink = uplink
+        self._given_telemetry = telemetry_file
+        self._announce_robot = announce_robot
+        self._budget = budget
         self.machine = config.machine(robot_id, role=Role.ROBOT)
         self.robot = robot_id
         self.options = options or RobotOptions()
@@ -186,8 +208,8 @@ class RobotDaemon(Daemon):
         self.deadline_s = config.deadline_s
         self.source_spec = parse_source(self.options.source or self.machine.source)
         self.fps = self.options.fps if self.options.fps is not None else self.machine.fps
-        uplink = self.options.uplink_mbit
-        self.uplink_mbit = uplink if uplink is not None else self.machine.uplink_mbit
+        mbit = self.options.uplink_mbit
+        self.uplink_mbit = mbit if mbit is not None else self.machine.uplink_mbit
         self.policy_spec = self.options.policy or config.policy.kind
         results_ros2 = self.options.results_ros2 or self.machine.results.ros2
         self.results_ros2 = None if results_ros2 is None else rmw_zenoh.topic_name(results_ros2)
@@ -203,7 +225,7 @@ class RobotDaemon(Daemon):
         # Offloaded frames in flight at once (`robotd.frame_path.pipeline`).
         self.max_in_flight = self.options.max_in_flight or self.machine.max_in_flight
         # Publications, file and summary of the frames; what they go to is made in startup.
-        self._sink = TelemetrySink(robot_id, self.summary)
+        self._sink = TelemetrySink(robot_id, self.summary, self.service)
         # Where each applied frame's result goes (`robotd.results.sinks`), in the lifecycle.
         self._result_sinks: list[ResultSink] = []
         # Emulation (`robotd.emulation`): every robot-side model run goes through the slowdown;
@@ -230,8 +252,9 @@ class RobotDaemon(Daemon):
 
     @property
     def policy(self) -> Policy:
-        """The split policy (after startup)."""
-        return self._parts.policy
+        """The split policy (after startup): the frame loop's, which the one measured on the
+        first frames replaces when the source had none at start."""
+        return self._parts.loop.policy
 
     @property
     def loop(self) -> FrameLoop:
@@ -287,29 +310,19 @@ class RobotDaemon(Daemon):
                 self.metrics.registry, self.robot, lambda: self.route, source=self._frame_source
             )
         model = self.hold(open_split_model(cfg, self.machine, who=self.robot), "model sessions")
-        robot_model = RobotModel(model, cfg.model_spec)
+        robot_model = RobotModel(model, cfg.runs)
         warm_up(model, robot_model.sample_feeds)
         local = LocalRunner(f"local-run-{self.robot}")
         local.start()
         self.on_release(local.stop, what="local-run thread")
-        policy = self._policy_override or build_policy(
-            self.policy_spec,
-            cfg,
-            scaled_profile(
-                robot_model.profile(
-                    cfg,
-                    source_spec=self.source_spec,
-                    seed=self.options.seed,
-                    threads=self.machine.threads,
-                    policy_spec=self.policy_spec,
-                ),
-                self._slowdown.factor,
-            ),
-            self._objective,
-        )
+        policy, refinement = self._policy_override, None
+        if policy is None:
+            policy, refinement = self._start_policy(robot_model)
         # The runs above (warm-up, profile, codec calibration) leave their freed tensors resident.
         release_freed_memory(self.robot)
-        if self.options.telemetry is not None:
+        if self._given_telemetry is not None:
+            self._sink.file = self._given_telemetry
+        elif self.options.telemetry is not None:
             self._sink.file = self.hold(TelemetryFile(self.options.telemetry), "telemetry file")
         source, requests, link, emulation = self._open_zenoh(model, robot_model)
         loop = FrameLoop(
@@ -334,13 +347,14 @@ class RobotDaemon(Daemon):
             max_in_flight=self.max_in_flight,
             result_sinks=self._result_sinks,
             on_result=self._on_result,
+            refinement=refinement,
         )
-        self._started = _Started(model=model, policy=policy, link=link, loop=loop)
+        self._started = _Started(model=model, link=link, loop=loop)
         log.info(
             "%s: model %s (%d cuts, digest %s), policy %s, source %s, deadline %.3f s, "
             "registry %s%s%s",
             self.robot,
-            cfg.model,
+            cfg.runs,
             model.num_cuts,
             model.digest[:12],
             policy.name,
@@ -353,6 +367,34 @@ class RobotDaemon(Daemon):
         )
         self._warn_if_refused_past_limit()
         self._wait_for_fleet()
+
+    def _start_policy(self, robot_model: RobotModel) -> tuple[Policy, FirstFramesRefinement | None]:
+        """The policy built on this robot's profile and, when its codecs are to be measured on
+        the first frames it serves (a source fed over the session), what then rebuilds it."""
+        cfg = self.config
+        start = robot_model.profile(
+            cfg,
+            source_spec=self.source_spec,
+            seed=self.options.seed,
+            threads=self.machine.threads,
+            policy_spec=self.policy_spec,
+        )
+        profile = scaled_profile(start.profile, self._slowdown.factor)
+
+        def build(profile: dict[str, Any]) -> Policy:
+            policy = build_policy(self.policy_spec, cfg, profile, self._objective)
+            return policy if self._budget is None else self._budget.wrap(policy)
+
+        if start.first_frames is None:
+            return build(profile), None
+        refinement = FirstFramesRefinement(
+            start.first_frames,
+            profile,
+            build,
+            count=cfg.fidelity.calibration_frames,
+            robot=self.robot,
+        )
+        return build(profile), refinement
 
     def _warn_if_refused_past_limit(self) -> None:
         """A robot with more frames in flight than a deployment admits per robot gets `busy`
@@ -391,15 +433,21 @@ class RobotDaemon(Daemon):
                 results_ros2=self.results_ros2,
             )
             self.add_result_sink(recorder, f"recording {self.options.record}")
-        # Opened on the session (a source fed over Zenoh needs it), so released before it.
-        source = self.hold(
-            robot_model.open_source(
-                self.source_spec,
-                seed=self.options.seed,
-                session=SourceSession(session, cfg, self.robot, stop=self.should_exit),
-            ),
-            "frame source",
-        )
+        if self._given_source is not None:
+            source = self._given_source  # the robot's capture, shared with its other services
+        else:
+            # Opened on the session (a source fed over Zenoh needs it), so released before it.
+            source = self.hold(
+                robot_model.open_source(
+                    self.source_spec,
+                    seed=self.options.seed,
+                    session=SourceSession(session, cfg, self.robot, stop=self.should_exit),
+                ),
+                "frame source",
+            )
+        uplink = self._given_uplink
+        if uplink is None and self.uplink_mbit is not None:
+            uplink = TokenBucket.from_mbit(self.uplink_mbit)
         requests = RequestSender(
             session,
             self._svc_key,
@@ -407,8 +455,10 @@ class RobotDaemon(Daemon):
             model_digest=model.digest,
             deadline_s=self.deadline_s,
             max_reply_bytes=cfg.max_payload_bytes,
-            uplink=None if self.uplink_mbit is None else TokenBucket.from_mbit(self.uplink_mbit),
-            member_key=functools.partial(keys.svc_infer_at, self.fleet, cfg.service_name, self.robot),
+            uplink=uplink,
+            member_key=functools.partial(
+                keys.svc_infer_at, self.fleet, cfg.service_name, self.robot
+            ),
             served=self._served.wait_served,
         )
 
@@ -457,15 +507,19 @@ class RobotDaemon(Daemon):
             self.robot,
             max_padding_bytes=padding,
             publish=self._sink.probe,
-            alive_deployments=lambda: set(members.ids("cloud")),
+            # The deployments that serve this service (those of the view).
+            alive_deployments=lambda: set(members.ids("cloud")) & set(cfg.deployment_ids),
             cloud_time=self._cloud_time,
             interval_s=self.options.probe_interval_s,
             max_reply_bytes=cfg.max_payload_bytes,
+            service=self.service,
         )
         prober.start()
         self.on_release(prober.stop, what="prober")
         # Ready: announce the robot last; the lifecycle takes the token down first at shutdown.
-        self.announce(session.liveliness().declare_token(keys.alive_robot(self.fleet, self.robot)))
+        if self._announce_robot:
+            token = session.liveliness().declare_token(keys.alive_robot(self.fleet, self.robot))
+            self.announce(token)
         return source, requests, link, emulation
 
     def _wait_for_fleet(self) -> None:

@@ -41,13 +41,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
 
-import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from common.errors import UserError
-from common.yaml_files import YAML_ESCAPES, yaml_escape_problem
+from common.yaml_files import format_validation_error, read_yaml
 from robotd.frame_path.pacing import BITS_PER_BYTE, BITS_PER_MBIT, TokenBucket
-from robotd.policies.base import one_line_validation_error
 
 if TYPE_CHECKING:
     import onnxruntime as ort
@@ -245,40 +243,19 @@ def resolve_phases(
     return phases
 
 
-def read_yaml(path: Path, what: str) -> Any:
-    """The YAML document in `path`; UserError naming `what`, the file and the problem."""
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise UserError(f"{what} {path}: no such file") from None
-    except IsADirectoryError:
-        raise UserError(f"{what} {path}: is a directory") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise UserError(f"{what} {path}: cannot read ({exc})") from None
-    try:
-        return yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" at line {mark.line + 1}" if mark is not None else ""
-        problem = getattr(exc, "problem", None) or "parse error"
-        raise UserError(f"{what} {path}: not valid YAML ({problem}{where})") from None
-    except YAML_ESCAPES as exc:  # what safe_load raises besides YAMLError (e.g. `!!timestamp x`)
-        raise UserError(f"{what} {path}: not valid YAML ({yaml_escape_problem(exc)})") from None
-
-
 def load_phases(
     path: str | Path, *, uplink_mbit: float | None = None, slowdown: float = 1.0
 ) -> list[Phase]:
     """The robot's `--phases` file, resolved (`resolve_phases`); UserError naming the problem."""
     file = Path(path)
     source = f"--phases {file}"
-    data = read_yaml(file, "--phases")
+    data = read_yaml(file, "--phases")  # strict: a key given twice is refused, naming both lines
     if not isinstance(data, dict):
         raise UserError(f"{source}: expected a mapping with a list of phases")
     try:
         parsed = PhasesFile.model_validate(data)
     except ValidationError as exc:
-        raise UserError(one_line_validation_error(source, exc)) from None
+        raise UserError(f"{source}: {format_validation_error(exc, PhasesFile)}") from None
     return resolve_phases(parsed.phases, uplink_mbit=uplink_mbit, slowdown=slowdown)
 
 

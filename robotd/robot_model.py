@@ -14,13 +14,12 @@ lacks one is a decode error: the robot finishes the frame itself).
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
 
 import numpy as np
 
 from common.config import FleetConfig, MachineConfig
 from common.errors import UserError
-from common.fleet_model import fleet_partition
+from common.fleet_model import fleet_split_model
 from common.image_input import ImageInputs
 from common.partition import sample_feeds
 from common.partition.runtime import SplitModel
@@ -29,7 +28,7 @@ from common.source_spec import SourceSpec
 from common.wire.telemetry import FallbackReason
 from robotd.frame_path.offload import CallResult
 from robotd.policies import Decision
-from robotd.robot_profile import measured_profile
+from robotd.robot_profile import StartProfile, measured_profile
 from robotd.sources.frame_sources import FrameSource, SourceSession
 from robotd.sources.opening import open_source_for
 from robotd.sources.stereo_frame import CameraFrame, StereoFrame
@@ -45,8 +44,8 @@ def open_split_model(
     The segments' sessions are not built: the robot runs a segment's tail as the suffix of its
     end cut, never the segment itself (with zoo:stereo at 640x480 they held ~140 MB)."""
     prepare(machine.providers)
-    model = SplitModel(
-        fleet_partition(config),
+    model = fleet_split_model(
+        config,
         providers=ort_providers(machine.providers),
         threads=machine.threads or None,
         segments=False,
@@ -84,8 +83,9 @@ class RobotModel:
         seed: int,
         threads: int,
         policy_spec: str,
-    ) -> dict[str, Any]:
-        """This robot's profile, measured here (`robotd.robot_profile.measured_profile`)."""
+    ) -> StartProfile:
+        """This robot's profile, measured here (`robotd.robot_profile.measured_profile`), and
+        what measures its codecs on the first frames served when its source has none yet."""
         return measured_profile(
             self.model,
             self.sample_feeds,

@@ -3,13 +3,19 @@
 At every start the robot times the whole model on itself (`robot_profile`: cheap, a few runs)
 and splits that time between each cut's prefix and suffix by their FLOPs; the policies then
 learn the robot's real speed online. The (cut, codec) actions come from the codec table measured
-on the robot's own frame source (`robotd.calibration`, cached). `warm_up` runs every session
-once first, so that allocation belongs to startup and not to the first frames.
+on the robot's own frame source (`robotd.calibration`, cached). A source whose frames arrive on
+their own (`zenoh`, `ros2:`) has no frame at start: its robot starts from the table's defaults
+(raw, and the codecs its policy names) and `FirstFramesRefinement` measures the table on the
+first frames it serves, then hands the frame loop the policy built on it. `warm_up` runs every
+session once first, so that allocation belongs to startup and not to the first frames.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+import logging
+import threading
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -21,10 +27,12 @@ from common.image_input import ImageInputs
 from common.partition.named_cuts import named_cuts
 from common.partition.runtime import SplitModel
 from common.profiler import median_ms
-from common.source_spec import SourceSpec
-from robotd.calibration import calibration_frames, codec_table, required_codecs
+from common.source_spec import SourceSpec, parse_source
+from robotd.calibration import CodecCalibration, CodecTable, calibration_frames, required_codecs
 from robotd.policies import Objective, Policy, make_policy
 from robotd.policies.nav_options import NAMED_CUTS_KEY, SEGMENTS_KEY
+
+log = logging.getLogger("robotd")
 
 # Whole-model runs timed at startup for the robot-side profile (after the profiler's warm-up).
 PROFILE_RUNS = 3
@@ -51,17 +59,16 @@ def robot_profile(
     for k, cut in enumerate(cuts):
         total = cut.prefix_flops + cut.suffix_flops
         share = cut.prefix_flops / total if total > 0 else k / max(1, len(cuts))
-        row: dict[str, Any] = {
-            "index": cut.index,
-            "bytes": max(1, cut.bytes),
-            "prefix_ms": full_ms * share,
-            "suffix_ms": full_ms * (1.0 - share),
-        }
-        if codecs is not None and cut.index in codecs:
-            row["codecs"] = [e for e in codecs[cut.index] if e.get("action")]
-        rows.append(row)
+        rows.append(
+            {
+                "index": cut.index,
+                "bytes": max(1, cut.bytes),
+                "prefix_ms": full_ms * share,
+                "suffix_ms": full_ms * (1.0 - share),
+            }
+        )
     part = model.partition
-    return {
+    profile = {
         "digest": model.digest,
         "full_ms": full_ms,
         "cuts": rows,
@@ -69,6 +76,22 @@ def robot_profile(
         NAMED_CUTS_KEY: named_cuts(part),
         SEGMENTS_KEY: [[seg.start, seg.end] for seg in part.segments],
     }
+    return profile if codecs is None else with_codecs(profile, codecs)
+
+
+def with_codecs(
+    profile: dict[str, Any], codecs: Mapping[int, list[dict[str, Any]]]
+) -> dict[str, Any]:
+    """`profile` with each cut's codecs those of codec table `codecs` marked `action` (a cut
+    the table lacks keeps its own); the rest of the profile is kept as it is (its times
+    scaled or not)."""
+    rows = [
+        {**row, "codecs": [e for e in codecs[row["index"]] if e.get("action")]}
+        if row["index"] in codecs
+        else row
+        for row in profile["cuts"]
+    ]
+    return {**profile, "cuts": rows}
 
 
 def warm_up(model: SplitModel, feeds: dict[str, np.ndarray]) -> None:
@@ -77,6 +100,16 @@ def warm_up(model: SplitModel, feeds: dict[str, np.ndarray]) -> None:
     for k in range(model.num_cuts):
         sent = model.run_prefix(k, feeds)
         model.run_suffix(k, sent, feeds)
+
+
+@dataclass(frozen=True)
+class StartProfile:
+    """The profile a robot's policy starts from and, when its codecs are still to be measured
+    on the first frames it serves (a source fed over the session, nothing cached), the
+    calibration that measures them (`FirstFramesRefinement`)."""
+
+    profile: dict[str, Any]
+    first_frames: CodecCalibration | None = None
 
 
 def measured_profile(
@@ -89,13 +122,14 @@ def measured_profile(
     seed: int,
     threads: int,
     policy_spec: str,
-) -> dict[str, Any]:
-    """This robot's profile, with the (cut, codec) actions measured on its own source."""
+) -> StartProfile:
+    """This robot's profile, with the (cut, codec) actions measured on its own source: at
+    once for a source it reads itself, on the first frames served for one fed over the session
+    (meanwhile: the cached table, else the defaults, `CodecCalibration.defaults`)."""
     fidelity = config.fidelity
     lowest = min(cut.index for cut in model.partition.cuts)
-    codecs = codec_table(
+    calibration = CodecCalibration(
         model,
-        lambda: calibration_frames(source_spec, inputs, fidelity.calibration_frames, seed),
         fidelity_of(fidelity),
         required_codecs(policy_spec, lowest, fleet_params(policy_spec, config)),
         {
@@ -105,7 +139,77 @@ def measured_profile(
             "threads": threads,
         },
     )
-    return robot_profile(model, feeds, codecs=codecs)
+    if not parse_source(source_spec).needs_session:
+        codecs = calibration.table(
+            lambda: calibration_frames(source_spec, inputs, fidelity.calibration_frames, seed)
+        )
+        return StartProfile(robot_profile(model, feeds, codecs=codecs))
+    cached = calibration.cached()
+    if cached is not None:
+        return StartProfile(robot_profile(model, feeds, codecs=cached))
+    log.info(
+        "codecs of source %s: measured on its first %d frames; raw until then",
+        source_spec,
+        fidelity.calibration_frames,
+    )
+    return StartProfile(
+        robot_profile(model, feeds, codecs=calibration.defaults()), first_frames=calibration
+    )
+
+
+class FirstFramesRefinement:
+    """The policy measured on the robot's first frames (a source fed over the session).
+
+    `offer(feeds)` keeps each served frame's model feeds until `count` are held (then True);
+    `refined(stop)` measures the codecs on them (`CodecCalibration.measure`: the fidelity gate,
+    the cache) and returns the policy `build` makes of `profile` with the measured actions, or
+    None when `stop` was set meanwhile. `profile` is the one the starting policy was built on
+    (scaled for an emulated robot: only its codecs change)."""
+
+    def __init__(
+        self,
+        calibration: CodecCalibration,
+        profile: dict[str, Any],
+        build: Callable[[dict[str, Any]], Policy],
+        *,
+        count: int,
+        robot: str = "robot",
+    ) -> None:
+        self.calibration = calibration
+        self.profile = profile
+        self.build = build
+        self.count = count
+        self.robot = robot
+        self.frames: list[dict[str, np.ndarray]] = []
+
+    def offer(self, feeds: dict[str, np.ndarray]) -> bool:
+        """Keep `feeds` (a served frame's) while fewer than `count` are held; True once the
+        measurement has its frames."""
+        if len(self.frames) < self.count:
+            self.frames.append(feeds)
+        return len(self.frames) >= self.count
+
+    def refined(self, stop: threading.Event | None = None) -> Policy | None:
+        """The policy on the codecs measured on the frames kept (None: stopped meanwhile)."""
+        table: CodecTable | None = self.calibration.measure(self.frames, stop)
+        self.frames = []
+        if table is None:
+            return None
+        policy = self.build(with_codecs(self.profile, table))
+        actions = [
+            f"{index}:{e['name']}"
+            for index, entries in sorted(table.items())
+            for e in entries
+            if e.get("action")
+        ]
+        log.info(
+            "%s: codecs measured on the first %d frames served; policy %s now has actions %s",
+            self.robot,
+            self.count,
+            policy.name,
+            ", ".join(actions),
+        )
+        return policy
 
 
 def build_policy(

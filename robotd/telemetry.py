@@ -12,8 +12,9 @@ frame ran in, `robotd.emulation`; null without `--phases`), `stale` (the frame's
 dropped, not applied: a newer frame's had been, `robotd.frame_path.pipeline`), `dropped_stale`
 (frames the source dropped unread just before this one: a newer one had arrived,
 `robotd.sources.zenoh_in`) and `resends` (how many times the frame's query was sent again within its
-deadline, having found no serving deployment: `robotd.frame_path.offload`). Lines are flushed as
-they are written, so a reader can follow the file while the robot runs.
+deadline, having found no serving deployment: `robotd.frame_path.offload`), `service` (the
+service the frame was for: a robot using several writes them all to one file). Lines are flushed
+as they are written, so a reader can follow the file while the robot runs.
 
 The record itself is built here too (`frame_record`), from what the frame loop measured and what
 came of the cloud call; `RemoteTimes` splits the call's round trip into the network's share and
@@ -24,6 +25,7 @@ from __future__ import annotations
 
 import json
 import math
+import threading
 import time
 from collections import Counter
 from dataclasses import dataclass
@@ -49,6 +51,7 @@ EXTRA_FIELDS = (
     "stale",
     "dropped_stale",
     "resends",
+    "service",
 )
 SERVED_BY_CLOUD = "cloud"
 SERVED_BY_ROBOT = "robot"
@@ -157,16 +160,19 @@ def jsonl_object(
         stale=record.stale,
         dropped_stale=record.dropped_stale,
         resends=record.resends,
+        service=record.service,
     )
     return obj
 
 
 class TelemetryFile:
     """The `--telemetry` JSONL file (truncated at open: one run per file); a context manager
-    that closes it."""
+    that closes it. The frame loops of a robot's services write it from their own threads: a
+    lock keeps each line whole."""
 
     def __init__(self, path: Path) -> None:
         self.path = Path(path)
+        self._lock = threading.Lock()
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             self._file: IO[str] | None = self.path.open("w", encoding="utf-8")
@@ -174,15 +180,18 @@ class TelemetryFile:
             raise UserError(f"--telemetry {self.path}: cannot write: {exc.strerror}") from None
 
     def write(self, obj: dict[str, Any]) -> None:
-        if self._file is None:
-            return
-        self._file.write(json.dumps(obj, allow_nan=False, separators=(",", ":")) + "\n")
-        self._file.flush()
+        line = json.dumps(obj, allow_nan=False, separators=(",", ":")) + "\n"
+        with self._lock:
+            if self._file is None:
+                return
+            self._file.write(line)
+            self._file.flush()
 
     def close(self) -> None:
-        if self._file is not None:
-            self._file.close()
-            self._file = None
+        with self._lock:
+            if self._file is not None:
+                self._file.close()
+                self._file = None
 
     def __enter__(self) -> TelemetryFile:
         return self

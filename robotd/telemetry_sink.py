@@ -12,6 +12,7 @@ frame still counts in the file and the summary.
 from __future__ import annotations
 
 import logging
+from dataclasses import replace
 
 import zenoh
 
@@ -29,8 +30,9 @@ class TelemetrySink:
     """`TelemetrySink(robot, summary)`; `declare` makes the publishers, `file` is the JSONL
     file once made (None: not made, or not asked for)."""
 
-    def __init__(self, robot: str, summary: RunSummary) -> None:
+    def __init__(self, robot: str, summary: RunSummary, service: str | None = None) -> None:
         self.robot = robot
+        self.service = service
         self.summary = summary
         self.frames: zenoh.Publisher | None = None
         self.probes: zenoh.Publisher | None = None
@@ -48,7 +50,9 @@ class TelemetrySink:
 
     def frame(self, f: Frame, record: TelemetryRecord, *, phase: str | None) -> None:
         """Publish, write and count served frame `f` (its record `record`, its emulation
-        phase `phase`)."""
+        phase `phase`), stamped with the sink's service."""
+        if self.service is not None:
+            record = replace(record, service=self.service)
         if self.frames is not None:
             try:
                 self.frames.put(record.to_wire())

@@ -42,6 +42,7 @@ class ErrorCode(str, enum.Enum):
     STALE_EPOCH = "stale_epoch"
     PROTOCOL_VERSION = "protocol_version"
     REFUSED = "refused"
+    UNKNOWN_SERVICE = "unknown_service"  # not a service of the fleet, or not served there
     INTERNAL = "internal"
 
 

@@ -364,15 +364,17 @@ class DrainReply(Message):
 @register
 @dataclass(frozen=True, slots=True, kw_only=True)
 class RibQuery(Message):
-    """Optional filters for a RIB view query (an empty payload means no filter)."""
+    """Optional filters for a RIB view query (an empty payload means no filter). `service`
+    (extension): only that service's rows (older registries ignore it and answer them all)."""
 
     TYPE: ClassVar[str] = "rib_query"
     robot: str | None = None
     deployment: str | None = None
     limit: int | None = None
+    service: str | None = None
 
     def __post_init__(self) -> None:
-        self._check_ids("robot", "deployment")
+        self._check_ids("robot", "deployment", "service")
         self._check_non_negative("limit")
 
 
@@ -415,8 +417,9 @@ class RobotRow(Struct):
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class RouteRow(Struct):
-    """One robot's current route (`deployment` None: computing locally); `pool` (extension): its
-    round-robin pool, the deployment first (empty in an anycast fleet)."""
+    """One robot's current route for one service (`deployment` None: computing locally); `pool`
+    (extension): its round-robin pool, the deployment first (empty in an anycast fleet);
+    `service` (extension): the service routed (None from older registries: their one service)."""
 
     robot: str
     deployment: str | None
@@ -424,11 +427,14 @@ class RouteRow(Struct):
     since: float
     reason: str = ""
     pool: tuple[str, ...] = ()
+    service: str | None = None
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class EventRow(Struct):
-    """One transition in the event log (`seq` increases; `at` is the registry's wall clock)."""
+    """One transition in the event log (`seq` increases within a service's log; `at` is the
+    registry's wall clock); `service` (extension): whose routing it is about (None from older
+    registries)."""
 
     seq: int
     at: float
@@ -438,11 +444,13 @@ class EventRow(Struct):
     deployment: str | None = None
     epoch: int | None = None
     extra: dict[str, Any] = field(default_factory=dict)
+    service: str | None = None
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class ProfileRow(Struct):
-    """Latency statistics of one robot x deployment pair, over its last `samples` measurements."""
+    """Latency statistics of one robot x deployment pair, over its last `samples` measurements;
+    `service` (extension): the service measured (None from older registries)."""
 
     robot: str
     deployment: str
@@ -453,6 +461,7 @@ class ProfileRow(Struct):
     max_s: float | None = None
     stddev_s: float | None = None
     updated_at: float | None = None
+    service: str | None = None
 
 
 @register

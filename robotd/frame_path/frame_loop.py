@@ -18,7 +18,12 @@ the next frames' model runs go to the low-priority thread too (`robotd.frame_pat
 
 `FrameLoop` takes what the robot daemon made at startup (the split model, the policy, the
 source, the request sender, the registry link, the sinks) and opens nothing itself: the daemon
-(`robotd.daemon`) keeps startup, resources and shutdown, and calls `run`.
+(`robotd.daemon`) keeps startup, resources and shutdown, and calls `run`. A robot whose source
+had no frame at start (`zenoh`, `ros2:`) starts on raw actions and has a `refinement`
+(`robotd.robot_profile.FirstFramesRefinement`): once its first frames are served, the frames in
+flight are finished (each decision observed by the policy that made it), the codecs are measured
+on those frames, and the policy built on them takes over. This happens once, on this thread,
+between two frames; frames that arrive meanwhile wait as any frame does (the newest is kept).
 """
 
 from __future__ import annotations
@@ -52,6 +57,7 @@ from robotd.frame_path.request_sender import RequestSender
 from robotd.policies import PURE_ROBOT, FrameContext, Objective, Policy
 from robotd.results.sinks import ResultSink
 from robotd.robot_model import RobotModel
+from robotd.robot_profile import FirstFramesRefinement
 from robotd.sources.frame_sources import EndOfStream, FrameSource
 from robotd.sources.stereo_frame import CameraFrame, first_view
 from robotd.telemetry import SERVED_BY_CLOUD, RemoteTimes, RunSummary
@@ -93,6 +99,8 @@ class FrameLoop:
     result_sinks: list[ResultSink] = field(default_factory=list)
     """Where each applied frame's result goes (the daemon's list: sinks added later count)."""
     on_result: Callable[[FrameResult], None] | None = None
+    refinement: FirstFramesRefinement | None = None
+    """The policy measured on the first frames served, when the source had none at start."""
     frames_done: int = 0
 
     def __post_init__(self) -> None:
@@ -147,6 +155,9 @@ class FrameLoop:
                 dropped_stale=dropped,
             )
             n += 1
+            refinement = self.refinement
+            if refinement is not None and refinement.offer(self.robot_model.feeds(frame)):
+                self._refine(refinement)
         self._pipeline.drain()
         self._settle_pending(block=True)
         self.summary.ended_at = time.perf_counter()
@@ -154,6 +165,16 @@ class FrameLoop:
         self.summary.rejected_frames = self.source.rejected_frames()
         if self.stop.is_set() and limit is not None and n < limit:
             log.info("%s: stopped after %d of %d frames", self.robot, n, limit)
+
+    def _refine(self, refinement: FirstFramesRefinement) -> None:
+        """Hand the frames to the policy measured on the first frames served, once: the frames
+        in flight are finished first, so the policy that decided each frame observes it."""
+        self.refinement = None
+        self._pipeline.drain()
+        self._settle_pending(block=True)
+        policy = refinement.refined(self.stop)
+        if policy is not None:
+            self.policy = policy
 
     def _await_frame(self) -> bool:
         """Until the source has a frame to read (one fed by others waits for its sender),

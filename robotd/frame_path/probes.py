@@ -122,8 +122,10 @@ class RobotProber:
         interval_s: float = PROBE_INTERVAL_S,
         timeout_s: float = PROBE_TIMEOUT_S,
         max_reply_bytes: int,
+        service: str | None = None,
     ) -> None:
         self._session = session
+        self._service = service
         self._fleet = fleet
         self._robot = robot
         self.max_padding_bytes = max_padding_bytes
@@ -161,6 +163,7 @@ class RobotProber:
         """One round: query every deployment, publish and return the reports."""
         request = ProbeRequest(
             sender=self._robot,
+            service=self._service,
             sent_at=time.time(),
             echo_bytes=PROBE_ECHO_BYTES,
             padding=bytes(self.padding_bytes),
@@ -194,6 +197,7 @@ class RobotProber:
             )
         for deployment in sorted(self._alive_clouds() - set(reports)):
             reports[deployment] = ProbeReport(
+                service=self._service,
                 robot=self._robot,
                 deployment=deployment,
                 ok=False,
@@ -226,6 +230,7 @@ class RobotProber:
         assert isinstance(message, ProbeReply)
         cloud = self._cloud_time.value
         return ProbeReport(
+            service=self._service,
             robot=self._robot,
             deployment=message.deployment,
             ok=True,
@@ -242,6 +247,7 @@ class RobotProber:
         self, deployment: str, rtt_s: float, up_bytes: int, down_bytes: int, reason: str
     ) -> ProbeReport:
         return ProbeReport(
+            service=self._service,
             robot=self._robot,
             deployment=deployment,
             ok=False,

@@ -159,9 +159,9 @@ class RegistryLink:
         self.apply_route(change)
 
     def apply_route(self, change: RouteChange) -> bool:
-        """Take `change` unless it is another robot's or older than the route held; True if
-        it was taken."""
-        if change.robot != self.robot:
+        """Take `change` unless it is another robot's or another service's (None: a registry of
+        a one-service fleet) or older than the route held; True if it was taken."""
+        if change.robot != self.robot or change.service not in (None, self._service):
             return False
         with self._changed:
             held = self._route
@@ -346,6 +346,7 @@ class RegistryLink:
             held = self._route
         request = RerouteRequest(
             robot=self.robot,
+            service=self._service,
             deployment=held.deployment,
             epoch=held.epoch,
             reason=reason,

@@ -28,9 +28,9 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from pydantic_core import PydanticCustomError
 
 from common.errors import UserError
-from common.yaml_files import format_validation_error
 from common.wire import WireError
 from common.wire.tensor_codecs import applies, codec_names_for
+from common.yaml_files import format_validation_error
 from robotd.policies.base import (
     PURE_ROBOT,
     RAW_CODEC,

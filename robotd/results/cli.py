@@ -6,8 +6,9 @@ Subscribes to `ef/<fleet>/out/<robot>` through a Zenoh client session to the fle
 registry's endpoint; `robotd.results.client.RobotClient`) and prints each `FrameResultMessage`:
 frame, capture stamp, who served it, the action, the end-to-end latency and each output's shape,
 with the top-5 indices and values of a 1-D or N×C output (per row). `--json`: one object per line
-(`result_json`). Ends after `--count` results, after `--timeout` seconds without one, or on
-Ctrl-C/SIGTERM (exit 0). An unreachable fleet is one line on stderr and exit code 2.
+(`result_json`; each names its `service`, and `--service NAME` keeps one service's). Ends after
+`--count` results, after `--timeout` seconds without one, or on Ctrl-C/SIGTERM (exit 0). An
+unreachable fleet is one line on stderr and exit code 2.
 """
 
 from __future__ import annotations
@@ -52,6 +53,11 @@ def results_command(
     timeout: float | None = typer.Option(
         None, "--timeout", help="Stop after this many seconds without a result (default: never)."
     ),
+    service: str | None = typer.Option(
+        None,
+        "--service",
+        help="Only the results of this service (a robot using several publishes them all).",
+    ),
     json_out: bool = typer.Option(False, "--json", help="One JSON object per result."),
     log_level: str = typer.Option(
         DEFAULT_LOG_LEVEL, "--log-level", envvar=LOG_LEVEL_ENV, help=LOG_LEVEL_HELP
@@ -66,9 +72,17 @@ def results_command(
             if timeout is not None and not timeout > 0:
                 raise UserError(f"--timeout must be a positive number, got {timeout}")
             with RobotClient(config, robot) as client:
+                if service is not None:
+                    client.config.service_for(service)  # UserError naming the services
                 # On stderr: what is followed, once the subscriber is declared.
-                typer.echo(f"following {client.out_key}", err=True)
-                for n, result in enumerate(_follow(client, stop, timeout), start=1):
+                of = "" if service is None else f" (service {service})"
+                typer.echo(f"following {client.out_key}{of}", err=True)
+                results = (
+                    r
+                    for r in _follow(client, stop, timeout)
+                    if service is None or _service_of(client, r) == service
+                )
+                for n, result in enumerate(results, start=1):
                     line = json.dumps(result_json(result)) if json_out else result_line(result)
                     typer.echo(line)
                     sys.stdout.flush()
@@ -78,6 +92,11 @@ def results_command(
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(exc.exit_code) from None
     raise typer.Exit(0)
+
+
+def _service_of(client: RobotClient, result: Result) -> str:
+    """The service a result is for (a robot of a one-service fleet names none)."""
+    return client.config.service_for(result.message.service)
 
 
 def _follow(client: RobotClient, stop: threading.Event, timeout: float | None) -> Iterator[Result]:
@@ -145,6 +164,7 @@ def result_line(result: Result) -> str:
     m = result.message
     served = m.served_by.value + (f" ({m.deployment})" if m.deployment else "")
     parts = [
+        *([f"service {m.service}"] if m.service is not None else []),
         f"frame {m.frame}",
         f"stamp {m.stamp_ns} ({_stamp_text(m.stamp_ns)})",
         f"served_by {served}",
@@ -167,6 +187,7 @@ def result_json(result: Result) -> dict[str, Any]:
     m = result.message
     return {
         "robot": m.robot,
+        "service": m.service,
         "frame": m.frame,
         "stamp_ns": m.stamp_ns,
         "served_by": m.served_by.value,

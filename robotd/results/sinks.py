@@ -56,8 +56,16 @@ class ZenohResultSink:
     """Each applied frame's `FrameResultMessage` on `ef/<fleet>/out/<robot>`, outputs in
     `codec` (a result codec: raw, fp16 or raw+zstd)."""
 
-    def __init__(self, session: zenoh.Session, fleet: str, robot: str, codec: str) -> None:
+    def __init__(
+        self,
+        session: zenoh.Session,
+        fleet: str,
+        robot: str,
+        codec: str,
+        service: str | None = None,
+    ) -> None:
         self.robot = robot
+        self.service = service
         self.codec = codec
         self.key = keys.results_out(fleet, robot)
         # Results are big (a disparity map) and each is wanted: block rather than drop.
@@ -83,6 +91,7 @@ class ZenohResultSink:
             latency_s=record.latency_s,
             published_ns=time.time_ns(),
             outputs={name: encode_output(a, self.codec) for name, a in result.outputs.items()},
+            service=self.service,
         )
 
     def publish(self, result: FrameResult) -> None:
@@ -102,11 +111,10 @@ def open_result_sinks(
 ) -> list[tuple[ResultSink, str]]:
     """The sinks robot `robot`'s configuration asks for, each with what to call it in logs,
     made on the daemon's open `session` (the caller hands each to the lifecycle): always the
-    `out/<robot>` publisher."""
+    `out/<robot>` publisher, its messages naming the (first) service."""
     results = config.machine(robot, role=keys.Role.ROBOT).results
-    return [
-        (ZenohResultSink(session, config.fleet, robot, results.codec), "results publisher"),
-    ]
+    sink = ZenohResultSink(session, config.fleet, robot, results.codec, config.service_name)
+    return [(sink, "results publisher")]
 
 
 __all__ = ["ResultSink", "ZenohResultSink", "open_result_sinks"]

@@ -23,12 +23,11 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
-import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from common.errors import UserError
-from common.yaml_files import YAML_ESCAPES, yaml_escape_problem
-from robotd.policies.base import CutTable, one_line_validation_error
+from common.yaml_files import format_validation_error, read_yaml
+from robotd.policies.base import CutTable
 
 # Unknown keys are errors; so are .inf and .nan, which YAML reads as floats and which every bound
 # of the form `gt=0` lets through (tests/unit/test_fuzz_trace.py checks both).
@@ -152,20 +151,13 @@ def trace_from_dict(data: Any, source: str = "trace") -> Trace:
     try:
         return Trace.model_validate(data)
     except ValidationError as exc:
-        raise UserError(one_line_validation_error(source, exc)) from None
+        raise UserError(f"{source}: {format_validation_error(exc, Trace)}") from None
 
 
 def load_trace(path: str | Path) -> tuple[Trace, Path]:
     """Read and validate a trace YAML file; returns the trace and its resolved path."""
     file = Path(path)
-    text = _read_text(file, "trace")
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        first = str(exc).splitlines()[0] if str(exc) else "parse error"
-        raise UserError(f"trace {file}: not valid YAML ({first})") from None
-    except YAML_ESCAPES as exc:
-        raise UserError(f"trace {file}: not valid YAML ({yaml_escape_problem(exc)})") from None
+    data = read_yaml(file, "trace")  # strict: a key given twice is refused, naming both lines
     return trace_from_dict(data, f"trace {file}"), file.resolve()
 
 

@@ -21,7 +21,8 @@ A source yields uint8 BGR frames (H×W×3, OpenCV's layout) one at a time, or st
   run ends at the end of the file.
 - `bag:PATH[:TOPIC]`: a rosbag2 recording's image topic, at its recorded rate
   (`robotd.sources.bag`).
-- `camera:N`: the camera with index N through OpenCV.
+- `camera:N` or `camera:/dev/videoN`: the camera with index N through OpenCV (on Linux the
+  device /dev/videoN).
 - `zenoh`: frames an application publishes on `ef/<fleet>/in/<robot>` (`robotd.sources.zenoh_in`),
   the newest first (older waiting frames are dropped and counted), fitted to the model's size
   like the photographs (`fit_frame`).
@@ -482,23 +483,27 @@ class VideoSource(FrameSource):
 
 
 class CameraSource(FrameSource):
-    """A camera by index through OpenCV."""
+    """A camera by index through OpenCV; `device` (e.g. /dev/video0, the same camera as its
+    index) is how the user named it, for messages."""
 
-    def __init__(self, index: int) -> None:
+    def __init__(self, index: int, device: str | None = None) -> None:
         self.index = index
-        self.description = f"camera {index}"
+        name = device or str(index)
+        self.description = f"camera {name}"
         _quiet_opencv()
+        # By index, whichever way it was named: OpenCV maps index N to /dev/videoN (V4L2), and
+        # an index is what every backend takes.
         self._cap = cv2.VideoCapture(index)
         if not self._cap.isOpened():
             self._cap.release()
-            raise SourceError(f"cannot open camera {index} (no such device, or it is busy)")
+            raise SourceError(f"cannot open camera {name} (no such device, or it is busy)")
 
     def read(self) -> np.ndarray:
         for _ in range(CAMERA_READ_TRIES):
             ok, frame = self._cap.read()
             if ok and frame is not None:
                 return _as_bgr(frame)
-        raise SourceError(f"camera {self.index}: no frame after {CAMERA_READ_TRIES} tries")
+        raise SourceError(f"{self.description}: no frame after {CAMERA_READ_TRIES} tries")
 
     def close(self) -> None:
         self._cap.release()

@@ -104,7 +104,7 @@ def open_source(
 
             return BagSource(parsed.path, parsed.topic)
         case CameraSpec():
-            return CameraSource(parsed.index)
+            return CameraSource(parsed.index, parsed.device)
         case StereoWorldSpec() | StereoPairSpec() | StereoManeuverSpec():
             # Registered by the navigation app, which builds them on its world and renderer.
             opener = registered_opener("stereo", parsed.text)

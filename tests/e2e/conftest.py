@@ -135,14 +135,17 @@ def make_fleet(tmp_path: Path, e2e_cache: Path) -> Callable[..., Fleet]:
 
 @pytest.fixture
 def local_fleet(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Callable[..., Any]]:
-    """`local_fleet(fleet)` -> a LocalFleet for it; every daemon it starts is stopped at teardown
-    and the daemons' logs are attached to the report of a failing test. A daemon that logged a
-    traceback fails the test at teardown: whatever a test does to them (kills, bad input, lost
-    peers), daemons report problems in a line, never as a crash."""
+    """`local_fleet(fleet, **options)` -> a LocalFleet for it (`options`: LocalFleet's, e.g.
+    `argv0`); every daemon it starts is stopped at teardown and the daemons' logs are attached to
+    the report of a failing test. A daemon that logged a traceback fails the test at teardown:
+    whatever a test does to them (kills, bad input, lost peers), daemons report problems in a
+    line, never as a crash."""
     opened: list[LocalFleet] = []
 
-    def open_fleet(fleet: Fleet) -> LocalFleet:
-        lf = LocalFleet(fleet.config, tmp_path / f"run{len(opened)}", startup_timeout_s=45.0)
+    def open_fleet(fleet: Fleet, **options: Any) -> LocalFleet:
+        lf = LocalFleet(
+            fleet.config, tmp_path / f"run{len(opened)}", startup_timeout_s=45.0, **options
+        )
         lf.__enter__()
         opened.append(lf)
         return lf

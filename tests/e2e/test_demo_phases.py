@@ -117,8 +117,15 @@ def test_a_script_switches_phases_in_the_robot_and_loses_nothing(
 @pytest.mark.parametrize(
     ("text", "expected"),
     [
-        ("phases:\n  - {name: a, frames: 5, uplink: 2}\n", "phases[0].uplink: Extra inputs"),
+        (
+            "phases:\n  - {name: a, frames: 5, uplink: 2}\n",
+            "phases[0].uplink: unknown key; did you mean 'uplink_mbit'?",
+        ),
         ("phases:\n  - {name: a, frames: -5}\n", "phases[0].frames: Input should be greater"),
+        (
+            "phases:\n  - {name: a, frames: 5, frames: 6}\n",
+            "duplicate key 'frames', first given on line 2",
+        ),
     ],
 )
 def test_a_bad_script_is_one_line_and_exit_2(tmp_path: Path, text: str, expected: str) -> None:

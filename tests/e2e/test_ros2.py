@@ -30,7 +30,7 @@ from common import rmw_zenoh
 from common.image_input import ImageInputs
 from common.partition import load_partition
 from common.partition.runtime import SplitModel
-from deploy.procs import wait_until
+from deploy.readiness import wait_until
 from robotd.sources.frame_sources import fit_frame
 from tests.e2e.conftest import TEST_INPUT_SHAPE, TEST_MODEL
 

@@ -173,3 +173,33 @@ def dynamic(dims: Sequence[int | str]) -> onnx.ModelProto:
     return make_model(
         [node("Relu", ["x"], ["a"]), node("Neg", ["a"], ["y"])], [vi("x", dims)], [vi("y", dims)]
     )
+
+
+def camera_classifier(height: int = 16, width: int = 16, classes: int = 4) -> onnx.ModelProto:
+    """image uint8[1,H,W,3] (the camera image) → Cast → Transpose → Conv → Relu →
+    GlobalAveragePool → Flatten → Gemm → logits[1,classes]: cut 0 carries the camera image,
+    so the image codecs (PNG, JPEG) apply there."""
+    rng = np.random.default_rng(0)
+
+    def weight(name: str, shape: tuple[int, ...]) -> onnx.TensorProto:
+        return numpy_helper.from_array((rng.standard_normal(shape) * 0.3).astype(np.float32), name)
+
+    return make_model(
+        [
+            node("Cast", ["image"], ["f"], to=TensorProto.FLOAT),
+            node("Transpose", ["f"], ["t"], perm=[0, 3, 1, 2]),
+            node("Conv", ["t", "w1", "b1"], ["c1"], pads=[1, 1, 1, 1]),
+            node("Relu", ["c1"], ["r1"]),
+            node("GlobalAveragePool", ["r1"], ["g"]),
+            node("Flatten", ["g"], ["v"]),
+            node("Gemm", ["v", "w2", "b2"], ["logits"]),
+        ],
+        [vi("image", [1, height, width, 3], TensorProto.UINT8)],
+        [vi("logits", [1, classes])],
+        [
+            weight("w1", (4, 3, 3, 3)),
+            weight("b1", (4,)),
+            weight("w2", (4, classes)),
+            weight("b2", (classes,)),
+        ],
+    )

@@ -46,6 +46,8 @@ def test_zoo_list_table() -> None:
     result = invoke("zoo", "list")
     assert result.exit_code == 0, result.output
     assert "zoo:resnet" in result.stdout and "(default)" in result.stdout
+    # Guards against a user reading the ROS 2 walkthrough's top-5 of a zoo model as classes.
+    assert "seeded, not trained" in " ".join(result.stdout.split())
 
 
 def test_zoo_export(tmp_path: Path) -> None:

@@ -21,7 +21,7 @@ from common.ros2_messages import (
     encode_float32_multi_array,
     encode_twist,
 )
-from deploy.procs import wait_until
+from deploy.readiness import wait_until
 from nav.assist import AssistNode
 
 WAIT_S = 10.0

@@ -1,5 +1,6 @@
 """`elasticfog results` as a user runs it: against a fleet whose router is not there, one line
-on stderr naming the endpoint and exit code 2 (never a hang); a bad --count is a usage error."""
+on stderr naming the endpoint and what to start there, and exit code 2 (never a hang); a bad
+--count is a usage error."""
 
 from __future__ import annotations
 
@@ -37,6 +38,9 @@ def test_an_unreachable_fleet_is_one_line_and_exit_code_2(tmp_path: Path) -> Non
     assert result.exit_code == EXIT_USAGE, result.output
     lines = [line for line in result.output.splitlines() if line.strip()]
     assert len(lines) == 1 and lines[0].startswith("error:") and endpoint in lines[0], lines
+    # What to start instead, and not zenoh's own "Unable to connect to any of [Single(...)]".
+    assert f"cannot reach {endpoint}: nothing answers there; start `elasticfog registry" in lines[0]
+    assert "Single(" not in lines[0] and "Unable to connect" not in lines[0], lines
 
 
 def test_an_unknown_robot_is_named(tmp_path: Path) -> None:

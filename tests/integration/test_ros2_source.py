@@ -15,7 +15,8 @@ from common import rmw_zenoh
 from common.config import load_fleet
 from common.ros2_messages import typestore
 from common.source_spec import parse_ros2_source
-from deploy.procs import wait_until, write_local_fleet
+from deploy.local_fleet import write_local_fleet
+from deploy.readiness import wait_until
 from robotd.sources.frame_sources import SourceSession
 from robotd.sources.ros2 import Ros2Source
 

@@ -13,6 +13,7 @@ from pydantic import BaseModel
 from common import config as config_module
 from common.config import FleetConfig, fleet_from_dict, load_fleet
 from common.errors import UserError
+from common.wire.registry import DeploymentState
 
 CASES = Path(__file__).resolve().parents[1] / "config_cases"
 VALID = sorted(CASES.glob("valid-*.yaml"))
@@ -162,3 +163,17 @@ def test_every_model_forbids_unknown_keys() -> None:
 
 def test_latency_stats_are_the_documented_ones() -> None:
     assert typing.get_args(config_module.LatencyStat) == ("median", "mean", "p95", "max", "stddev")
+
+
+def test_initial_states_are_the_wire_enum() -> None:
+    """Guards against initial states compared as strings beside the wire's DeploymentState: a
+    cloud's state at start is read into the enum where the file is read, and draining (a state on
+    the wire, but none to start in) is refused there."""
+    config = load_fleet(CASES / "valid-fogros-shorthand.yaml")
+    states = {config.initial_state(d, r) for d in config.deployment_ids for r in config.robot_ids}
+    assert states == {DeploymentState.SERVICE, DeploymentState.STANDBY}
+    data = yaml.safe_load((CASES / "valid-single-host.yaml").read_text())
+    with pytest.raises(UserError, match="'draining' is not a state; expected one of robot, "):
+        fleet_from_dict(
+            {**data, "initial_policy": {**data["initial_policy"], "edge-2": "draining"}}
+        )

@@ -179,7 +179,11 @@ def test_phases_file_resolves_from_the_command_line_values(tmp_path: Path) -> No
 @pytest.mark.parametrize(
     ("text", "expected"),
     [
-        ("phases:\n  - {name: a, frames: 2, kill_service: true}\n", "kill_service: Extra"),
+        ("phases:\n  - {name: a, frames: 2, kill_service: true}\n", "kill_service: unknown key"),
+        (
+            "phases:\n  - name: a\n    frames: 2\n    frames: 3\n",
+            "line 4, column 5: duplicate key 'frames', first given on line 3",
+        ),
         ("phases: nope\n", "phases: Input should be a valid list"),
         ("[1, 2]\n", "expected a mapping"),
         ("phases:\n  - {name: '', frames: 2}\n", "phases[0].name: String should have at least"),

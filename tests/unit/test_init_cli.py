@@ -9,6 +9,9 @@ from typer.testing import CliRunner
 
 from common.cli import app
 from common.config import load_fleet
+from common.init_cli import render_fleet
+from common.source_spec import KINDS, parse_source
+from common.wire.registry import DeploymentState
 
 runner = CliRunner()
 
@@ -31,14 +34,30 @@ def test_writes_a_commented_single_host_fleet_that_loads(tmp_path: Path) -> None
     assert config.registry.listen == ["tcp/127.0.0.1:7447"]
     assert config.deployment_ids == ["edge-1", "edge-2"]
     assert config.robot_ids == ["robot-1"]
-    assert config.initial_state("edge-1", "robot-1") == "service"
-    assert config.initial_state("edge-2", "robot-1") == "standby"
+    assert config.initial_state("edge-1", "robot-1") is DeploymentState.SERVICE
+    assert config.initial_state("edge-2", "robot-1") is DeploymentState.STANDBY
     assert config.model == "zoo:resnet"
     assert config.latency_bound.seconds > 0
     assert config.deadline_s > 0
     # Single host: every machine listens on loopback only.
     for machine_id in config.machines:
         assert all("127.0.0.1" in e for e in config.machine(machine_id).listen)
+
+
+def test_the_robot_source_comment_names_every_source_kind() -> None:
+    """Guards against the comment naming only video and camera (a user never learnt of zenoh,
+    ros2 or bag from the file init wrote)."""
+    lines = render_fleet().splitlines()
+    at = next(i for i, line in enumerate(lines) if line.strip().startswith("source:"))
+    comment = []
+    for line in reversed(lines[:at]):
+        if not line.strip().startswith("#"):
+            break
+        comment.append(line)
+    text = " ".join(comment)
+    for kind in KINDS:
+        assert kind in text, kind
+    assert parse_source("camera:/dev/video0").index == 0  # the form the comment shows
 
 
 def test_options_end_up_in_the_file(tmp_path: Path) -> None:

@@ -12,10 +12,19 @@ from typing import Any
 
 from prometheus_client import CollectorRegistry
 
-from cloudd.metrics import NOT_REQUESTS, REFUSAL_OUTCOMES, RequestOutcome, error_outcome
+from cloudd.metrics import (
+    NOT_REQUESTS,
+    REFUSAL_OUTCOMES,
+    CloudMetrics,
+    RequestOutcome,
+    ServiceReading,
+    error_outcome,
+)
 from cloudd.refusals import RefusalReason
+from cloudd.state import RobotServiceState
 from common.metrics import new_registry
 from common.wire import ErrorCode
+from common.wire.registry import DeploymentState
 from common.wire.telemetry import FallbackReason, ResendReason, TelemetryRecord
 from registry.metrics import RegistryMetrics
 from registry.scheduler import Reason
@@ -131,6 +140,44 @@ def test_every_refusal_and_error_code_has_an_outcome() -> None:
     assert error_outcome(ErrorCode.NOT_SERVING) is RequestOutcome.NOT_SERVING
     assert error_outcome(ErrorCode.INTERNAL) is RequestOutcome.ERROR
     assert error_outcome(None) is RequestOutcome.ERROR
+
+
+def test_a_deployments_services_are_counted_and_read_apart() -> None:
+    # Regression: with several services, one plane's requests, queue and states must not be
+    # summed into another's series.
+    registry = new_registry()
+    readings = [
+        ServiceReading(
+            "detect",
+            {ROBOT: RobotServiceState(DeploymentState.SERVICE, 1)},
+            (1, 0, 5),
+            "zoo:vgg",
+            "ab",
+        ),
+        ServiceReading("tags", {ROBOT: RobotServiceState()}, None, "mod:fn", ""),
+    ]
+    metrics = CloudMetrics(
+        registry, "edge-1", services=lambda: readings, providers=lambda: ["CPUExecutionProvider"]
+    )
+    detect, tags = metrics.service("detect"), metrics.service("tags")
+    detect.answered(ROBOT, 0.01, 0.02)
+    detect.batch(1)
+    tags.refused(ROBOT, RefusalReason.QUEUE_FULL)
+    requests = "elasticfog_cloud_inference_requests_total"
+    both = {"deployment": "edge-1", "robot": ROBOT}
+    assert value(registry, requests, service="detect", outcome="ok", **both) == 1
+    assert value(registry, requests, service="tags", outcome="busy", **both) == 1
+    assert value(registry, requests, service="tags", outcome="ok", **both) == 0
+    queue_count = "elasticfog_cloud_inference_queue_duration_seconds_count"
+    assert value(registry, queue_count, deployment="edge-1", service="detect") == 1
+    pending = "elasticfog_cloud_inference_pending_requests"
+    assert value(registry, pending, deployment="edge-1", service="detect") == 1
+    assert registry.get_sample_value(pending, {"deployment": "edge-1", "service": "tags"}) is None
+    state = "elasticfog_cloud_robot_state"
+    assert value(registry, state, service="detect", state="service", **both) == 1
+    assert value(registry, state, service="tags", state="standby", **both) == 1
+    info = {"service": "tags", "model": "mod:fn", "digest": "", "providers": "CPUExecutionProvider"}
+    assert value(registry, "elasticfog_cloud_model_info", deployment="edge-1", **info) == 1
 
 
 class CountingSource(FrameSource):

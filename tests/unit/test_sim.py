@@ -188,7 +188,8 @@ def test_regret_slope_tells_linear_from_bounded_regret() -> None:
         ("frames_per_second: 10\nsegments: []\n", "segments"),
         ("frames_per_second: 10\nnoise: {jitter: 2}\nsegments: []\n", "jitter"),
         ("[1, 2]\n", "expected a mapping"),
-        ("frames_per_second: [\n", "not valid YAML"),
+        ("frames_per_second: [\n", "invalid YAML"),
+        ("frames_per_second: 10\nframes_per_second: 5\n", "duplicate key 'frames_per_second'"),
     ],
 )
 def test_malformed_traces_are_one_line_naming_the_field(

@@ -21,6 +21,7 @@ from common.source_spec import (
     DEFAULT_CAMERA_SOURCE,
     KINDS,
     CameraMotion,
+    CameraSpec,
     PhotoSpec,
     SourceError,
     SyntheticSpec,
@@ -287,10 +288,25 @@ def test_missing_or_unreadable_video_is_a_clear_error(tmp_path: Path) -> None:
         VideoSource(junk)
 
 
+def test_a_camera_is_named_by_index_or_by_its_linux_device() -> None:
+    """Guards against `camera:/dev/video0`, what every Linux user types first, being refused."""
+    assert parse_source("camera:/dev/video0") == CameraSpec(
+        "camera:/dev/video0", index=0, device="/dev/video0"
+    )
+    assert parse_source("camera:/dev/video12").index == 12
+    assert parse_source("camera:2") == CameraSpec("camera:2", index=2)
+    for bad in ("camera:/dev/video", "camera:/dev/sda", "camera:video0", "camera:"):
+        with pytest.raises(SourceError, match=r"e\.g\. camera:0 or camera:/dev/video0"):
+            parse_source(bad)
+
+
 def test_camera_that_cannot_be_opened_is_a_clear_error() -> None:
     with pytest.raises(UserError, match=f"cannot open camera {MISSING_CAMERA}"):
         CameraSource(MISSING_CAMERA)
-    with pytest.raises(UserError, match="camera needs an index"):
+    device = f"/dev/video{MISSING_CAMERA}"
+    with pytest.raises(UserError, match=f"cannot open camera {device}"):
+        open_source(f"camera:{device}", height=H, width=W)
+    with pytest.raises(UserError, match="camera needs an index or a video device"):
         open_source("camera:front", height=H, width=W)
 
 
@@ -298,7 +314,7 @@ def test_unknown_source_names_the_accepted_forms() -> None:
     with pytest.raises(
         UserError,
         match=r"expected synthetic.*photo\[:NAME\].*video:PATH\[,loop=false\], bag:PATH\[:TOPIC\], "
-        r"camera:INDEX, stereo:world.*"
+        r"camera:INDEX\|/dev/videoINDEX, stereo:world.*"
         r"stereo:LEFT,RIGHT",
     ):
         open_source("rtsp://robot/stream", height=H, width=W)
