@@ -14,7 +14,8 @@ counts as missed, not in the errors. Rows:
   a deployment gets at cut 0 with that codec; the coding is not timed).
 - `OpenCV <refinement>`: OpenCV's classic detector with its own corner refinement, the same
   pose solver (`perception.apriltag.solve_pose`).
-- `OpenCV ArUco 3, no refinement`: the corners the handler starts from.
+- `OpenCV, no refinement` and `OpenCV ArUco 3, no refinement`: the classic detector's corners,
+  and those the handler starts from (ArUco 3's candidate search).
 
 Time: the median per-frame time (grey conversion, detection, refinement and pose; not the
 rendering) over `--calls` calls cycling through the frames, on one core (the process pinned to
@@ -160,6 +161,18 @@ def measure(
     }
 
 
+def _cpu() -> str:
+    """The CPU's model name (Linux), else the machine type."""
+    try:
+        with open("/proc/cpuinfo") as info:
+            for line in info:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.machine()
+
+
 def _fmt(value: float | None, digits: int) -> str:
     return "-" if value is None else f"{value:.{digits}f}"
 
@@ -201,6 +214,7 @@ def main() -> None:
         ("OpenCV CORNER_REFINE_SUBPIX", opencv(cv2.aruco.CORNER_REFINE_SUBPIX), data),
         ("OpenCV CORNER_REFINE_CONTOUR", opencv(cv2.aruco.CORNER_REFINE_CONTOUR), data),
         ("OpenCV CORNER_REFINE_APRILTAG", opencv(cv2.aruco.CORNER_REFINE_APRILTAG), data),
+        ("OpenCV, no refinement", opencv(None), data),
         ("OpenCV ArUco 3, no refinement", opencv(None, aruco3=True), data),
     ]
     for _, run, _ in methods:  # warm-up: first calls build tables and thread-local detectors
@@ -213,7 +227,7 @@ def main() -> None:
         f"{args.frames} rendered 640x480 frames, one {SIZE_M} m tag each at "
         f"{DISTANCE_M[0]}-{DISTANCE_M[1]} m, tilt <= {MAX_TILT_DEG:.0f}°; "
         f"{args.calls} timed calls per method on one core; OpenCV {cv2.__version__}, "
-        f"{platform.processor() or platform.machine()}"
+        f"{_cpu()}"
     )
     print()
     print(table(rows))

@@ -16,9 +16,13 @@
    policy, `--policy robot` so no cloud is needed) once it has served a few frames, fed by the
    `photo` source, and fed by `ros2:` with `results: {ros2: ...}` (this script publishes the
    frames). The difference is what the ROS 2 parts (rosbags' type store, the node, the
-   subscriber and publishers) add.
+   subscriber and publishers) add. `--elasticfog PATH` runs the robots with another
+   installation's CLI, e.g. a virtual environment made as a robot host makes it (README:
+   `requirements/runtime.lock`, then the project with `--no-deps`); that one has no
+   photographs (the `data` extra), so measure it with `--sources ros2`.
 
     python benchmarks/ros2_overhead.py [--frames 200] [--skip-memory] [--json]
+    python benchmarks/ros2_overhead.py --skip-overhead --sources ros2 --elasticfog V/bin/elasticfog
 
 The host may be shared: figures are medians of one run, with the p90 beside them.
 """
@@ -32,6 +36,7 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -196,21 +201,32 @@ def _feed(session: zenoh.Session, key: str, rgb: np.ndarray, stop: threading.Eve
         session.put(key, image_cdr(rgb, time.time_ns()))
 
 
-def measure_memory(workdir: Path) -> dict[str, int]:
-    """RSS (bytes) of a robot daemon fed by `photo`, and by `ros2:` publishing its results."""
+MEMORY_SOURCES: dict[str, dict[str, Any]] = {
+    "photo": {"source": "photo"},
+    "ros2": {"source": f"ros2:{CAMERA}", "results": {"ros2": PREFIX}},
+}
+
+
+def measure_memory(
+    workdir: Path,
+    sources: Sequence[str] = tuple(MEMORY_SOURCES),
+    argv0: Sequence[str] | None = None,
+) -> dict[str, int]:
+    """RSS (bytes) of a robot daemon fed by `photo`, and by `ros2:` publishing its results (those
+    of `sources`); `argv0`: the robots' CLI (None: this installation's)."""
     results: dict[str, int] = {}
     rgb = photograph()
-    for name, machine in (
-        ("photo", {"source": "photo"}),
-        ("ros2", {"source": f"ros2:{CAMERA}", "results": {"ros2": PREFIX}}),
-    ):
+    for name in sources:
+        machine = MEMORY_SOURCES[name]
         config = write_local_fleet(
             workdir / name,
             fleet=f"mem-{name}",
             model=MODEL,
             changes={"input_shape": MODEL_SHAPE, "machines": {"robot-1": machine}},
         )
-        with LocalFleet(config, workdir / f"run-{name}", startup_timeout_s=STARTUP_TIMEOUT_S) as lf:
+        with LocalFleet(
+            config, workdir / f"run-{name}", startup_timeout_s=STARTUP_TIMEOUT_S, argv0=argv0
+        ) as lf:
             lf.start_registry()
             tap = lf.tap("robot-1")
             robot = lf.start_robot("robot-1", "--policy", "robot", "--fps", "10")
@@ -241,8 +257,23 @@ def main() -> None:
     parser.add_argument(
         "--repeat", type=int, default=3, help="robot daemons per source (median RSS)"
     )
+    parser.add_argument(
+        "--sources",
+        default=",".join(MEMORY_SOURCES),
+        help=f"the robots measured, of {', '.join(MEMORY_SOURCES)}",
+    )
+    parser.add_argument(
+        "--elasticfog",
+        type=Path,
+        help="the robots' elasticfog (default: this installation's), e.g. a runtime-lock venv's",
+    )
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args()
+    sources = [name.strip() for name in args.sources.split(",") if name.strip()]
+    unknown = [name for name in sources if name not in MEMORY_SOURCES]
+    if unknown or not sources:
+        parser.error(f"--sources: expected some of {', '.join(MEMORY_SOURCES)}, got {args.sources}")
+    argv0 = None if args.elasticfog is None else [str(args.elasticfog)]
     result: dict[str, Any] = {}
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
@@ -254,11 +285,9 @@ def main() -> None:
                 args.frames, {"disparity": np.ones((1, 1, HEIGHT, WIDTH), np.float32)}, work
             )
         if not args.skip_memory:
-            runs = [measure_memory(work / f"m{i}") for i in range(args.repeat)]
+            runs = [measure_memory(work / f"m{i}", sources, argv0) for i in range(args.repeat)]
             result["rss_runs"] = runs
-            result["rss_bytes"] = {
-                k: int(statistics.median(r[k] for r in runs)) for k in ("photo", "ros2")
-            }
+            result["rss_bytes"] = {k: int(statistics.median(r[k] for r in runs)) for k in sources}
     if args.json:
         print(json.dumps(result))
         return
@@ -273,10 +302,12 @@ def main() -> None:
             )
     if "rss_bytes" in result:
         rss = result["rss_bytes"]
+        shown = ", ".join(f"{k} {v / 2**20:.0f} MiB" for k, v in rss.items())
+        if "photo" in rss and "ros2" in rss:
+            shown += f" ({(rss['ros2'] - rss['photo']) / 2**20:+.0f} MiB)"
         print(
-            f"robot RSS: photo {rss['photo'] / 2**20:.0f} MiB, ros2 {rss['ros2'] / 2**20:.0f} MiB "
-            f"({(rss['ros2'] - rss['photo']) / 2**20:+.0f} MiB; median of {args.repeat} daemons "
-            f"each: {[{k: v // 2**20 for k, v in r.items()} for r in result['rss_runs']]} MiB)"
+            f"robot RSS: {shown}; median of {args.repeat} daemons each: "
+            f"{[{k: v // 2**20 for k, v in r.items()} for r in result['rss_runs']]} MiB"
         )
 
 

@@ -355,7 +355,10 @@ def anycast(
     _run(options, lambda: ac.run(options), ac.markdown, ac.plot, as_json, _as_is)
 
 
-@testbed_command("services", fixed={"model": DEFAULT_MODEL, "input_shape": None, "tls": False})
+@testbed_command(
+    "services",
+    fixed={"model": DEFAULT_MODEL, "input_shape": None, "frames": None, "tls": False},
+)
 def services(
     options: Any,
     as_json: bool,
@@ -377,7 +380,7 @@ def services(
 ) -> None:
     """Three services on one robot (a classifier, a dense model, a handler) sharing its uplink
     and CPU: joint decisions against independent ones, on an uncontended then a contended
-    uplink. --frames: frames of each service per run (default: enough for both phases)."""
+    uplink (see docs/experiments.md)."""
     from experiments import services as sv
 
     settings = _guard(

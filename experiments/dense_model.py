@@ -5,8 +5,9 @@ layers every crossing is smaller than the image. A dense model answers per pixel
 scores for every pixel of the camera image (float 1xKxHxW, `DENSE_CLASSES` classes), computed by
 an encoder at a quarter of the resolution and upsampled back (bilinear `Resize`), like a small
 fully convolutional segmentation network. Every feature map between its layers is larger than
-the JPEG of the image (the first one is 1.3x the raw image's bytes as float), so the only cheap
-crossing is cut 0, and its answer (1.2 MB at 320x240) is 150 times a classifier's.
+the raw image (the first is 48 channels at half the resolution, as float: 16 times its bytes),
+so the only cheap crossing is cut 0, and its answer (1.2 MB at 320x240) is 300 times a
+classifier's.
 
 It takes the zoo's camera image (uint8 1xHxWx3, `common.zoo_nets.NetBuilder.front_end`) and
 is written once per shape into the bench's work folder (`write_dense_model`); weights are the
@@ -27,9 +28,10 @@ from common.zoo_nets import Act, NetBuilder
 DENSE_CLASSES = 4
 """Classes scored per pixel: the answer is DENSE_CLASSES x H x W float32."""
 DENSE_OUTPUT = "scores"
-ENCODER_WIDTHS = (24, 48, 48, 48)
-"""Channels of the encoder's convolutions: stride 2, stride 2, then two at a quarter of the
-resolution (about 0.3 GMAC at 320x240: 40 ms on one core of the testbed host)."""
+ENCODER_WIDTHS = (48, 96, 128, 128, 128)
+"""Channels of the encoder's 3x3 convolutions: stride 2, stride 2, then three at a quarter of
+the resolution (2.2 GMAC at 320x240: about 45 ms on one core of the testbed host, twice the
+classifier's MobileNetV2 at 320x240)."""
 UPSAMPLE = 4
 
 

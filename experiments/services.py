@@ -17,10 +17,11 @@ its deadline, `robotd.shared_budget`) and with `--decisions independent` (the sa
 each blind to the others, as separate processes would be), alternated round after round so
 that a drift of the shared host falls on both. A run: the robot starts with the whole machine
 (start-up is not measured), its host gets its quota, `warmup_frames` frames of every service
-are left out, the uncontended phase lasts `phase_s`, then the cap drops; the first `settle_s`
-after the change are left out (the policies learn the new link and the queue of the old rate
-drains) and the contended phase lasts until the first service has run its frames (each runs
-the same number, at the same fps). `services_rows` turns the records into rows.
+are left out (the services start streaming as each is ready, seconds apart: the warm-up ends
+with the last one's), the uncontended phase lasts `phase_s`, then the cap drops; the first
+`settle_s` after the change are left out (the policies learn the new link and the queue of the
+old rate drains), the contended phase lasts `phase_s`, and the robot is stopped with SIGINT
+(its `--frames` is only a bound). `services_rows` turns the records into rows.
 """
 
 from __future__ import annotations
@@ -68,10 +69,9 @@ FULL_ROUNDS, QUICK_ROUNDS = 3, 1
 FULL_PHASE_S, QUICK_PHASE_S = 20.0, 8.0
 FULL_SETTLE_S, QUICK_SETTLE_S = 3.0, 2.0
 FULL_WARMUP, QUICK_WARMUP = 8, 4
-RUN_SLACK_S = 120.0
-"""A run's bound besides its frames' deadlines (the robot's start-up, its calibration)."""
 WARMUP_WAIT_S = 300.0
-"""Bound of the wait for every service's warm-up frames."""
+"""Bound of the wait for every service's warm-up frames (start-up and calibration included)."""
+CAP_MARGIN_S = 30.0
 HOLD_POLL_S = 0.2
 
 CLASSIFIER = "classify"
@@ -105,12 +105,14 @@ CLASSIFIER_MODEL = "zoo:mobilenet_v2"
 CLASSIFIER_SHAPE = (3, 120, 160)
 DENSE_SHAPE = (3, 240, 320)
 HANDLER_SHAPE = (3, 480, 640)
-# (priority, deadline_s) per service: the classifier ranks first, the handler last.
-RANKS: dict[str, tuple[int, float]] = {
-    CLASSIFIER: (2, 0.3),
-    DENSE: (1, 0.6),
-    HANDLER: (0, 1.0),
+# (priority, deadline_s, policy) per service: the classifier ranks first, the handler last.
+RANKS: dict[str, tuple[int, float, str]] = {
+    CLASSIFIER: (2, 0.3, "elastic"),
+    DENSE: (1, 0.6, "elastic"),
+    HANDLER: (0, 1.0, "elastic"),
 }
+CODECS: list[str] | None = None
+"""fidelity.codecs of the fleet (None: every codec that meets the bound)."""
 
 
 @dataclass(frozen=True)
@@ -124,9 +126,8 @@ class ServicesSettings:
     warmup_frames: int
     phase_s: float
     settle_s: float
-    frames: int
-    """Frames each service runs per robot run."""
-    policy: str
+    frames_cap: int
+    """The robot's --frames: a bound (each run is stopped once its phases are over)."""
     services: list[ServiceInfo] = field(default_factory=list)
 
     def to_json(self) -> dict[str, Any]:
@@ -165,7 +166,6 @@ def plan(
     uncontended_mbit: float = UNCONTENDED_MBIT,
     contended_mbit: float = CONTENDED_MBIT,
     phase_s: float | None = None,
-    policy: str = "elastic",
 ) -> ServicesSettings:
     """The settings of a run from the options (--quick: shorter phases, one round); the
     services are filled in by `run` (the handler depends on what the daemons import)."""
@@ -185,8 +185,8 @@ def plan(
     phase = phase_s if phase_s is not None else (QUICK_PHASE_S if quick else FULL_PHASE_S)
     settle = QUICK_SETTLE_S if quick else FULL_SETTLE_S
     warmup = QUICK_WARMUP if quick else FULL_WARMUP
-    # The frames before the quota (a few) and the warm-up, then both phases at `fps`.
-    frames = options.frames or warmup + 4 + math.ceil(fps * (2 * phase + settle))
+    # A bound only: the start-up of the slowest service, the warm-up, both phases, a margin.
+    frames_cap = math.ceil(fps * (WARMUP_WAIT_S + 2 * phase + settle + CAP_MARGIN_S))
     return ServicesSettings(
         robot_cpu=options.robot_cpu,
         fps=fps,
@@ -195,8 +195,7 @@ def plan(
         warmup_frames=warmup,
         phase_s=phase,
         settle_s=settle,
-        frames=frames,
-        policy=policy,
+        frames_cap=frames_cap,
     )
 
 
@@ -233,9 +232,14 @@ def services(run_dir: Path) -> tuple[list[ServiceInfo], dict[str, dict[str, Any]
     }
     infos, mapping = [], {}
     for name, (kind, runs, shape, what) in kinds.items():
-        priority, deadline_s = RANKS[name]
-        infos.append(ServiceInfo(name, runs, kind, shape, priority, deadline_s))
-        mapping[name] = {**what, "priority": priority, "deadline_s": deadline_s}
+        priority, deadline_s, policy = RANKS[name]
+        infos.append(ServiceInfo(name, runs, kind, shape, priority, deadline_s, policy))
+        mapping[name] = {
+            **what,
+            "priority": priority,
+            "deadline_s": deadline_s,
+            "policy": {"kind": policy},
+        }
         if kind != "dense":  # the file's own dimensions are fixed
             mapping[name]["input_shape"] = list(shape)
     return infos, mapping
@@ -252,13 +256,13 @@ def fleet_spec(tf: TestbedFleet, settings: ServicesSettings) -> tuple[FleetSpec,
         services=mapping,
         deadline_s=max(i.deadline_s for i in infos),
         fps=settings.fps,
-        policy=settings.policy,
         # Each service's frame loop holds a session of its own, and each would listen on the
         # robot's one fixed port: port 0 lets each take a free one (gossip tells the peers).
         changes={
             "machines": {
                 ROBOT_ID: {"listen": [endpoint(tf.testbed.address(ROBOT_HOST), 0, tls=tf.tls)]}
-            }
+            },
+            **({"fidelity": {"codecs": list(CODECS)}} if CODECS else {}),
         },
     )
     return spec, infos
@@ -310,16 +314,17 @@ def run_once(
     turn: int,
 ) -> RunWindows:
     """One robot run in `mode`: warm-up, the uncontended phase, the change, the contended
-    phase until the first service has run its frames."""
+    phase; then the robot is stopped (SIGINT: the frames in flight are finished and reported)."""
     tf.shape_robot(settings.uplinks_mbit[UNCONTENDED])
     robot = tf.start_robot(
         None,
-        frames=settings.frames,
+        frames=settings.frames_cap,
         cpu_fraction=settings.robot_cpu,
         extra=["--decisions", mode],
         tag=f"{mode}-{turn + 1}",
     )
-    # The frame in flight when the quota came ran partly unthrottled: the warm-up counts after it.
+    # The services start streaming as each is ready, seconds apart: the warm-up waits for the
+    # last. The frame in flight when the quota came ran partly unthrottled: it counts after it.
     last = _last_frames(tf.follower.records(), infos)
     for info in infos:
         first = last[info.name] + 2
@@ -335,21 +340,18 @@ def run_once(
     _hold(robot, settings.phase_s)
     tf.shape_robot(settings.uplinks_mbit[CONTENDED])
     change = time.time()
-    records = tf.finish_robot(
-        RUN_SLACK_S + settings.frames * (max(i.deadline_s for i in infos) + 1)
-    )
-    ends = [
-        max((float(r["at"]) for r in records if r.get("service") == i.name), default=change)
-        for i in infos
-    ]
-    stop = min(ends)
-    if stop <= change + settings.settle_s:
+    _hold(robot, settings.settle_s + settings.phase_s)
+    stop = time.time()
+    stopped = robot.stop()
+    tf.cpu_robot(None)
+    if stopped.killed or stopped.returncode != 0:
         raise DaemonError(
-            f"{mode} run: a service ran its {settings.frames} frames before the contended phase "
-            "began; give more --frames"
+            f"{robot.name} did not stop cleanly (exit {stopped.returncode}, "
+            f"{'killed' if stopped.killed else 'not killed'}); log: {robot.log_path}"
         )
+    records = tf.follower.records()
     windows = {UNCONTENDED: (start, change), CONTENDED: (change + settings.settle_s, stop)}
-    run = RunWindows(mode, turn + 1, settings.frames, records, windows)
+    run = RunWindows(mode, turn + 1, records, windows)
     phases = ", ".join(f"{p} {len(_of(run, infos, p))} frames" for p in PHASES)
     tf.log(f"{mode}: {phases}")
     return run
@@ -374,7 +376,10 @@ def _hold(robot: NetnsDaemon, seconds: float) -> None:
     while (left := until - time.monotonic()) > 0:
         if robot.poll() is not None:
             robot.check_alive()
-            raise DaemonError(f"{robot.name} finished during a phase; log: {robot.log_path}")
+            raise DaemonError(
+                f"{robot.name} ran its {robot.args[robot.args.index('--frames') + 1]} frames "
+                f"before the phases ended; log: {robot.log_path}"
+            )
         time.sleep(min(HOLD_POLL_S, left))
 
 
@@ -382,7 +387,9 @@ def _hold(robot: NetnsDaemon, seconds: float) -> None:
 def markdown(result: ServicesResult) -> str:
     s = result.settings
     head = (
-        f"robot {s.robot_cpu:g} core, {s.fps:g} fps per service, policy {s.policy}, "
+        f"robot {s.robot_cpu:g} core, {s.fps:g} fps per service, policies "
+        + ", ".join(f"{i.name} {i.policy}" for i in s.services)
+        + ", "
         f"{s.rounds} round(s) of joint and independent runs alternated, phases of "
         f"{s.phase_s:g} s ({s.settle_s:g} s left out after the change)\n\n"
     )

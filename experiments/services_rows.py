@@ -10,8 +10,9 @@ and the goal's two ratios.
 
 A deadline miss is a frame applied later than its service's deadline (`latency_s` >
 `deadline_s`: the robot finished it itself past the deadline, or the answer came late). A frame
-is lost when the robot never reported it (of the frames 0..N-1 asked of each service); a lost
-frame counts in the phase its neighbours ran in.
+is lost when the robot never reported it (numbered below the last frame the service reported:
+a run ends with SIGINT, on which the robot finishes its frames in flight and starts no more);
+a lost frame counts in the phase its neighbours ran in.
 """
 
 from __future__ import annotations
@@ -59,6 +60,7 @@ class ServiceInfo:
     input_shape: tuple[int, int, int]
     priority: int
     deadline_s: float
+    policy: str
 
     def to_json(self) -> dict[str, Any]:
         out = asdict(self)
@@ -73,7 +75,6 @@ class RunWindows:
 
     mode: str
     round: int
-    frames: int
     records: list[Record]
     windows: Mapping[str, tuple[float, float]]
 
@@ -85,27 +86,27 @@ class RunWindows:
         ]
 
     def lost(self, service: str) -> dict[str, int]:
-        """The service's frames never reported, by phase: those numbered before its first
-        frame of the contended phase are the uncontended phase's."""
+        """The service's frames never reported, by phase (numbered below the last one it
+        reported: a run is stopped by a signal, after which the robot starts no frame): those
+        numbered before its first frame of the contended phase are the uncontended phase's."""
         mine = [r for r in self.records if r.get("service") == service]
         seen = {int(r["frame"]) for r in mine}
         change = self.windows[CONTENDED][0]
         later = [int(r["frame"]) for r in mine if started(r) >= change]
-        first_contended = min(later, default=self.frames)
-        missing = [f for f in range(self.frames) if f not in seen]
+        first_contended = min(later, default=max(seen, default=-1) + 1)
+        missing = [f for f in range(max(seen, default=-1) + 1) if f not in seen]
         return {
             UNCONTENDED: sum(1 for f in missing if f < first_contended),
             CONTENDED: sum(1 for f in missing if f >= first_contended),
         }
 
     def to_json(self) -> dict[str, Any]:
-        """{"mode", "round", "frames", "windows": {phase: [start, stop]} relative to the
-        uncontended phase's start, seconds}."""
+        """{"mode", "round", "windows_s": {phase: [start, stop]} in seconds from the
+        uncontended phase's start}."""
         origin = self.windows[UNCONTENDED][0]
         return {
             "mode": self.mode,
             "round": self.round,
-            "frames": self.frames,
             "windows_s": {
                 phase: [round(a - origin, 3), round(b - origin, 3)]
                 for phase, (a, b) in self.windows.items()

@@ -43,10 +43,9 @@ from typing import Any
 import cv2
 import numpy as np
 
+from common.handlers import HANDLER_INPUT
 from perception.tag_edges import refine_corners
 
-IMAGE = "image"
-"""The handler's one input (common.handlers.HANDLER_INPUT): uint8 1xHxWx3 RGB."""
 KNOWN_PARAMS = ("size_m", "fx", "fy", "cx", "cy")
 DICTIONARY = cv2.aruco.DICT_APRILTAG_36h11
 
@@ -98,17 +97,19 @@ def _number(params: Mapping[str, Any], name: str, positive: bool = False) -> flo
 
 def _gray(inputs: Mapping[str, np.ndarray]) -> np.ndarray:
     """The input image as uint8 HxW grey; ValueError when it is not uint8 1xHxWx3."""
-    image = inputs.get(IMAGE)
+    image = inputs.get(HANDLER_INPUT)
     if not isinstance(image, np.ndarray) or image.dtype != np.uint8 or image.ndim != 4:
         described = (
             f"{image.dtype} {list(image.shape)}"
             if isinstance(image, np.ndarray)
             else type(image).__name__
         )
-        raise ValueError(f"apriltag: input {IMAGE!r} must be uint8 1xHxWx3 RGB, got {described}")
+        raise ValueError(
+            f"apriltag: input {HANDLER_INPUT!r} must be uint8 1xHxWx3 RGB, got {described}"
+        )
     if image.shape[0] != 1 or image.shape[3] != 3:
         raise ValueError(
-            f"apriltag: input {IMAGE!r} must be uint8 1xHxWx3 RGB, got {list(image.shape)}"
+            f"apriltag: input {HANDLER_INPUT!r} must be uint8 1xHxWx3 RGB, got {list(image.shape)}"
         )
     return cv2.cvtColor(image[0], cv2.COLOR_RGB2GRAY)
 

@@ -23,6 +23,7 @@ import numpy as np
 from common.codec_profile import fidelity_of
 from common.config import FleetConfig
 from common.errors import UserError
+from common.heap import release_freed_memory
 from common.image_input import ImageInputs
 from common.partition.named_cuts import named_cuts
 from common.partition.runtime import SplitModel
@@ -193,6 +194,8 @@ class FirstFramesRefinement:
         """The policy on the codecs measured on the frames kept (None: stopped meanwhile)."""
         table: CodecTable | None = self.calibration.measure(self.frames, stop)
         self.frames = []
+        # The measurement's runs leave their freed tensors resident, as the start's do.
+        release_freed_memory(self.robot)
         if table is None:
             return None
         policy = self.build(with_codecs(self.profile, table))

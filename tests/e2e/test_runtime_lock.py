@@ -58,7 +58,7 @@ VENV_TIMEOUT_S = 120.0
 PIP_TIMEOUT_S = 900.0
 """The lock's files from the public index, no cache, on a slow link (the README measured the
 larger dev lock at about 2 minutes)."""
-# What pip prints when no package index answers (urllib3's connection errors, pip's failed
+# What pip prints when an index does not answer (urllib3's connection errors, pip's failed
 # fetch): the only failure of the install the test is skipped for.
 UNREACHABLE_INDEX = (
     "NewConnectionError",
@@ -113,17 +113,29 @@ def _run(argv: list[str], timeout_s: float) -> subprocess.CompletedProcess[str]:
     )
 
 
+def _text(data: str | bytes | None) -> str:
+    return data.decode(errors="replace") if isinstance(data, bytes) else data or ""
+
+
 def _pip(venv: RuntimeVenv, *args: str) -> None:
-    """`pip install ARGS` in `venv`: a skip when pip reports no index reachable, else a failure
-    with pip's output when it fails."""
-    done = _run([str(venv.python), "-m", "pip", "install", *args], PIP_TIMEOUT_S)
-    if done.returncode == 0:
-        return
-    output = done.stdout + done.stderr
+    """`pip install ARGS` in `venv` (one retry per file, so that a connection error is printed):
+    a skip when pip reports that no index answered, else a failure with pip's output when the
+    install fails or runs past PIP_TIMEOUT_S."""
+    argv = [str(venv.python), "-m", "pip", "install", "--retries", "1", *args]
+    try:
+        done = _run(argv, PIP_TIMEOUT_S)
+    except subprocess.TimeoutExpired as exc:
+        code, output = f"past {PIP_TIMEOUT_S:.0f} s", _text(exc.stdout) + _text(exc.stderr)
+        found_nothing = True  # still retrying its connections
+    else:
+        if done.returncode == 0:
+            return
+        code, output = str(done.returncode), done.stdout + done.stderr
+        found_nothing = "No matching distribution found" in output
     reasons = [marker for marker in UNREACHABLE_INDEX if marker in output]
-    if reasons and "No matching distribution found" in output:
+    if reasons and found_nothing:
         pytest.skip(f"pip reached no package index ({', '.join(reasons)}): {output[-400:]}")
-    pytest.fail(f"pip install {' '.join(args)} failed ({done.returncode}):\n{output[-4000:]}")
+    pytest.fail(f"pip install {' '.join(args)} failed ({code}):\n{output[-4000:]}")
 
 
 @pytest.fixture(scope="module")

@@ -9,7 +9,8 @@ its states and epochs per (service, robot), answers a probe or a ctl for the ser
 (an `unknown_service` error reply for one it does not serve) and declares each robot's service key
 of that service; the robots by `tests.helpers.registry.FakeRobot` (a token and its route key).
 
-What it shows: the `routes` view has a row per (robot, service) naming its service; every route
+What it shows: the `routes` view has a row per (robot, service) naming its service (and so do
+the CLI's JSON rows, its tables a service column, `--service` one service's); every route
 change, ctl request and probe names its service; a reroute moves the service it names only; the
 `deployments` view has a row per (deployment, service); losing edge-1 moves robot-1's `detect` to
 edge-2 and leaves both robots' `segment` with no route (each robot computes it itself); a
@@ -19,6 +20,7 @@ keeps serving.
 
 from __future__ import annotations
 
+import json
 import threading
 import time
 import uuid
@@ -29,8 +31,10 @@ from typing import Any
 import pytest
 import yaml
 import zenoh
+from typer.testing import CliRunner
 
 from common import keys
+from common.cli import app
 from common.config import FleetConfig, fleet_from_dict
 from common.keys import Role
 from common.models import file_digest
@@ -49,6 +53,7 @@ from common.wire.registry import (
     RerouteRequest,
     RouteChange,
 )
+from common.wire.telemetry import FallbackReason
 from tests.helpers import registry as reg
 from tests.helpers.registry import (
     BOUND_S,
@@ -247,6 +252,12 @@ class ServicesDeployment:
         self.session.close()
 
 
+def cli(*args: str) -> tuple[int, str, str]:
+    """`elasticfog ARGS` in-process (wide enough that no table cell wraps)."""
+    result = CliRunner().invoke(app, list(args), env={"COLUMNS": "200"})
+    return result.exit_code, result.stdout, result.stderr
+
+
 def routes_of(rows: tuple[Any, ...]) -> dict[tuple[str, str | None], str | None]:
     """(robot, service) -> deployment, from the routes view."""
     return {(r.robot, r.service): r.deployment for r in rows}
@@ -319,6 +330,21 @@ def test_routes_are_per_robot_and_service_and_fail_over_per_service(
     only = view(observer, cfg, "routes", service=SEGMENT)
     assert {r.service for r in only} == {SEGMENT} and len(only) == 2
     assert {e.service for e in view(observer, cfg, "events")} == {DETECT, SEGMENT}
+    # The CLI: JSON rows carry their service, the table a service column, --service filters.
+    connect = ["--connect", cfg.registry.endpoint, "--fleet", cfg.fleet]
+    code, out, err = cli("routes", *connect, "--json")
+    assert code == 0, err
+    assert {(r["robot"], r["service"]): r["deployment"] for r in json.loads(out)} == expected
+    code, out, err = cli("routes", *connect)
+    assert code == 0 and "service" in out and SEGMENT in out, (out, err)
+    code, out, err = cli("robots", *connect, "--service", DETECT, "--json")
+    assert code == 0, err
+    assert {(r["id"], r["service"]) for r in json.loads(out)} == {
+        ("robot-1", DETECT),
+        ("robot-2", DETECT),
+    }
+    code, _, err = cli("routes", *connect, "--service", "track")
+    assert code == 2 and "unknown service 'track'" in err, err
 
     # edge-1 dies: robot-1's `detect` moves to edge-2; `segment` has nowhere to go, so both
     # robots compute it themselves; robot-2's `detect` stays where it was.
@@ -383,7 +409,11 @@ def test_a_service_the_fleet_lacks_is_refused_by_name_and_the_registry_keeps_ser
 
     def reroute(service: str | None) -> Any:
         request = RerouteRequest(
-            robot="robot-1", deployment="edge-1", epoch=1, reason="timeout", service=service
+            robot="robot-1",
+            deployment="edge-1",
+            epoch=1,
+            reason=FallbackReason.TIMEOUT,
+            service=service,
         )
         return ask(session, keys.reg_reroute(cfg.fleet), request.to_wire())
 

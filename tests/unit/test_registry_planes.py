@@ -31,7 +31,7 @@ from common.wire.registry import (
     RerouteRequest,
     RibQuery,
 )
-from common.wire.telemetry import ProbeReport
+from common.wire.telemetry import FallbackReason, ProbeReport
 from registry.metrics import RegistryMetrics
 from registry.plane import Plane, build_plane, plane_db_path, plane_measurements
 from registry.planes import Planes
@@ -190,7 +190,11 @@ def test_a_reroute_for_a_service_the_fleet_lacks_is_refused_before_it_is_queued(
 
     def query(service: str | None) -> Any:
         request = RerouteRequest(
-            robot="robot-1", deployment="edge-1", epoch=1, reason="timeout", service=service
+            robot="robot-1",
+            deployment="edge-1",
+            epoch=1,
+            reason=FallbackReason.TIMEOUT,
+            service=service,
         )
         payload = request.to_wire()
         return type("Query", (), {"payload": type("P", (), {"to_bytes": lambda _: payload})()})()
