@@ -6,8 +6,9 @@ keyword arguments; it returns `{name: numpy array}`. It runs whole, on the robot
 a deployment (cut 0: the image crosses with any image codec), so the runtime treats it as a model
 whose only cut is 0: `HandlerModel` is a `SplitModel` over a one-node identity graph of the image
 (the cut, its tensor specs, the codecs and the profiles work unchanged), whose full run and suffix
-call the handler on the image. Its digest covers the handler's spec, its params and its module's
-source, so a robot and a deployment running different code are told apart like different models.
+call the handler on the image. Its digest covers the handler's spec, its params and the source of
+its module (and of the modules beside it in its package), so a robot and a deployment running
+different code are told apart like different models.
 
 A handler that raises or returns something other than a mapping of names to numeric arrays is a
 `HandlerError` naming the handler and the problem: the deployment answers a named error reply
@@ -21,7 +22,6 @@ from __future__ import annotations
 
 import hashlib
 import importlib
-import inspect
 import json
 import sys
 from collections.abc import Callable, Iterator, Mapping, Sequence
@@ -139,10 +139,25 @@ class Handler:
         """sha256 of the spec, the params and the handler's module source (where readable)."""
         h = hashlib.sha256(f"handler:{self.spec}".encode())
         h.update(json.dumps(self.params, sort_keys=True, default=str).encode())
-        # A builtin or a module without source: the spec and params alone.
-        with suppress(OSError, TypeError, KeyError, AttributeError):
-            h.update(inspect.getsource(sys.modules[self.fn.__module__]).encode())
+        for source in _sources(self.fn):
+            h.update(source)
         return h.hexdigest()
+
+
+def _sources(fn: Callable[..., Any]) -> list[bytes]:
+    """The source of `fn`'s module and, for a module of a package, of every module beside it
+    (a handler's helpers change what it computes too); none for a builtin."""
+    module = sys.modules.get(getattr(fn, "__module__", "") or "")
+    path = getattr(module, "__file__", None)
+    if module is None or path is None:
+        return []
+    here = Path(path)
+    files = sorted(here.parent.glob("*.py")) if getattr(module, "__package__", "") else [here]
+    out = []
+    for file in files:
+        with suppress(OSError):
+            out.append(file.name.encode() + b"\0" + file.read_bytes())
+    return out
 
 
 def _describe(outputs: Mapping[str, str]) -> str:

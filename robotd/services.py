@@ -9,8 +9,10 @@ view of that service (`FleetConfig.for_service`: its model or handler, policy, d
 results), in a thread: its session, registration, route, anycast key, policy and frame loop are
 the service's, while the capture, the emulated uplink (`--uplink-mbit`: one token bucket for
 all), the telemetry file (each line names its service) and the robot's liveliness token (the
-first service announces it) are shared. A service that no deployment serves runs on the robot
-(policy `robot`, with a warning). With a ROS 2 results prefix, each service publishes under
+first service announces it) are shared; `--record PATH` records each service apart
+(`NAME.<service>.mcap`), the metrics endpoint is the first service's. A service that no deployment
+serves runs on the robot (policy `robot`, with a warning). With a ROS 2 results prefix, each service
+publishes under
 `<prefix>/<service>`.
 
 The services' decisions share the robot's uplink and CPU (`robotd.shared_budget`).
@@ -24,6 +26,7 @@ from __future__ import annotations
 import logging
 import threading
 from dataclasses import replace
+from pathlib import Path
 from typing import Any
 
 from common.config import FleetConfig
@@ -36,6 +39,7 @@ from common.session import open_session
 from common.source_spec import StereoManeuverSpec, StereoPairSpec, StereoWorldSpec, parse_source
 from robotd.daemon import RobotDaemon, RobotOptions
 from robotd.frame_path.pacing import TokenBucket
+from robotd.results.recorder import MCAP_SUFFIX
 from robotd.shared_budget import SharedBudget
 from robotd.sources.capture import Capture
 from robotd.sources.frame_sources import SourceSession
@@ -159,6 +163,7 @@ class RobotServices(Daemon):
                 results_ros2=self._ros2_prefix(name, view),
                 telemetry=None,
                 metrics_port=options.metrics_port if i == 0 else None,
+                record=None if options.record is None else service_recording(options.record, name),
             )
             if not view.deployment_ids:
                 log.warning(
@@ -228,6 +233,15 @@ class RobotServices(Daemon):
         for daemon in self.daemons.values():
             daemon.exit_if_abandoned(code)
         super().exit_if_abandoned(code)
+
+
+def service_recording(path: Path, service: str) -> Path:
+    """Where `--record PATH` records service `service` of a robot using several: one recording
+    (its own topic set) per service, `NAME.<service>.mcap` beside `NAME.mcap` (or
+    `PATH.<service>` for a folder)."""
+    if path.suffix == MCAP_SUFFIX:
+        return path.with_name(f"{path.stem}.{service}{path.suffix}")
+    return path.with_name(f"{path.name}.{service}")
 
 
 def _image_size(view: FleetConfig) -> tuple[int, int]:

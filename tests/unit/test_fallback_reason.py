@@ -42,6 +42,7 @@ def fields(**overrides: Any) -> dict[str, Any]:
         "stale": False,
         "dropped_stale": 0,
         "resends": 0,
+        "service": None,
     }
     return {**base, **overrides}
 

@@ -269,6 +269,9 @@ SAMPLES: list[Message] = [
             "right": ImageIn(encoding=ImageEncoding.JPEG, data=b"\xff\xd8 not checked here"),
         },
     ),
+    # A fleet with several services: messages name the service they concern.
+    ProbeRequest(sender="robot-1", sent_at=2.0, service="segment"),
+    CtlRequest(op=CtlOp.STANDBY, robot="robot-1", epoch=5, sender="registry", service="tags"),
 ]
 
 
@@ -601,3 +604,14 @@ def test_to_jsonable_summarises_tensors_and_bytes() -> None:
     probe = to_jsonable(SAMPLES[6])
     assert probe["padding"] == {"bytes": 512}
     assert to_jsonable(SAMPLES[7])["states"] == {"robot-1": "standby", "robot-2": "service"}
+
+
+@pytest.mark.parametrize("cls", [RouteChange, CtlRequest, ProbeRequest, TelemetryRecord])
+def test_a_service_that_is_no_key_chunk_is_refused_by_name(cls: type[Message]) -> None:
+    """The messages that name a service (several per fleet) check it as the id it is in the
+    service key `svc/<service>/<robot>/infer`."""
+    sample = next(m for m in SAMPLES if type(m) is cls)
+    with pytest.raises(WireError, match="service"):
+        decode(
+            encode_raw({"v": SCHEMA_VERSION, "t": cls.TYPE, **sample.to_map(), "service": "a/b"})
+        )
