@@ -7,11 +7,13 @@
    the camera's and the planner's): the `ros2:` source (`robotd.sources.ros2`: take the newest
    message, CDR -> BGR), the model's input made from the frame (`common.image_input`: resize
    to the model's input, layout), and the results sink (`robotd.results.ros2`: outputs ->
-   Float32MultiArray, a 32FC1 Image for an H×W output, rmw_zenoh attachment, put) up to the
-   subscriber's callback. The model is not run: its outputs (of the model's shapes) are given, so
-   what is measured is the path alone. Frames go one at a time (the next once the result came),
-   so no frame waits behind another. Two output sets: a classifier's (1×1000) and a dense map
-   (1×1×480×640, as a stereo model's disparity: Float32MultiArray and 32FC1 Image, 1.2 MB each).
+   Float32MultiArray, a 32FC1 Image for an H×W output, a Classification for a 1×N one, the
+   TensorList of all, the model view's CameraInfo, each with rmw_zenoh's attachment, put) up to
+   the subscriber's callback of the last of them (the CameraInfo). The model is not run: its
+   outputs (of the model's shapes) are given, so what is measured is the path alone. Frames go
+   one at a time (the next once the result came), so no frame waits behind another. Two output
+   sets: a classifier's (1×1000) and a dense map (1×1×480×640, as a stereo model's disparity:
+   Float32MultiArray, 32FC1 Image and TensorList, 1.2 MB each).
 2. Memory: the resident set size of a real `elasticfog robot` subprocess (same model, same
    policy, `--policy robot` so no cloud is needed) once it has served a few frames, fed by the
    `photo` source, and fed by `ros2:` with `results: {ros2: ...}` (this script publishes the
@@ -57,7 +59,7 @@ from common.source_spec import parse_ros2_source
 from deploy.local_fleet import LocalFleet, write_local_fleet
 from deploy.procs import free_tcp_port
 from robotd.frame_path.frame import FrameResult
-from robotd.results.ros2 import Ros2ResultSink, results_topic
+from robotd.results.ros2 import CAMERA_INFO_TOPIC, Ros2ResultSink
 from robotd.sources.frame_sources import SourceSession
 from robotd.sources.ros2 import Ros2Source
 
@@ -121,8 +123,7 @@ def measure_overhead(frames: int, outputs: dict[str, np.ndarray], workdir: Path)
     robot, camera, planner = (_session(endpoint) for _ in range(3))
     done = threading.Event()
     received: dict[str, float] = {}
-    last = next(iter(outputs))
-    array_type = rmw_zenoh.TopicType.of(MessageType.FLOAT32_MULTI_ARRAY.value, typestore())
+    info_type = rmw_zenoh.TopicType.of(MessageType.CAMERA_INFO.value, typestore())
 
     def on_result(sample: zenoh.Sample) -> None:
         received["at"] = time.perf_counter()
@@ -135,8 +136,9 @@ def measure_overhead(frames: int, outputs: dict[str, np.ndarray], workdir: Path)
             height=MODEL_SHAPE[1],
             width=MODEL_SHAPE[2],
         )
-        sink = Ros2ResultSink(robot, 0, "r", PREFIX)
-        key = rmw_zenoh.topic_key(0, results_topic(PREFIX, last), array_type)
+        sink = Ros2ResultSink(cfg, "r", robot, PREFIX, height=MODEL_SHAPE[1], width=MODEL_SHAPE[2])
+        # The model view's CameraInfo is the last message a frame's results publish.
+        key = rmw_zenoh.topic_key(0, f"{PREFIX}/{CAMERA_INFO_TOPIC}", info_type)
         sub = planner.declare_subscriber(key, on_result)
         image_key = rmw_zenoh.topic_key(0, CAMERA, rmw_zenoh.TopicType.of("sensor_msgs/msg/Image"))
         pub = camera.declare_publisher(image_key)

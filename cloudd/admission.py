@@ -7,10 +7,12 @@ over the deployment's limit (`cloudd.limits`) is answered `too_large`; a drop (f
 holds it; one whose body names another robot than its key (`wrong_robot`) or that does not fit
 this model (`cloudd.validate.check_request`) is answered with what is wrong; one that reaches a
 deployment no longer serving its robot (it crossed a switch) is answered NOT_SERVING and the
-robot finishes the frame itself; the rest is offered to the queue, which admits it or refuses it
-at once (answered "busy": every slot taken, or the robot at its in-flight limit). Every refusal
-but NOT_SERVING is counted by reason (`cloudd.refusals`); bad input is one throttled WARNING
-line, never a traceback.
+robot finishes the frame itself; a video frame (`h264`) is decoded here, in its stream's order,
+by the robot's decoder (`cloudd.video_streams`: `need_keyframe` for a P-frame it cannot decode,
+the codec's error for a corrupt one); the rest is offered to the queue, which admits it or
+refuses it at once (answered "busy": every slot taken, or the robot at its in-flight limit).
+Every refusal but NOT_SERVING is counted by reason (`cloudd.refusals`); bad input is one
+throttled WARNING line, never a traceback.
 """
 
 from __future__ import annotations
@@ -20,16 +22,24 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+import numpy as np
 import zenoh
 
 from cloudd.batch_queue import FairQueue, Pending, Refusal
 from cloudd.faults import FaultInjector
 from cloudd.limits import CloudLimits
 from cloudd.metrics import RequestOutcome, ServiceMetrics
-from cloudd.refusals import RefusalReason, Refusals, check_refusal, decode_refusal
+from cloudd.refusals import (
+    RefusalReason,
+    Refusals,
+    check_refusal,
+    decode_refusal,
+    video_refusal,
+)
 from cloudd.replies import Replier, query_payload
 from cloudd.robot_book import RobotBook
 from cloudd.validate import check_request
+from cloudd.video_streams import VideoDecoders
 from common.partition import TensorSpec
 from common.throttled_log import ThrottledLog
 from common.wire import ErrorCode, ErrorReply, WireError, error_reply
@@ -53,6 +63,8 @@ class Job:
     key: str
     query: zenoh.Query
     request: InferRequest
+    decoded: dict[str, np.ndarray] | None = None
+    """Its video tensors, decoded at admission (`cloudd.video_streams`)."""
 
 
 class Admission:
@@ -72,9 +84,11 @@ class Admission:
         refusals: Refusals,
         throttled: ThrottledLog,
         metrics: ServiceMetrics | None = None,
+        video: VideoDecoders | None = None,
         who: str = "",
     ) -> None:
         self.deployment = deployment
+        self._video = video if video is not None else VideoDecoders()
         self._who = who or deployment  # the log's name: with the service when several
         self._digest = digest
         self._cut_specs = cut_specs
@@ -129,12 +143,20 @@ class Admission:
             self._outcome(robot, RequestOutcome.NOT_SERVING)
             self._replies.send(query, key, reply.to_wire(), delay_s)
             return
+        decoded = None
+        if request.video is not None:
+            try:
+                decoded = self._video.decode(robot, request, self._cut_specs[request.cut])
+            except WireError as exc:
+                reason = video_refusal(exc)
+                self._refuse(query, robot, key, request, ErrorReply.of(exc), reason, delay_s)
+                return
         item = Pending(
             robot=robot,
             group=request.cut,
             arrived=arrived,
             deadline_at=arrived + request.deadline_s,
-            payload=Job(key, query, request),
+            payload=Job(key, query, request, decoded),
         )
         refusal = self._queue.offer(item)
         if refusal is not None:

@@ -105,7 +105,8 @@ class BatchRunner:
             request = item.payload.request
             try:
                 # Decoding runs here, on a worker, not on Zenoh's callback thread.
-                ready.append((item, decode_tensors(request, self._cut_specs[request.cut])))
+                specs = self._cut_specs[request.cut]
+                ready.append((item, decode_tensors(request, specs, item.payload.decoded)))
             except WireError as exc:
                 self._throttled.warning(
                     "%s: frame %d of %s: %s", self._who, request.frame, item.robot, exc.reason

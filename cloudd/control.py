@@ -85,6 +85,7 @@ class Controller:
         declare_service: Callable[[str], None],
         refusals: Refusals,
         set_in_flight: Callable[[str, int], int | None] = lambda robot, announced: None,
+        left_service: Callable[[str], None] = lambda robot: None,
         who: str = "",
     ) -> None:
         self.deployment = deployment
@@ -95,6 +96,8 @@ class Controller:
         self._declare_service = declare_service
         self._refusals = refusals
         self._set_in_flight = set_in_flight
+        # What the plane frees of a robot that left service here (its video stream).
+        self._left_service = left_service
         # Robots whose announced frames in flight exceed the cap: counted and logged once each.
         self._over_cap: set[str] = set()
         self._over_cap_lock = threading.Lock()
@@ -179,6 +182,8 @@ class Controller:
                 )
         if decision.undeclare is not None:
             decision.undeclare.undeclare()  # before the ack: the registry relies on it being gone
+        if verdict.ok and not verdict.after.serving:
+            self._left_service(robot)
         if verdict.ok:
             log.info(
                 "%s: %s %s at epoch %d%s",

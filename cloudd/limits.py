@@ -7,7 +7,9 @@ Resolved once from the fleet file (`machines.<id>.limits`, `CloudLimitsConfig`):
 - declared tensor size (`max_tensor_bytes`): a tensor whose dtype and shape declare more decoded
   bytes is refused before anything is decoded (`too_large`), whatever its codec compressed it to;
 - probe echo (`max_echo_bytes`): a probe asking for a bigger echo is refused (`too_large`), so a
-  few dozen bytes cannot make the deployment send back megabytes.
+  few dozen bytes cannot make the deployment send back megabytes;
+- video decoders (`max_video_streams`, `video_idle_s`): how many robots' h264 streams a service
+  plane decodes at once, and how long an unused one is kept (`cloudd.video_streams`).
 
 The in-flight limit per robot belongs to the queue (`batching.max_in_flight_per_robot`,
 `cloudd.batch_queue`), which answers `busy`. Every check returns the error reply or None and
@@ -22,7 +24,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from common.config import FleetConfig, MachineConfig
+from common.config import (
+    DEFAULT_MAX_VIDEO_STREAMS,
+    DEFAULT_VIDEO_IDLE_S,
+    FleetConfig,
+    MachineConfig,
+)
 from common.partition import TensorSpec
 from common.wire import ErrorCode, ErrorReply
 from common.wire.registry import ProbeRequest
@@ -36,6 +43,8 @@ class CloudLimits:
     request_bytes: int
     tensor_bytes: int
     echo_bytes: int
+    video_streams: int = DEFAULT_MAX_VIDEO_STREAMS
+    video_idle_s: float = DEFAULT_VIDEO_IDLE_S
 
     @classmethod
     def of(cls, cfg: FleetConfig, machine: MachineConfig) -> CloudLimits:
@@ -46,6 +55,8 @@ class CloudLimits:
             request_bytes=cfg.max_payload_bytes if request_bytes is None else request_bytes,
             tensor_bytes=limits.max_tensor_bytes,
             echo_bytes=limits.max_echo_bytes,
+            video_streams=limits.max_video_streams,
+            video_idle_s=limits.video_idle_s,
         )
 
     def describe(self) -> str:

@@ -41,6 +41,7 @@ from cloudd.robot_book import RobotBook
 from cloudd.service_keys import Guard, ServiceKeys
 from cloudd.state import RobotServiceState
 from cloudd.suffixes import open_split_model, warm_suffixes
+from cloudd.video_streams import VideoDecoders
 from cloudd.workers import BatchWorkers
 from common.config import FleetConfig, MachineConfig
 from common.errors import UserError
@@ -109,7 +110,12 @@ class ServicePlane:
             declare_service=self._declare_service,
             refusals=parts.refusals,
             set_in_flight=self._set_in_flight,
+            left_service=self.video.forget,
             who=who,
+        )
+        # The robots' h264 streams (decoded at admission; freed when a robot leaves service).
+        self.video = VideoDecoders(
+            max_streams=parts.limits.video_streams, idle_s=parts.limits.video_idle_s
         )
         self._costs = BatchCosts()
         self.batch_stats = BatchStats()
@@ -277,6 +283,7 @@ class ServicePlane:
             refusals=parts.refusals,
             throttled=parts.throttled,
             metrics=metrics,
+            video=self.video,
             who=self.who,
         )
         runner = BatchRunner(

@@ -32,6 +32,8 @@ class RefusalReason(str, enum.Enum):
     QUEUE_FULL = "queue_full"  # busy: every worker and queue slot taken
     STOPPING = "stopping"  # busy: the deployment is shutting down
     BAD_REQUEST = "bad_request"  # any other request that does not decode or fit the model
+    # A video P-frame this deployment's decoder cannot decode (`cloudd.video_streams`).
+    NEED_KEYFRAME = "need_keyframe"
     # A probe or ctl naming a service this deployment does not serve (or the fleet lacks).
     UNKNOWN_SERVICE = "unknown_service"
 
@@ -46,6 +48,13 @@ def decode_refusal(error: WireError) -> RefusalReason:
     if isinstance(error, PayloadTooLarge):
         return RefusalReason.REQUEST_TOO_LARGE
     return RefusalReason.BAD_REQUEST
+
+
+def video_refusal(error: WireError) -> RefusalReason:
+    """The reason to count for a video frame the stream's decoder refused."""
+    if error.code is ErrorCode.NEED_KEYFRAME:
+        return RefusalReason.NEED_KEYFRAME
+    return decode_refusal(error)
 
 
 def check_refusal(reply: ErrorReply) -> RefusalReason:

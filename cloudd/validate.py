@@ -7,12 +7,13 @@ service key; this makes the body agree with the key: `wrong_robot`), the model d
 index, and the cut's tensors by name and declared dtype and shape (`SplitModel.cut_tensor_specs`).
 Each problem is an `ErrorReply` with a code and a one-line reason the robot can log; nothing here
 raises. The tensors' codecs are decoded later, on a worker (`decode_tensors`), into exactly
-those sizes.
+those sizes; a video codec's tensors were decoded at admission, in their stream's order
+(`cloudd.video_streams`), and are passed in.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 
@@ -32,11 +33,19 @@ def _shape(shape: Sequence[int]) -> str:
     return "[" + ", ".join(str(d) for d in shape) + "]"
 
 
-def decode_tensors(request: InferRequest, specs: Sequence[TensorSpec]) -> dict[str, np.ndarray]:
+def decode_tensors(
+    request: InferRequest,
+    specs: Sequence[TensorSpec],
+    decoded: Mapping[str, np.ndarray] | None = None,
+) -> dict[str, np.ndarray]:
     """The request's tensors decoded from their codecs (after `check_request` passed): each
-    into at most its spec's bytes. Raises the codec's WireError, which names the problem."""
+    into at most its spec's bytes, those in `decoded` (video, decoded at admission) as they
+    are. Raises the codec's WireError, which names the problem."""
+    done = decoded or {}
     return {
-        spec.name: decode_encoded(request.tensors[spec.name], max_bytes=spec.nbytes, name=spec.name)
+        spec.name: done[spec.name]
+        if spec.name in done
+        else decode_encoded(request.tensors[spec.name], max_bytes=spec.nbytes, name=spec.name)
         for spec in specs
     }
 

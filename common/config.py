@@ -58,7 +58,7 @@ from common.providers import (
     check_list,
     parse_provider,
 )
-from common.source_spec import SourceError, parse_source
+from common.source_spec import Ros2Spec, SourceError, SourceSpec, parse_source
 from common.wire.codec import DEFAULT_MAX_PAYLOAD_BYTES
 from common.wire.registry import DeploymentState
 from common.yaml_files import format_validation_error, read_yaml
@@ -356,6 +356,10 @@ DEFAULT_MAX_TENSOR_BYTES = DEFAULT_MAX_PAYLOAD_BYTES
 """A tensor bigger than this could not travel raw within the default payload limit."""
 DEFAULT_MAX_ECHO_BYTES = 64 * 1024
 """Robots ask for 4 KiB of probe echo and the registry for none: more is a probe misused."""
+DEFAULT_MAX_VIDEO_STREAMS = 64
+"""h264 decoders kept per service plane: ~130 MB at 640x480, more robots than a plane serves."""
+DEFAULT_VIDEO_IDLE_S = 30.0
+"""An h264 stream unused this long is freed: its robot went elsewhere or stopped."""
 
 
 class CloudLimitsConfig(_Model):
@@ -380,6 +384,18 @@ class CloudLimitsConfig(_Model):
         ge=1,
         description="Largest echo a probe may ask for, bytes: a probe cannot make this "
         "deployment send back more.",
+    )
+    max_video_streams: int = Field(
+        default=DEFAULT_MAX_VIDEO_STREAMS,
+        ge=1,
+        description="Robots whose h264 streams each service keeps decoders for at once (about "
+        "2 MB each at 640x480); a new robot's keyframe frees the stream idle longest.",
+    )
+    video_idle_s: float = Field(
+        default=DEFAULT_VIDEO_IDLE_S,
+        gt=0,
+        description="A robot's h264 stream unused this long is freed, s (its next frame is "
+        "then refused need_keyframe and resent as a keyframe).",
     )
 
 
@@ -417,11 +433,17 @@ class ResultsConfig(_Model):
 
 # Fields that only mean something for one role: setting them on the other is an error.
 _CLOUD_ONLY = frozenset({"workers", "queue", "fault", "batching", "limits", "gpu_serving"})
-_ROBOT_ONLY = frozenset({"source", "fps", "uplink_mbit", "max_in_flight", "results"})
+_ROBOT_ONLY = frozenset({"source", "fps", "uplink_mbit", "max_in_flight", "results", "ros2"})
+
+
+def _check_namespace(value: str) -> str:
+    """A node namespace: `/` or a fully qualified ROS 2 name (`common.rmw_zenoh.namespace`)."""
+    return rmw_zenoh.namespace(value)
 
 
 class Ros2Config(_Model):
-    """How the fleet's daemons take part in ROS 2 (rmw_zenoh's key space, docs/ros2.md)."""
+    """How the fleet's daemons take part in ROS 2 (rmw_zenoh's key space, docs/ros2.md). Set
+    fleet-wide (`ros2:`) or per machine (`machines.<id>.ros2:`, whose keys win)."""
 
     domain_id: int | None = Field(
         default=None,
@@ -430,10 +452,33 @@ class Ros2Config(_Model):
         description="ROS 2 domain id of the ros2: sources and results topics; null: the "
         "ROS_DOMAIN_ID environment variable, else 0.",
     )
+    endpoint: Endpoint | None = Field(
+        default=None,
+        description="The ROS 2 graph's Zenoh router (the robot host's rmw_zenohd, e.g. "
+        "tcp/127.0.0.1:7447): the robot's ROS 2 traffic (subscriptions, publications, "
+        "liveliness tokens) goes through a session of its own connected there, without the "
+        "fleet's TLS or access control, and no fleet key reaches it. null: ROS 2 on the fleet's "
+        "session (one router for both, on one host).",
+    )
+    qos_depth: int = Field(
+        default=rmw_zenoh.DEFAULT_QOS.depth,
+        ge=1,
+        le=rmw_zenoh.MAX_QOS_DEPTH,
+        description="History depth (keep last N) of the results publishers.",
+    )
+    namespace: Annotated[str, AfterValidator(_check_namespace)] = Field(
+        default=rmw_zenoh.ROOT_NAMESPACE,
+        description="Namespace of the robot's ROS 2 node (e.g. /robot1: the node is "
+        "/robot1/elasticfog_<robot>); topics are written fully qualified and stay as written.",
+    )
 
     def domain(self) -> int:
         """The domain id in force (the config's, else ROS_DOMAIN_ID's, else 0)."""
         return rmw_zenoh.domain_id(self.domain_id)
+
+    def over(self, base: Ros2Config) -> Ros2Config:
+        """These settings over `base`: the keys this section sets win."""
+        return base.model_copy(update={k: getattr(self, k) for k in self.model_fields_set})
 
 
 class MachineConfig(_Model):
@@ -546,6 +591,11 @@ class MachineConfig(_Model):
         default=None,
         description="The services this machine serves (a cloud) or uses (a robot), by name; "
         "null: every service of the fleet.",
+    )
+    ros2: Ros2Config | None = Field(
+        default=None,
+        description="Robot: its ROS 2 settings over the fleet's ros2 section (e.g. the endpoint "
+        "of this robot's own rmw_zenohd); null: the fleet's.",
     )
 
     @property
@@ -980,7 +1030,9 @@ class FleetConfig(_Model):
     )
     zenoh: ZenohConfig = Field(default_factory=ZenohConfig, description="Zenoh settings.")
     ros2: Ros2Config = Field(
-        default_factory=Ros2Config, description="ROS 2 (rmw_zenoh) domain of ros2: topics."
+        default_factory=Ros2Config,
+        description="ROS 2 (rmw_zenoh): the domain of ros2: topics, the ROS 2 graph's router, "
+        "the results' QoS depth and the node's namespace (a robot's own ros2 section wins).",
     )
     cli: CliConfig = Field(
         default_factory=CliConfig, description="How the views CLI connects (its certificate)."
@@ -992,6 +1044,8 @@ class FleetConfig(_Model):
     )
 
     _source: Path | None = PrivateAttr(default=None)
+    # A service's view (`for_service`): the fleet's deployments that do not serve the service.
+    _not_serving: frozenset[str] = PrivateAttr(default=frozenset())
 
     @model_validator(mode="after")
     def _cross_checks(self, info: ValidationInfo) -> FleetConfig:
@@ -1009,6 +1063,7 @@ class FleetConfig(_Model):
         self._check_machine_services()
         self._check_initial_policy()
         self._check_tls()
+        self._check_ros2_sessions()
         self._resolve_paths(_base_dir(info))
         return self
 
@@ -1032,6 +1087,36 @@ class FleetConfig(_Model):
                 f"mutual TLS is on but {', '.join(missing)} has no cert/key (or set "
                 "zenoh.tls.mtls: false)"
             )
+
+    def _check_ros2_sessions(self) -> None:
+        """Under access control a robot's session may touch only the fleet's keys: its ROS 2
+        traffic needs a session of its own (`ros2.endpoint`), or it would be refused unseen."""
+        for machine_id in self.robot_ids:
+            try:
+                check_ros2_session(self, machine_id, self.machines[machine_id].source)
+            except UserError as exc:
+                raise ValueError(str(exc)) from None
+
+    def ros2_for(self, machine_id: str | None) -> Ros2Config:
+        """The ROS 2 settings of `machine_id`: its own `ros2` section over the fleet's."""
+        machine = self.machines.get(machine_id) if machine_id is not None else None
+        if machine is None or machine.ros2 is None:
+            return self.ros2
+        return machine.ros2.over(self.ros2)
+
+    def uses_ros2(self, machine_id: str, source: str | SourceSpec | None = None) -> bool:
+        """Whether robot `machine_id` takes part in ROS 2: a `ros2:` source (`source`, else its
+        machine's) or results published on ROS 2 (its own or a service's)."""
+        machine = self.machines[machine_id]
+        if isinstance(parse_source(source or machine.source), Ros2Spec):
+            return True
+        if machine.results.ros2 is not None:
+            return True
+        return any(
+            svc.results is not None and svc.results.ros2 is not None
+            for name, svc in self.services.items()
+            if name in self.services_of(machine_id)
+        )
 
     def _tls_owners(self) -> list[tuple[str, TlsConfig]]:
         """Each daemon host's merged TLS settings, named by where they are written."""
@@ -1254,7 +1339,14 @@ class FleetConfig(_Model):
             }
         )
         view._source = self._source
+        view._not_serving = frozenset(self.deployment_ids) - frozenset(self.deployments_of(name))
         return view
+
+    @property
+    def not_serving(self) -> frozenset[str]:
+        """A service's view: the fleet's deployments that do not serve it (a robot does not
+        probe them for it); empty for a whole fleet."""
+        return self._not_serving
 
     def short_of_in_flight(self, in_flight: int) -> dict[str, int]:
         """The deployments that admit fewer of one robot's requests at once than a robot with
@@ -1389,3 +1481,25 @@ def fleet_from_dict(data: Any, *, source: str | Path | None = None) -> FleetConf
         raise UserError(f"{name}: {format_validation_error(exc, FleetConfig)}") from None
     config._source = Path(source) if source is not None else None
     return config
+
+
+def check_ros2_session(
+    cfg: FleetConfig,
+    robot: str,
+    source: str | SourceSpec | None = None,
+    results_ros2: str | None = None,
+) -> None:
+    """A UserError when robot `robot` would take part in ROS 2 (a `ros2:` source, `source` or
+    its machine's; ROS 2 results, `results_ros2` or the file's) on a fleet session under access
+    control: that session may touch only `ef/<fleet>/**`, so every camera frame and result would
+    be refused without a word. Such a robot needs `ros2.endpoint`, a session of its own."""
+    if not cfg.access_control or cfg.ros2_for(robot).endpoint is not None:
+        return
+    if results_ros2 is None and not cfg.uses_ros2(robot, source):
+        return
+    raise UserError(
+        f"robot {robot} takes part in ROS 2 but the fleet's sessions are under access control "
+        "(zenoh.access_control: only the fleet's keys pass): set ros2.endpoint (fleet-wide or "
+        f"in machines.{robot}.ros2) to the ROS 2 graph's router, e.g. tcp/127.0.0.1:7447 (the "
+        "robot host's rmw_zenohd); the robot then speaks ROS 2 on a session of its own"
+    )

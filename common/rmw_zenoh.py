@@ -51,6 +51,8 @@ _ATTACHMENT = struct.Struct("<qqB")
 ATTACHMENT_BYTES = _ATTACHMENT.size + GID_BYTES
 # The namespace and enclave of a node that has none: rcl's "/" (mangled to "%").
 ROOT_NAMESPACE = "/"
+# The deepest keep-last history a publisher may announce (a bound on what a file may ask).
+MAX_QOS_DEPTH = 10_000
 
 # A ROS 2 name token: a letter or underscore, then letters, digits, underscores.
 _TOKEN = r"[A-Za-z_][A-Za-z0-9_]*"
@@ -163,11 +165,41 @@ def is_within(topic: str, prefix: str) -> bool:
     return topic == prefix or topic.startswith(prefix.rstrip("/") + "/")
 
 
+CAMERA_INFO = "camera_info"
+COMPRESSED_SUFFIX = "/compressed"
+
+
+def camera_info_topic(image_topic: str) -> str:
+    """The CameraInfo topic of a camera image topic, as image_transport names it: a sibling of
+    the base image topic (`/camera/image_raw` and `/camera/image_raw/compressed` ->
+    `/camera/camera_info`)."""
+    topic = topic_name(image_topic)
+    if topic.endswith(COMPRESSED_SUFFIX):
+        topic = topic[: -len(COMPRESSED_SUFFIX)]
+    parent = topic.rsplit("/", 1)[0]
+    return f"{parent}/{CAMERA_INFO}"
+
+
 def name_token(name: str) -> str:
     """`name` (e.g. an ONNX output's, `output.1`) as one ROS 2 name token: every character other
     than letters, digits and '_' becomes '_', and a leading digit gets a '_' before it."""
     token = re.sub(r"[^A-Za-z0-9_]", "_", name) or "_"
     return "_" + token if token[0].isdigit() else token
+
+
+def namespace(name: str) -> str:
+    """`name` as a node namespace: `/`, or a fully qualified ROS 2 name without a trailing '/'
+    (`robot1` is `/robot1`); Ros2NameError otherwise."""
+    text = name.strip()
+    if text in ("", ROOT_NAMESPACE):
+        return ROOT_NAMESPACE
+    try:
+        return topic_name(text.rstrip("/"))
+    except Ros2NameError:
+        raise Ros2NameError(
+            f"{name!r} is not a ROS 2 namespace: '/' or tokens of letters, digits and '_' "
+            "separated by single '/', e.g. /robot1"
+        ) from None
 
 
 def node_name(name: str) -> str:

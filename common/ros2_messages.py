@@ -35,7 +35,7 @@ import enum
 import functools
 import math
 import struct
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any, ClassVar
 
 import cv2
@@ -84,10 +84,49 @@ class MessageType(str, enum.Enum):
     COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
     FLOAT32_MULTI_ARRAY = "std_msgs/msg/Float32MultiArray"
     TWIST = "geometry_msgs/msg/Twist"
+    TWIST_STAMPED = "geometry_msgs/msg/TwistStamped"
+    CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
+    TENSOR_LIST = "isaac_ros_tensor_list_interfaces/msg/TensorList"
+    CLASSIFICATION = "vision_msgs/msg/Classification"
 
 
 # The message types a frame is read from.
 FRAME_TYPES = (MessageType.IMAGE, MessageType.COMPRESSED_IMAGE)
+
+# Types that are not in ROS 2 Jazzy's core, registered in the type store from their definitions
+# (the fields of each upstream .msg, comments left out: they do not enter the RIHS01 hash):
+# vision_msgs 4.1.1 (ros-perception/vision_msgs, Jazzy) and Isaac ROS's tensor list
+# (NVIDIA-ISAAC-ROS/isaac_ros_common, isaac_ros_tensor_list_interfaces 4.4.0).
+EXTRA_DEFINITIONS: dict[str, str] = {
+    "vision_msgs/msg/ObjectHypothesis": "string class_id\nfloat64 score\n",
+    "vision_msgs/msg/Classification": "std_msgs/Header header\nObjectHypothesis[] results\n",
+    "isaac_ros_tensor_list_interfaces/msg/TensorShape": "uint8 rank\nuint32[] dims\n",
+    "isaac_ros_tensor_list_interfaces/msg/Tensor": (
+        "string name\nTensorShape shape\nint32 data_type\nuint64[] strides\nuint8[] data\n"
+    ),
+    "isaac_ros_tensor_list_interfaces/msg/TensorList": (
+        "std_msgs/Header header\nTensor[] tensors\n"
+    ),
+}
+
+# Isaac ROS's tensor data types (isaac_ros_tensor_list_interfaces/msg/Tensor.msg's comment): the
+# numpy dtype of each code. A float16 or bool output is written as float32 or uint8.
+TENSOR_DATA_TYPES: dict[int, np.dtype[Any]] = {
+    1: np.dtype("<i1"),
+    2: np.dtype("<u1"),
+    3: np.dtype("<i2"),
+    4: np.dtype("<u2"),
+    5: np.dtype("<i4"),
+    6: np.dtype("<u4"),
+    7: np.dtype("<i8"),
+    8: np.dtype("<u8"),
+    9: np.dtype("<f4"),
+    10: np.dtype("<f8"),
+}
+_TENSOR_CODES = {dtype.str: code for code, dtype in TENSOR_DATA_TYPES.items()}
+_TENSOR_WIDENED: dict[str, np.dtype[Any]] = {"f2": np.dtype("<f4"), "b1": np.dtype("<u1")}
+# How many classes a Classification names (the top of a 1×N output).
+TOP_CLASSES = 5
 
 
 # -- errors ----------------------------------------------------------------------------------------
@@ -139,6 +178,13 @@ class CorruptImage(Ros2MessageError):
     code = ErrorCode.CORRUPT_PAYLOAD
 
 
+class BadCameraInfo(Ros2MessageError):
+    """A CameraInfo that gives no usable geometry: a zero or negative focal length, non-finite
+    values, a stereo right camera whose P[3] (−fx·baseline) is not negative."""
+
+    code = ErrorCode.BAD_VALUE
+
+
 class BadMessageValue(Ros2MessageError):
     """A value out of range: a stamp beyond int32 seconds, a non-finite velocity, an array that
     is not numeric or not image-shaped where one must be."""
@@ -169,6 +215,60 @@ class StampedFrame:
 
 
 @dataclasses.dataclass(frozen=True, slots=True)
+class Roi:
+    """A sensor_msgs/msg/RegionOfInterest: a rectangle of the camera image, pixels."""
+
+    x_offset: int = 0
+    y_offset: int = 0
+    height: int = 0
+    width: int = 0
+
+
+_IDENTITY_3X3 = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
+class CameraInfo:
+    """A sensor_msgs/msg/CameraInfo: image size, intrinsics K (3×3, row-major), rectification R,
+    projection P (3×4: P[3] = −fx·baseline for a stereo right camera), distortion, ROI."""
+
+    header: Header
+    height: int
+    width: int
+    k: tuple[float, ...] = (0.0,) * 9
+    p: tuple[float, ...] = (0.0,) * 12
+    r: tuple[float, ...] = _IDENTITY_3X3
+    d: tuple[float, ...] = ()
+    distortion_model: str = ""
+    roi: Roi = Roi()
+
+    @property
+    def fx(self) -> float:
+        return self.k[0]
+
+    @property
+    def cx(self) -> float:
+        return self.k[2]
+
+    @property
+    def cy(self) -> float:
+        return self.k[5]
+
+    def baseline_m(self) -> float:
+        """The stereo baseline a right camera's projection gives (P[3] = −fx'·B, fx' = P[0]);
+        BadCameraInfo when P[3] is not negative (a left camera's 0, or a sign error)."""
+        fx, tx = self.p[0], self.p[3]
+        if not (math.isfinite(fx) and fx > 0):
+            raise BadCameraInfo(f"CameraInfo P[0] (fx) is {fx}: no stereo baseline from it")
+        if not (math.isfinite(tx) and tx < 0):
+            raise BadCameraInfo(
+                f"the right camera's CameraInfo P[3] is {tx}: it must be −fx·baseline (< 0); "
+                "a left camera's is 0"
+            )
+        return -tx / fx
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
 class Twist:
     """A geometry_msgs/msg/Twist: linear (m/s) and angular (rad/s) velocity, x, y, z."""
 
@@ -180,9 +280,14 @@ class Twist:
 @functools.cache
 def typestore() -> Any:
     """rosbags' ROS 2 Jazzy type store (built on first use: most processes never need it)."""
-    from rosbags.typesys import Stores, get_typestore
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-    return get_typestore(Stores.ROS2_JAZZY)
+    store = get_typestore(Stores.ROS2_JAZZY)
+    extra: dict[str, Any] = {}
+    for name, text in EXTRA_DEFINITIONS.items():
+        extra.update(get_types_from_msg(text, name))
+    store.register(extra)
+    return store
 
 
 def type_hash(msgtype: MessageType) -> str:
@@ -470,6 +575,205 @@ def decode_twist(payload: bytes | memoryview) -> Twist:
             f"Twist has a non-finite velocity: linear {linear}, angular {angular}"
         )
     return Twist(linear, angular)
+
+
+def encode_twist_stamped(twist: Twist, header: Header) -> bytes:
+    """A Twist with a header as geometry_msgs/msg/TwistStamped in CDR."""
+    types = typestore().types
+    inner = typestore().deserialize_cdr(encode_twist(twist), MessageType.TWIST.value)
+    msg = types[MessageType.TWIST_STAMPED.value](header=_ros_header(header), twist=inner)
+    return _serialize(msg, MessageType.TWIST_STAMPED)
+
+
+def decode_twist_stamped(payload: bytes | memoryview) -> tuple[Header, Twist]:
+    """The header and Twist of a geometry_msgs/msg/TwistStamped in CDR; non-finite velocities
+    are refused."""
+    msg = _deserialize(payload, MessageType.TWIST_STAMPED)
+    linear = (float(msg.twist.linear.x), float(msg.twist.linear.y), float(msg.twist.linear.z))
+    angular = (float(msg.twist.angular.x), float(msg.twist.angular.y), float(msg.twist.angular.z))
+    if not all(math.isfinite(v) for v in linear + angular):
+        raise BadMessageValue(
+            f"TwistStamped has a non-finite velocity: linear {linear}, angular {angular}"
+        )
+    return _header(msg.header), Twist(linear, angular)
+
+
+# -- CameraInfo ------------------------------------------------------------------------------------
+def encode_camera_info(info: CameraInfo) -> bytes:
+    """A CameraInfo as sensor_msgs/msg/CameraInfo in CDR."""
+    types = typestore().types
+    for name, values, size in (("K", info.k, 9), ("R", info.r, 9), ("P", info.p, 12)):
+        if len(values) != size or not all(math.isfinite(v) for v in values):
+            raise BadMessageValue(f"CameraInfo {name} takes {size} finite values, got {values}")
+    roi = info.roi
+    msg = types[MessageType.CAMERA_INFO.value](
+        header=_ros_header(info.header),
+        height=info.height,
+        width=info.width,
+        distortion_model=info.distortion_model,
+        d=np.asarray(info.d, dtype=np.float64),
+        k=np.asarray(info.k, dtype=np.float64),
+        r=np.asarray(info.r, dtype=np.float64),
+        p=np.asarray(info.p, dtype=np.float64),
+        binning_x=0,
+        binning_y=0,
+        roi=types["sensor_msgs/msg/RegionOfInterest"](
+            x_offset=roi.x_offset,
+            y_offset=roi.y_offset,
+            height=roi.height,
+            width=roi.width,
+            do_rectify=False,
+        ),
+    )
+    return _serialize(msg, MessageType.CAMERA_INFO)
+
+
+def decode_camera_info(payload: bytes | memoryview) -> CameraInfo:
+    """The CameraInfo of a sensor_msgs/msg/CameraInfo in CDR, its geometry checked:
+    BadCameraInfo for a zero (uncalibrated) or negative focal length, a non-finite K or P, an
+    image of no pixels."""
+    msg = _deserialize(payload, MessageType.CAMERA_INFO)
+    k = tuple(float(v) for v in msg.k)
+    p = tuple(float(v) for v in msg.p)
+    r = tuple(float(v) for v in msg.r)
+    d = tuple(float(v) for v in msg.d)
+    height, width = int(msg.height), int(msg.width)
+    if height == 0 or width == 0:
+        raise BadCameraInfo(f"CameraInfo is for a {width}×{height} image: no pixels")
+    if not all(math.isfinite(v) for v in k + p + r + d):
+        raise BadCameraInfo("CameraInfo has a non-finite value in K, P, R or D")
+    if not (k[0] > 0 and k[4] > 0):
+        raise BadCameraInfo(
+            f"CameraInfo focal length fx {k[0]}, fy {k[4]}: not a calibrated camera (a zero K "
+            "is an uncalibrated one)"
+        )
+    roi = msg.roi
+    return CameraInfo(
+        _header(msg.header),
+        height,
+        width,
+        k=k,
+        p=p,
+        r=r,
+        d=d,
+        distortion_model=str(msg.distortion_model),
+        roi=Roi(int(roi.x_offset), int(roi.y_offset), int(roi.height), int(roi.width)),
+    )
+
+
+# -- TensorList (Isaac ROS) ------------------------------------------------------------------------
+def tensor_of(array: np.ndarray) -> np.ndarray:
+    """`array` as a tensor of one of TENSOR_DATA_TYPES, little endian, C order (float16 as
+    float32, bool as uint8); BadMessageValue for any other dtype."""
+    values = np.asarray(array)
+    kind = values.dtype.kind + str(values.dtype.itemsize)
+    dtype: np.dtype[Any] = _TENSOR_WIDENED.get(kind) or values.dtype.newbyteorder("<")
+    if dtype.str not in _TENSOR_CODES:
+        known = ", ".join(str(d) for d in TENSOR_DATA_TYPES.values())
+        raise BadMessageValue(f"a {values.dtype} output is not a tensor type; known: {known}")
+    return np.ascontiguousarray(values, dtype=dtype)
+
+
+def encode_tensor_list(outputs: Mapping[str, np.ndarray], header: Header) -> bytes:
+    """Outputs by name as isaac_ros_tensor_list_interfaces/msg/TensorList in CDR: one Tensor
+    each (its name, rank and dims, the data type code, byte strides in C order, the bytes)."""
+    types = typestore().types
+    tensors = []
+    for name, array in outputs.items():
+        values = tensor_of(array)
+        tensors.append(
+            types["isaac_ros_tensor_list_interfaces/msg/Tensor"](
+                name=name,
+                shape=types["isaac_ros_tensor_list_interfaces/msg/TensorShape"](
+                    rank=values.ndim, dims=np.asarray(values.shape, dtype=np.uint32)
+                ),
+                data_type=_TENSOR_CODES[values.dtype.str],
+                strides=np.asarray(values.strides, dtype=np.uint64),
+                data=values.reshape(-1).view(np.uint8),
+            )
+        )
+    msg = types[MessageType.TENSOR_LIST.value](header=_ros_header(header), tensors=tensors)
+    return _serialize(msg, MessageType.TENSOR_LIST)
+
+
+def decode_tensor_list(payload: bytes | memoryview) -> tuple[Header, dict[str, np.ndarray]]:
+    """The header and tensors by name of an isaac_ros_tensor_list_interfaces/msg/TensorList in
+    CDR. Strict: a data type that is not one of TENSOR_DATA_TYPES (BadMessageValue), a rank that
+    is not the number of dims, strides that are not the C-order byte strides of the dims, data
+    of another size than the dims and type give (LayoutMismatch), a name twice."""
+    msg = _deserialize(payload, MessageType.TENSOR_LIST)
+    tensors: dict[str, np.ndarray] = {}
+    for tensor in msg.tensors:
+        name = str(tensor.name)
+        dtype = TENSOR_DATA_TYPES.get(int(tensor.data_type))
+        if dtype is None:
+            raise BadMessageValue(
+                f"Tensor {name!r}: data type {int(tensor.data_type)} is not one of "
+                f"{sorted(TENSOR_DATA_TYPES)}"
+            )
+        dims = tuple(int(d) for d in tensor.shape.dims)
+        if int(tensor.shape.rank) != len(dims):
+            raise LayoutMismatch(f"Tensor {name!r}: rank {tensor.shape.rank}, {len(dims)} dims")
+        strides = tuple(int(v) for v in tensor.strides)
+        expected = tuple(dtype.itemsize * math.prod(dims[i + 1 :]) for i in range(len(dims)))
+        if strides != expected:
+            raise LayoutMismatch(
+                f"Tensor {name!r}: strides {list(strides)} are not the C-order byte strides "
+                f"{list(expected)} of {list(dims)} {dtype}"
+            )
+        data = np.asarray(tensor.data, dtype=np.uint8)
+        if data.size != math.prod(dims) * dtype.itemsize:
+            raise LayoutMismatch(
+                f"Tensor {name!r}: {data.size} bytes; {list(dims)} {dtype} need "
+                f"{math.prod(dims) * dtype.itemsize}"
+            )
+        if name in tensors:
+            raise BadMessageValue(f"TensorList names tensor {name!r} twice")
+        tensors[name] = data.view(dtype).reshape(dims)
+    return _header(msg.header), tensors
+
+
+# -- Classification (vision_msgs) ------------------------------------------------------------------
+def is_class_scores(shape: Sequence[int]) -> bool:
+    """Whether an output of this shape is a classifier's scores: 1×N or N, N ≥ 2."""
+    dims = tuple(shape)
+    return (len(dims) == 1 and dims[0] >= 2) or (len(dims) == 2 and dims[0] == 1 and dims[1] >= 2)
+
+
+def top_classes(scores: np.ndarray, count: int = TOP_CLASSES) -> list[tuple[str, float]]:
+    """The `count` best classes of a 1×N output as (class id: the index as text, its softmax
+    probability), best first (ties: the lower index first)."""
+    values = np.asarray(scores, dtype=np.float64).reshape(-1)
+    if not is_class_scores(np.asarray(scores).shape) or not np.all(np.isfinite(values)):
+        raise BadMessageValue(
+            f"a {list(np.asarray(scores).shape)} output with non-finite values or of another "
+            "shape than 1×N (N ≥ 2) is no classifier's scores"
+        )
+    exp = np.exp(values - values.max())
+    probs = exp / exp.sum()
+    best = np.argsort(-probs, kind="stable")[:count]
+    return [(str(int(i)), float(probs[i])) for i in best]
+
+
+def encode_classification(hypotheses: Sequence[tuple[str, float]], header: Header) -> bytes:
+    """(class id, score) pairs as vision_msgs/msg/Classification in CDR."""
+    types = typestore().types
+    results = [
+        types["vision_msgs/msg/ObjectHypothesis"](class_id=class_id, score=float(score))
+        for class_id, score in hypotheses
+    ]
+    msg = types[MessageType.CLASSIFICATION.value](header=_ros_header(header), results=results)
+    return _serialize(msg, MessageType.CLASSIFICATION)
+
+
+def decode_classification(payload: bytes | memoryview) -> tuple[Header, list[tuple[str, float]]]:
+    """The header and (class id, score) pairs of a vision_msgs/msg/Classification in CDR;
+    BadMessageValue for a score that is not a number."""
+    msg = _deserialize(payload, MessageType.CLASSIFICATION)
+    results = [(str(h.class_id), float(h.score)) for h in msg.results]
+    if not all(math.isfinite(score) for _, score in results):
+        raise BadMessageValue("Classification has a non-finite score")
+    return _header(msg.header), results
 
 
 # -- helpers ---------------------------------------------------------------------------------------

@@ -51,7 +51,7 @@ from typing import Any
 
 import zenoh
 
-from common.config import FleetConfig, ZenohConfig
+from common.config import FleetConfig, Ros2Config, ZenohConfig
 from common.errors import UserError
 
 KEEP_ALIVES_PER_LEASE = 4
@@ -286,6 +286,51 @@ def open_session(
         context = f" ({'; '.join(where)})" if where else ""
         raise UserError(
             f"cannot open a Zenoh {settings['mode']} session{context}: {zenoh_error_text(exc)}"
+        ) from None
+
+
+# Hosts whose endpoint means "this host": a ROS 2 session to a router there listens on loopback.
+_LOOPBACK_HOSTS = ("127.0.0.1", "localhost", "[::1]")
+
+
+def ros2_settings(ros2: Ros2Config) -> dict[str, Any]:
+    """The Zenoh settings of a robot's ROS 2 session: a peer of the ROS 2 graph's router
+    (`ros2.endpoint`, the robot host's rmw_zenohd), as rmw_zenoh's own nodes are (its
+    DEFAULT_RMW_ZENOH_SESSION_CONFIG: peer, multicast scouting off, gossip on, listening on
+    loopback when the router is local). Nothing of the fleet's: no registry endpoint, no TLS
+    files, no access control, so no fleet key can travel on it and the fleet's sessions keep
+    their own."""
+    if ros2.endpoint is None:
+        raise UserError("ros2.endpoint is not set: ROS 2 goes over the fleet's session")
+    settings: dict[str, Any] = {
+        "mode": "peer",
+        "connect/endpoints": [ros2.endpoint],
+        "scouting/multicast/enabled": False,
+        "scouting/gossip/enabled": True,
+        "transport/shared_memory/enabled": False,
+    }
+    protocol, _, address = ros2.endpoint.partition("/")
+    host = address.rsplit(":", 1)[0]
+    if host in _LOOPBACK_HOSTS:
+        settings["listen/endpoints"] = [
+            f"{protocol}/{'[::1]' if host == '[::1]' else '127.0.0.1'}:0"
+        ]
+    return settings
+
+
+def open_ros2_session(ros2: Ros2Config) -> zenoh.Session:
+    """A robot's session on the ROS 2 graph (`ros2_settings`); the caller owns and closes it.
+    A router that is not up yet is retried in the background, as rmw_zenoh's nodes wait for
+    rmw_zenohd; a failure to open is a UserError naming the endpoint."""
+    init_runtime()
+    init_logging()
+    settings = ros2_settings(ros2)
+    try:
+        return zenoh.open(_to_config(settings))
+    except zenoh.ZError as exc:
+        raise UserError(
+            f"cannot open the ROS 2 session to {ros2.endpoint} (ros2.endpoint): "
+            f"{zenoh_error_text(exc)}"
         ) from None
 
 

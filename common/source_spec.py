@@ -50,7 +50,10 @@ STEREO_MANEUVER = "maneuver"
 ZENOH = "zenoh"
 # `ros2:<topic>[,OPTIONS]`: a ROS 2 image topic over rmw_zenoh's key space (`robotd.sources.ros2`).
 ROS2 = "ros2"
-ROS2_FORM = "ros2:TOPIC[,type=image|compressed][,domain=ID]"
+ROS2_FORM = "ros2:TOPIC[,right=TOPIC][,slop_ms=N][,type=image|compressed][,domain=ID]"
+# A stereo pair from two topics: left and right images within this many ms are one pair.
+DEFAULT_STEREO_SLOP_MS = 10.0
+ROS2_OPTIONS = ("type", "domain", "right", "slop_ms")
 MANEUVER_FORM = "stereo:maneuver:N[:lap=L][:assist=on|off][:t_dead=S][:out=PATH]"
 MANEUVER_OPTIONS = ("lap", "assist", "out", "t_dead")
 
@@ -198,12 +201,21 @@ class Ros2FrameType(str, enum.Enum):
 
 @dataclass(frozen=True)
 class Ros2Spec(SourceSpec):
-    """`ros2:<topic>[,type=image|compressed][,domain=<id>]`; `topic` fully qualified, `domain`
-    None: the fleet's `ros2.domain_id`."""
+    """`ros2:<topic>[,right=<topic>][,slop_ms=N][,type=image|compressed][,domain=<id>]`;
+    topics fully qualified, `domain` None: the robot's `ros2.domain_id`. With `right`, a stereo
+    camera: `topic` is the left image, paired with the right one by header stamp within
+    `slop_ms`."""
 
     topic: str = "/"
     type: Ros2FrameType = Ros2FrameType.IMAGE
     domain: int | None = None
+    right: str | None = None
+    slop_ms: float = DEFAULT_STEREO_SLOP_MS
+
+    @property
+    def topics(self) -> tuple[str, ...]:
+        """The image topics read: the one, or left and right."""
+        return (self.topic,) if self.right is None else (self.topic, self.right)
 
     @property
     def needs_session(self) -> bool:
@@ -446,8 +458,23 @@ def _parse_ros2(spec: str, args: str) -> Ros2Spec:
                 parsed = replace(parsed, domain=rmw_zenoh.domain_id(value))
             except UserError as exc:
                 raise SourceError(f"source {spec!r}: {exc}") from None
+        elif name == "right":
+            try:
+                parsed = replace(parsed, right=rmw_zenoh.topic_name(value))
+            except UserError as exc:
+                raise SourceError(f"source {spec!r}: right={value!r}: {exc}") from None
+        elif name == "slop_ms":
+            slop = _number(spec, name, value)
+            if not (math.isfinite(slop) and slop > 0):
+                raise SourceError(f"source {spec!r}: slop_ms must be a positive number of ms")
+            parsed = replace(parsed, slop_ms=slop)
         else:
-            raise _unknown(spec, name, ("type", "domain"))
+            raise _unknown(spec, name, ROS2_OPTIONS)
+    given = {n for n, _ in _items(spec, ",".join(options))} if options else set()
+    if parsed.right is None and "slop_ms" in given:
+        raise SourceError(f"source {spec!r}: slop_ms pairs a stereo camera's images: give right=")
+    if parsed.right == parsed.topic:
+        raise SourceError(f"source {spec!r}: left and right are both {parsed.topic}")
     return parsed
 
 
@@ -511,9 +538,10 @@ def check_results_topics(source: str | SourceSpec, results_prefix: str | None, d
     if results_prefix is None or not isinstance(parsed, Ros2Spec):
         return
     same_domain = (parsed.domain if parsed.domain is not None else domain) == domain
-    if same_domain and rmw_zenoh.is_within(parsed.topic, results_prefix):
-        raise UserError(
-            f"results topic prefix {results_prefix} collides with the input topic "
-            f"{parsed.topic} of source {parsed.text!r}: the robot would read its own results; "
-            "choose another prefix"
-        )
+    for topic in parsed.topics:
+        if same_domain and rmw_zenoh.is_within(topic, results_prefix):
+            raise UserError(
+                f"results topic prefix {results_prefix} collides with the input topic "
+                f"{topic} of source {parsed.text!r}: the robot would read its own results; "
+                "choose another prefix"
+            )

@@ -377,6 +377,12 @@ def services(
     phase_s: float | None = typer.Option(
         None, "--phase-s", help="Seconds of each phase (default 20, 8 with --quick)."
     ),
+    handler_policy: str = typer.Option(
+        "cloud:jpeg90",
+        "--handler-policy",
+        help="The handler service's policy (the networks' is elastic): cloud:jpeg90 (always the "
+        "deployment, as FogROS2-LS serves AprilTag detection) or any robot policy, e.g. elastic.",
+    ),
 ) -> None:
     """Three services on one robot (a classifier, a dense model, a handler) sharing its uplink
     and CPU: joint decisions against independent ones, on an uncontended then a contended
@@ -391,6 +397,7 @@ def services(
             uncontended_mbit=uncontended_mbit,
             contended_mbit=contended_mbit,
             phase_s=phase_s,
+            handler_policy=handler_policy,
         )
     )
     _run(

@@ -30,6 +30,7 @@ import math
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -105,14 +106,20 @@ CLASSIFIER_MODEL = "zoo:mobilenet_v2"
 CLASSIFIER_SHAPE = (3, 120, 160)
 DENSE_SHAPE = (3, 240, 320)
 HANDLER_SHAPE = (3, 480, 640)
-# (priority, deadline_s, policy) per service: the classifier ranks first, the handler last.
-RANKS: dict[str, tuple[int, float, str]] = {
-    CLASSIFIER: (2, 0.3, "elastic"),
-    DENSE: (1, 0.6, "elastic"),
-    HANDLER: (0, 1.0, "elastic"),
+# (priority, deadline_s) per service: the classifier ranks first and has the tightest deadline,
+# the handler ranks last. At 2 Mbit/s the handler's 640x480 image at JPEG quality 90 (about 40 KB)
+# takes 0.16 s to cross alone, within its deadline; beside the others' crossings, not always.
+RANKS: dict[str, tuple[int, float]] = {
+    CLASSIFIER: (2, 0.15),
+    DENSE: (1, 0.3),
+    HANDLER: (0, 0.25),
 }
-CODECS: list[str] | None = None
-"""fidelity.codecs of the fleet (None: every codec that meets the bound)."""
+MODEL_POLICY = "elastic"
+"""The networks' policy (learning where to cut them, frame by frame)."""
+HANDLER_POLICY = "cloud:jpeg90"
+"""The handler's default policy: always the deployment, the image at JPEG quality 90 (as
+FogROS2-LS serves AprilTag detection from the cloud; a tag's corners, and so its pose, need the
+image's detail). `--handler-policy elastic` lets it learn like the networks."""
 
 
 @dataclass(frozen=True)
@@ -128,6 +135,7 @@ class ServicesSettings:
     settle_s: float
     frames_cap: int
     """The robot's --frames: a bound (each run is stopped once its phases are over)."""
+    handler_policy: str = HANDLER_POLICY
     services: list[ServiceInfo] = field(default_factory=list)
 
     def to_json(self) -> dict[str, Any]:
@@ -166,6 +174,7 @@ def plan(
     uncontended_mbit: float = UNCONTENDED_MBIT,
     contended_mbit: float = CONTENDED_MBIT,
     phase_s: float | None = None,
+    handler_policy: str = HANDLER_POLICY,
 ) -> ServicesSettings:
     """The settings of a run from the options (--quick: shorter phases, one round); the
     services are filled in by `run` (the handler depends on what the daemons import)."""
@@ -181,6 +190,12 @@ def plan(
         raise UserError(f"--rounds {rounds}: expected at least 1")
     if phase_s is not None and not (math.isfinite(phase_s) and phase_s >= 2):
         raise UserError(f"--phase-s {phase_s:g}: expected at least 2 (seconds)")
+    from robotd.policies import check_policy
+
+    try:
+        check_policy(handler_policy, real_time=True)
+    except UserError as exc:
+        raise UserError(f"--handler-policy: {exc}") from None
     quick = options.quick
     phase = phase_s if phase_s is not None else (QUICK_PHASE_S if quick else FULL_PHASE_S)
     settle = QUICK_SETTLE_S if quick else FULL_SETTLE_S
@@ -196,6 +211,7 @@ def plan(
         phase_s=phase,
         settle_s=settle,
         frames_cap=frames_cap,
+        handler_policy=handler_policy,
     )
 
 
@@ -219,7 +235,9 @@ def handler_spec(run_dir: Path) -> tuple[str, dict[str, Any]]:
     return OWN_HANDLER, {}
 
 
-def services(run_dir: Path) -> tuple[list[ServiceInfo], dict[str, dict[str, Any]]]:
+def services(
+    run_dir: Path, handler_policy: str = HANDLER_POLICY
+) -> tuple[list[ServiceInfo], dict[str, dict[str, Any]]]:
     """The three services (what they are, and fleet.yaml's `services:` mapping); writes the
     dense model and, if needed, the handler into `run_dir`."""
     dense = write_dense_model(run_dir, DENSE_SHAPE)
@@ -232,7 +250,8 @@ def services(run_dir: Path) -> tuple[list[ServiceInfo], dict[str, dict[str, Any]
     }
     infos, mapping = [], {}
     for name, (kind, runs, shape, what) in kinds.items():
-        priority, deadline_s, policy = RANKS[name]
+        priority, deadline_s = RANKS[name]
+        policy = handler_policy if kind == "handler" else MODEL_POLICY
         infos.append(ServiceInfo(name, runs, kind, shape, priority, deadline_s, policy))
         mapping[name] = {
             **what,
@@ -249,7 +268,7 @@ def fleet_spec(tf: TestbedFleet, settings: ServicesSettings) -> tuple[FleetSpec,
     """The fleet of the bench (its folder made, the dense model and any handler written in it):
     `edge-1` serving the three services to `robot-1` at `fps`."""
     name = tf.next_fleet_name("svc-")
-    infos, mapping = services(tf.workdir / name)
+    infos, mapping = services(tf.workdir / name, settings.handler_policy)
     spec = FleetSpec(
         fleet=name,
         clouds=(CLOUD,),
@@ -262,7 +281,6 @@ def fleet_spec(tf: TestbedFleet, settings: ServicesSettings) -> tuple[FleetSpec,
             "machines": {
                 ROBOT_ID: {"listen": [endpoint(tf.testbed.address(ROBOT_HOST), 0, tls=tf.tls)]}
             },
-            **({"fidelity": {"codecs": list(CODECS)}} if CODECS else {}),
         },
     )
     return spec, infos
@@ -327,11 +345,8 @@ def run_once(
     # last. The frame in flight when the quota came ran partly unthrottled: it counts after it.
     last = _last_frames(tf.follower.records(), infos)
     for info in infos:
-        first = last[info.name] + 2
         tf.follower.wait_for(
-            lambda r, s=info.name, f=first + settings.warmup_frames: (
-                r.get("service") == s and int(r.get("frame", -1)) >= f
-            ),
+            _frame_of(info.name, last[info.name] + 2 + settings.warmup_frames),
             timeout_s=WARMUP_WAIT_S,
             what=f"{settings.warmup_frames} warm-up frames of service {info.name}",
             procs=[robot],
@@ -359,6 +374,11 @@ def run_once(
 
 def _of(run: RunWindows, infos: list[ServiceInfo], phase: str) -> list[Any]:
     return [r for i in infos for r in run.in_phase(i.name, phase)]
+
+
+def _frame_of(service: str, frame: int) -> Callable[[dict[str, Any]], bool]:
+    """Whether a record is of `service`, frame `frame` or later."""
+    return lambda r: r.get("service") == service and int(r.get("frame", -1)) >= frame
 
 
 def _last_frames(records: list[dict[str, Any]], infos: list[ServiceInfo]) -> dict[str, int]:

@@ -145,6 +145,8 @@ class ServiceRow:
     bytes_up: float | None = None
     actions: dict[str, int] = field(default_factory=dict)
     """Frames per action, most frequent first."""
+    fallbacks: dict[str, int] = field(default_factory=dict)
+    """Offloaded frames the robot finished itself, per reason (timeout, error, busy...)."""
 
     def to_json(self) -> dict[str, Any]:
         return asdict(self)
@@ -210,6 +212,7 @@ def service_row(
         return _mean([float(r.get(key) or 0.0) for r in records])
 
     actions = Counter(str(r["action"]) for r in records)
+    fallbacks = Counter(str(r.get("reason")) for r in records if r.get("fallback"))
     return ServiceRow(
         mode=mode,
         phase=phase,
@@ -227,6 +230,7 @@ def service_row(
         robot_cpu_s=stage("robot_cpu_s"),
         bytes_up=stage("bytes_up"),
         actions=dict(actions.most_common()),
+        fallbacks=dict(fallbacks.most_common()),
     )
 
 
@@ -364,7 +368,8 @@ def _time_table(rows: Sequence[ServiceRow]) -> str:
         "local finish",
         "robot CPU",
         "KB up",
-        "offloaded",
+        "answered by the cloud",
+        "fallbacks",
     ]
     table = [
         [
@@ -378,6 +383,7 @@ def _time_table(rows: Sequence[ServiceRow]) -> str:
             fmt(r.robot_cpu_s, 3),
             "n/a" if r.bytes_up is None else f"{r.bytes_up / 1000:.1f}",
             f"{r.offloaded}/{r.frames}",
+            ", ".join(f"{k} {v}" for k, v in r.fallbacks.items()) or "none",
         ]
         for r in rows
     ]

@@ -23,8 +23,18 @@ Reverse motion and turns on the spot pass unchanged (a frontal camera says nothi
 One safe command is published per operator command: if the operator stops publishing, so does
 the assistant (a base stops on its own `cmd_vel` timeout).
 
+With `stamped` (`--stamped`) the commands are `geometry_msgs/msg/TwistStamped` on both topics
+(Nav2's `enable_stamped_cmd_vel`, ros2_control's controllers): each safe command carries its
+operator command's header. A command stamped more than `MAX_FUTURE_S` ahead of this host's clock
+is refused (`FutureStamp`): its clock and the operator's disagree, so its age means nothing.
+
+Which session: the robot's ROS 2 settings (`FleetConfig.ros2_for`): with `ros2.endpoint` the
+assistant speaks ROS 2 on a session of its own to that router (the robot host's rmw_zenohd) and
+opens no fleet session at all; without it, on a fleet session as before.
+
 Bad input (a Twist or d_coll that does not decode, a non-finite velocity, a d_coll of the wrong
-length) is one throttled line naming it; the command is not forwarded (nothing unsafe is sent).
+length, a future stamp) is one throttled line naming it; the command is not forwarded (nothing
+unsafe is sent).
 """
 
 from __future__ import annotations
@@ -40,15 +50,19 @@ import numpy as np
 from common import rmw_zenoh
 from common.errors import UserError
 from common.ros2_messages import (
+    Header,
     MessageType,
     Ros2MessageError,
     Twist,
     decode_float32_multi_array,
     decode_twist,
+    decode_twist_stamped,
     encode_twist,
+    encode_twist_stamped,
     typestore,
 )
 from common.throttled_log import ThrottledLog
+from common.wire.errors import ErrorCode
 from nav.curvature import CurvatureBins, DcollProfile
 from nav.shared_control import AssistantParams, Command, Limit, SharedControl
 
@@ -62,6 +76,25 @@ log = logging.getLogger("nav.assist")
 
 D_COLL_OUTPUT = "d_coll"
 NS_PER_S = 1e9
+# A TwistStamped may be stamped this far ahead of this host's clock (clocks synchronized by
+# NTP/PTP agree much better); past it the command is refused.
+MAX_FUTURE_S = 0.5
+
+
+class FutureStamp(Ros2MessageError):
+    """A command stamped ahead of this host's clock by more than MAX_FUTURE_S."""
+
+    code = ErrorCode.BAD_VALUE
+
+
+def check_stamp(header: Header, now_ns: int, max_future_s: float = MAX_FUTURE_S) -> None:
+    """FutureStamp when `header` is stamped more than `max_future_s` after `now_ns`."""
+    ahead_s = (header.stamp_ns - now_ns) / NS_PER_S
+    if ahead_s > max_future_s:
+        raise FutureStamp(
+            f"command stamped {ahead_s:.3f} s ahead of this host's clock (at most "
+            f"{max_future_s} s): the clocks disagree"
+        )
 
 
 @dataclass(frozen=True)
@@ -145,6 +178,8 @@ class AssistNode:
         cmd_out: str,
         params: AssistantParams | None = None,
         bins: CurvatureBins | None = None,
+        stamped: bool = False,
+        namespace: str = rmw_zenoh.ROOT_NAMESPACE,
     ) -> None:
         from robotd.results.ros2 import results_topic
         from robotd.ros2_node import acquire_node
@@ -157,9 +192,11 @@ class AssistNode:
         self.forwarded = 0
         self.refused = 0
         self._throttled = ThrottledLog(log, label=lambda: "nav assist")
-        twist = rmw_zenoh.TopicType.of(MessageType.TWIST.value, typestore())
+        self.stamped = stamped
+        command = MessageType.TWIST_STAMPED if stamped else MessageType.TWIST
+        twist = rmw_zenoh.TopicType.of(command.value, typestore())
         array = rmw_zenoh.TopicType.of(MessageType.FLOAT32_MULTI_ARRAY.value, typestore())
-        self._node: Ros2Node = acquire_node(session, domain, f"assist_{robot}")
+        self._node: Ros2Node = acquire_node(session, domain, f"assist_{robot}", namespace=namespace)
         self._entities: list[Ros2Publisher | Ros2Subscription] = []
         try:
             self._out = self._node.publisher(self.cmd_out, twist, rmw_zenoh.DEFAULT_QOS)
@@ -193,8 +230,14 @@ class AssistNode:
 
     def _on_cmd(self, sample: zenoh.Sample) -> None:
         try:
-            safe = self.assist.command(decode_twist(sample.payload.to_bytes()))
-            self._out.put(encode_twist(safe.twist))
+            if self.stamped:
+                header, twist = decode_twist_stamped(sample.payload.to_bytes())
+                check_stamp(header, time.time_ns())
+                safe = self.assist.command(twist)
+                self._out.put(encode_twist_stamped(safe.twist, header))
+            else:
+                safe = self.assist.command(decode_twist(sample.payload.to_bytes()))
+                self._out.put(encode_twist(safe.twist))
             self.forwarded += 1
             if safe.limit is not self.assist.limit:
                 log.info("nav assist: %s -> %s", self.assist.limit.value, safe.limit.value)
@@ -221,11 +264,12 @@ def run_assist(
     results_prefix: str | None,
     params: AssistantParams,
     stop: threading.Event,
+    stamped: bool = False,
 ) -> AssistNode:
     """Run the assistant of `robot` until `stop`; returns the node (closed) for its counts."""
     from common.config import load_fleet
     from common.keys import Role
-    from common.session import open_session
+    from common.session import open_ros2_session, open_session
 
     cfg = load_fleet(config_path)
     machine = cfg.machine(robot, role=Role.ROBOT)
@@ -235,17 +279,21 @@ def run_assist(
             f"robot {robot} publishes no ROS 2 results: set machines.{robot}.results.ros2 in "
             "the fleet file (the robot's d_coll comes from there) or give --results PREFIX"
         )
-    session = open_session(cfg)
+    ros2 = cfg.ros2_for(robot)
+    # With the ROS 2 graph's own router, the assistant needs nothing of the fleet's.
+    session = open_session(cfg) if ros2.endpoint is None else open_ros2_session(ros2)
     try:
         node = AssistNode(
             session,
-            domain=cfg.ros2.domain(),
+            domain=ros2.domain(),
             robot=robot,
             results_prefix=prefix,
             cmd_in=cmd_in,
             cmd_out=cmd_out,
             params=params,
             bins=bins_of_model(_model_props(cfg)),
+            stamped=stamped,
+            namespace=ros2.namespace,
         )
         log.info(
             "nav assist for %s: %s -> %s, d_coll from %s, deadline %.2f s",

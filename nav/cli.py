@@ -100,6 +100,13 @@ def assist_cmd(
         help="Obstacles this near the path beside it count too, m (half the robot's width; "
         "0: the axle's path only).",
     ),
+    stamped: bool = typer.Option(
+        False,
+        "--stamped",
+        help="Commands are geometry_msgs/msg/TwistStamped (Nav2's enable_stamped_cmd_vel, "
+        "ros2_control) on --cmd-in and --cmd-out, each safe one with its command's header; "
+        "default: geometry_msgs/msg/Twist.",
+    ),
 ) -> None:
     """Filter the operator's cmd_vel with the fleet's d_coll (a ROS 2 safety filter); runs until
     Ctrl-C."""
@@ -128,6 +135,7 @@ def assist_cmd(
                 results_prefix=results,
                 params=params,
                 stop=stop,
+                stamped=stamped,
             )
     except UserError as exc:
         Console(stderr=True).print(f"[red]error:[/red] {exc}", highlight=False, soft_wrap=True)

@@ -56,7 +56,7 @@ from typing import Any
 import numpy as np
 
 from common import keys, rmw_zenoh
-from common.config import FleetConfig
+from common.config import FleetConfig, check_ros2_session
 from common.daemon import Daemon
 from common.errors import UserError
 from common.heap import release_freed_memory
@@ -213,7 +213,10 @@ class RobotDaemon(Daemon):
         self.policy_spec = self.options.policy or config.policy.kind
         results_ros2 = self.options.results_ros2 or self.machine.results.ros2
         self.results_ros2 = None if results_ros2 is None else rmw_zenoh.topic_name(results_ros2)
-        check_results_topics(self.source_spec, self.results_ros2, config.ros2.domain())
+        check_results_topics(
+            self.source_spec, self.results_ros2, config.ros2_for(robot_id).domain()
+        )
+        check_ros2_session(config, robot_id, self.source_spec, self.results_ros2)
         self.name = f"robot {robot_id}"
         self.summary = RunSummary(robot_id)
         self._policy_override = policy
@@ -421,7 +424,14 @@ class RobotDaemon(Daemon):
         if self.results_ros2 is not None:
             from robotd.results.ros2 import Ros2ResultSink  # rosbags only where it is used
 
-            ros2_sink = Ros2ResultSink(session, cfg.ros2.domain(), self.robot, self.results_ros2)
+            ros2_sink = Ros2ResultSink(
+                cfg,
+                self.robot,
+                session,
+                self.results_ros2,
+                height=robot_model.inputs.height,
+                width=robot_model.inputs.width,
+            )
             self.add_result_sink(ros2_sink, f"ROS 2 results {self.results_ros2}")
         if self.options.record is not None:
             from robotd.results.recorder import McapRecorder  # rosbags only where it is used
@@ -507,8 +517,8 @@ class RobotDaemon(Daemon):
             self.robot,
             max_padding_bytes=padding,
             publish=self._sink.probe,
-            # The deployments that serve this service (those of the view).
-            alive_deployments=lambda: set(members.ids("cloud")) & set(cfg.deployment_ids),
+            # Not those the fleet file says do not serve this service.
+            alive_deployments=lambda: set(members.ids("cloud")) - cfg.not_serving,
             cloud_time=self._cloud_time,
             interval_s=self.options.probe_interval_s,
             max_reply_bytes=cfg.max_payload_bytes,

@@ -36,7 +36,13 @@ from common.fleet_model import fleet_partition
 from common.image_input import ImageInputs
 from common.keys import Role
 from common.session import open_session
-from common.source_spec import StereoManeuverSpec, StereoPairSpec, StereoWorldSpec, parse_source
+from common.source_spec import (
+    Ros2Spec,
+    StereoManeuverSpec,
+    StereoPairSpec,
+    StereoWorldSpec,
+    parse_source,
+)
 from robotd.daemon import RobotDaemon, RobotOptions
 from robotd.frame_path.pacing import TokenBucket
 from robotd.results.recorder import MCAP_SUFFIX
@@ -75,7 +81,8 @@ class RobotServices(Daemon):
             raise UserError(f"robot {robot_id!r} uses no service of the fleet")
         self.name = f"robot {robot_id}"
         self.source_spec = parse_source(self.options.source or self.machine.source)
-        if isinstance(self.source_spec, StereoWorldSpec | StereoPairSpec | StereoManeuverSpec):
+        stereo = isinstance(self.source_spec, StereoWorldSpec | StereoPairSpec | StereoManeuverSpec)
+        if stereo or (isinstance(self.source_spec, Ros2Spec) and self.source_spec.right):
             raise UserError(
                 f"robot {robot_id}: a stereo source feeds one service; this robot uses "
                 f"{len(self.services)} ({', '.join(self.services)})"

@@ -13,7 +13,8 @@ dropped, not applied: a newer frame's had been, `robotd.frame_path.pipeline`), `
 (frames the source dropped unread just before this one: a newer one had arrived,
 `robotd.sources.zenoh_in`) and `resends` (how many times the frame's query was sent again within its
 deadline, having found no serving deployment: `robotd.frame_path.offload`), `service` (the
-service the frame was for: a robot using several writes them all to one file). Lines are flushed
+service the frame was for: a robot using several writes them all to one file), `keyframe` (a
+video frame: whether the frame last sent was a keyframe; null for any other). Lines are flushed
 as they are written, so a reader can follow the file while the robot runs.
 
 The record itself is built here too (`frame_record`), from what the frame loop measured and what
@@ -52,6 +53,7 @@ EXTRA_FIELDS = (
     "dropped_stale",
     "resends",
     "service",
+    "keyframe",
 )
 SERVED_BY_CLOUD = "cloud"
 SERVED_BY_ROBOT = "robot"
@@ -97,6 +99,7 @@ def frame_record(
     end: int | None = None,
     dropped_stale: int = 0,
     reply_awaited: bool = False,
+    keyframe: bool | None = None,
 ) -> TelemetryRecord:
     """The telemetry record of a completed frame.
 
@@ -107,7 +110,8 @@ def frame_record(
     `local_s`: the robot's own suffix run, if one ran. `epoch`: the route epoch the robot held
     when the frame started; an answered frame reports its reply's instead. `stale`: its result
     was dropped, a newer frame's having been applied. `dropped_stale`: frames the source
-    dropped unread just before this one. `reply_awaited`: the record of a hedged frame that the
+    dropped unread just before this one. `keyframe`: a video frame's kind (None for others).
+    `reply_awaited`: the record of a hedged frame that the
     robot served while its reply was still out, for its consumers: not a fallback (the robot's
     run won the race; whether the cloud answers is not known yet) and no reply's figures.
     """
@@ -136,6 +140,7 @@ def frame_record(
         stale=stale,
         dropped_stale=dropped_stale,
         resends=len(result.resends) if result is not None else 0,
+        keyframe=keyframe,
     )
 
 
@@ -161,6 +166,7 @@ def jsonl_object(
         dropped_stale=record.dropped_stale,
         resends=record.resends,
         service=record.service,
+        keyframe=record.keyframe,
     )
     return obj
 

@@ -1,7 +1,8 @@
 """The wire format: one codec (`codec`) and the messages, grouped by who sends them.
 
 - `robot_to_cloud`: InferRequest, whose tensors are `EncodedTensor`s (`tensor_codecs`: raw, fp16,
-  int8, int8+zstd, raw+zstd, jpeg<Q>, png; decoded strictly, within the receiver's limit).
+  int8, int8+zstd, raw+zstd, jpeg<Q>, png, h264; decoded strictly, within the receiver's limit;
+  h264's streams through `video_codec`).
 - `cloud_to_robot`: InferReply, BusyReply (and ErrorReply, which any replier may send).
 - `registry`: registration, probe, control, routes, drain, RIB views (registry <-> daemons).
 - `telemetry`: what a robot publishes for anyone (per-frame records, probe reports).
@@ -53,6 +54,7 @@ from common.wire.errors import (
     InvalidValue,
     MalformedPayload,
     MissingField,
+    NeedKeyframe,
     PayloadTooLarge,
     ShapeMismatch,
     TensorTooLarge,
@@ -93,6 +95,7 @@ __all__ = [
     "MalformedPayload",
     "Message",
     "MissingField",
+    "NeedKeyframe",
     "PayloadTooLarge",
     "ShapeMismatch",
     "Struct",

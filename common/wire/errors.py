@@ -43,6 +43,9 @@ class ErrorCode(str, enum.Enum):
     PROTOCOL_VERSION = "protocol_version"
     REFUSED = "refused"
     UNKNOWN_SERVICE = "unknown_service"  # not a service of the fleet, or not served there
+    # A video P-frame whose reference picture the deployment's decoder does not hold: the robot
+    # resends the frame as a keyframe (or finishes it itself).
+    NEED_KEYFRAME = "need_keyframe"
     INTERNAL = "internal"
 
 
@@ -155,3 +158,11 @@ class BadQuantization(WireError):
     positive, a zero point not a whole number in 0..255, or parameters on a non-int8 tensor."""
 
     code = ErrorCode.BAD_QUANTIZATION
+
+
+class NeedKeyframe(WireError):
+    """A video P-frame that the receiver's decoder cannot decode: it holds no picture of the
+    frame's stream, or not the one the frame is predicted from (frames were lost, refused or
+    served elsewhere, the decoder was freed). Resending the frame as a keyframe cures it."""
+
+    code = ErrorCode.NEED_KEYFRAME

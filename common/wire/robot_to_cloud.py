@@ -3,15 +3,35 @@
 
 The cut's tensors travel as `EncodedTensor` records, each naming its codec (`tensor_codecs`): the
 robot picks per tensor (`encode_tensor_as(array, "int8+zstd")`, or `EncodedTensor.raw(array)`),
-the deployment decodes them with `decode_tensors(request.tensors, max_bytes=...)`."""
+the deployment decodes them with `decode_tensors(request.tensors, max_bytes=...)`.
+
+A video codec's tensors (`h264`) belong to a stream: the request's `video` field says which and
+where (`VideoStream`), and the deployment decodes them with that stream's decoder
+(`cloudd.video_streams`), answering `need_keyframe` when its decoder does not hold the picture
+a P-frame is predicted from."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from typing import ClassVar
 
-from common.wire.codec import Message, key_path, register
-from common.wire.tensor_codecs import EncodedTensor, check_encoded
+from common.wire.codec import Message, Struct, key_path, register
+from common.wire.tensor_codecs import EncodedTensor, check_encoded, is_video
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class VideoStream(Struct):
+    """Where a request's video tensors stand in their stream: `stream` names the robot's
+    encoder (a new number for each encoder it makes), `seq` counts the stream's frames from 0,
+    `keyframe` says the frame starts the stream afresh (an IDR picture). A P-frame (`keyframe`
+    false) decodes only at a decoder that decoded frame `seq - 1` of the same stream."""
+
+    stream: int
+    seq: int
+    keyframe: bool
+
+    def __post_init__(self) -> None:
+        self._check_non_negative("stream", "seq")
 
 
 @register
@@ -29,6 +49,9 @@ class InferRequest(Message):
     `end_cut` (segment offload): run only the segment from `cut` to cut `end_cut` and reply with
     `end_cut`'s tensors by name (lossless; the robot runs the rest). Absent or nil: to the
     model's outputs, as a deployment that does not know the field does anyway.
+
+    `video`: the stream position of the request's video tensors (`h264`); present exactly when
+    some tensor is a video codec's.
     """
 
     TYPE: ClassVar[str] = "infer_request"
@@ -41,6 +64,7 @@ class InferRequest(Message):
     sent_at: float
     epoch: int = 0
     end_cut: int | None = None
+    video: VideoStream | None = None
 
     def __post_init__(self) -> None:
         self._check_ids("robot")
@@ -64,3 +88,10 @@ class InferRequest(Message):
                 )
             # Codec, dtype, shape, data length and int8 parameters, before any data is decoded.
             check_encoded(tensor, key_path(f"{self.TYPE}.tensors", name))
+        video = [name for name, tensor in self.tensors.items() if is_video(tensor.codec)]
+        if video and self.video is None:
+            raise self._invalid(
+                "video", f"tensor(s) {', '.join(video)} are video: the stream position is needed"
+            )
+        if self.video is not None and not video:
+            raise self._invalid("video", "given, but no tensor is a video codec's")

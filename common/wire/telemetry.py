@@ -70,10 +70,14 @@ class FallbackReason(str, enum.Enum):
 
 class ResendReason(str, enum.Enum):
     """Why the robot sent an offloaded frame's query again within its deadline (a move under
-    way, or a stale route: docs/registry.md, "A move and the robot's route")."""
+    way, or a stale route: docs/registry.md, "A move and the robot's route"; or a video frame
+    the deployment could not decode, resent as a keyframe: docs/video.md)."""
 
     NO_REPLY = "no_reply"  # the query finished without any reply
     NOT_SERVING = "not_serving"  # the only replies were NOT_SERVING (a deployment in standby)
+    # The deployment's video decoder could not decode the frame (NEED_KEYFRAME): sent again
+    # as a keyframe.
+    KEYFRAME = "keyframe"
 
     def __str__(self) -> str:
         return self.value
@@ -149,7 +153,8 @@ class TelemetryRecord(Message):
     `zenoh`). `resends`: how many times its query was sent again within the deadline because
     it found no serving deployment (0 for a frame answered first time, or not offloaded). A
     `reason` given as its string is read as the wire
-    reads it."""
+    reads it. `keyframe`: for a video frame (`h264`), whether the frame last sent was a
+    keyframe (None for any other frame)."""
 
     TYPE: ClassVar[str] = "telemetry"
     robot: str
@@ -174,6 +179,7 @@ class TelemetryRecord(Message):
     dropped_stale: int = 0
     resends: int = 0
     service: str | None = None
+    keyframe: bool | None = None
 
     def __post_init__(self) -> None:
         if self.reason is not None:

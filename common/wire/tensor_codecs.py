@@ -8,7 +8,7 @@ or PNG. So each tensor of an `InferRequest` carries the name of its codec, and t
 no configuration to read it.
 
 What: the codec names are a contract between peers (exact spelling): `raw`, `fp16`, `int8`,
-`int8+zstd`, `raw+zstd`, `jpeg<Q>` for Q in 1..100 (e.g. `jpeg80`), `png`.
+`int8+zstd`, `raw+zstd`, `jpeg<Q>` for Q in 1..100 (e.g. `jpeg80`), `png`, `h264`.
 
 - `raw`: the tensor's bytes (little-endian, C order), any allowed dtype.
 - `fp16`: a float32/float64 tensor sent as float16, decoded back to its declared dtype.
@@ -19,6 +19,9 @@ What: the codec names are a contract between peers (exact spelling): `raw`, `fp1
 - `int8+zstd`, `raw+zstd`: the same bytes, then a zstandard frame.
 - `jpeg<Q>` (libjpeg-turbo via simplejpeg, quality Q) and `png` (OpenCV): uint8 images only,
   channels last, shapes (H,W), (H,W,1), (H,W,3), (1,H,W,1), (1,H,W,3).
+- `h264` (PyAV's libx264, `common.wire.video_codec`): the same images with even sides. A video
+  codec: a P-frame is decoded by its stream's decoder (the request's `video` field says where
+  the frame stands in its stream); alone, as here, a tensor is a keyframe coded on its own.
 
 `EncodedTensor` is the wire record: codec, the decoded tensor's dtype and shape, the encoded data
 and the quantization parameters. `encode_tensor_as(array, codec)` makes one; `decode_encoded(enc,
@@ -64,6 +67,12 @@ from common.wire.errors import (
     UnknownCodec,
     WrongFieldType,
 )
+from common.wire.video_codec import (
+    CODEC_H264,
+    decode_keyframe,
+    encode_keyframe,
+    video_shape_ok,
+)
 
 CODEC_RAW = "raw"
 CODEC_FP16 = "fp16"
@@ -76,7 +85,7 @@ JPEG_QUALITY_MIN = 1
 JPEG_QUALITY_MAX = 100
 VALID_CODECS_TEXT = (
     f"{CODEC_RAW}, {CODEC_FP16}, {CODEC_INT8}, {CODEC_INT8_ZSTD}, {CODEC_RAW_ZSTD}, "
-    f"{JPEG_PREFIX}<Q> (Q = {JPEG_QUALITY_MIN}..{JPEG_QUALITY_MAX}), {CODEC_PNG}"
+    f"{JPEG_PREFIX}<Q> (Q = {JPEG_QUALITY_MIN}..{JPEG_QUALITY_MAX}), {CODEC_PNG}, {CODEC_H264}"
 )
 
 # zstd level 1: on a ReLU feature map and its int8 codes, level 3 (zstd's default) saves under 2%
@@ -145,6 +154,8 @@ class Codec(abc.ABC):
 
     name: str
     lossy: bool
+    video: bool = False
+    """A video codec: its frames depend on the frames before them (`h264`)."""
 
     @abc.abstractmethod
     def applies_to(self, dtype: np.dtype[Any], shape: Sequence[int]) -> bool:
@@ -493,6 +504,29 @@ class PngCodec(_ImageCodec):
         return np.ascontiguousarray(image).reshape(enc.shape)
 
 
+class H264Codec(_ImageCodec):
+    """`h264`: a uint8 image with even sides as H.264 (`common.wire.video_codec`). Alone, a
+    tensor is a keyframe coded and decoded on its own; a stream's P-frames are decoded by the
+    stream's decoder (`cloudd.video_streams`), which the request's `video` field names."""
+
+    name = CODEC_H264
+    lossy = True
+    video = True
+
+    def applies_to(self, dtype: np.dtype[Any], shape: Sequence[int]) -> bool:
+        hwc = _image_hwc(shape) if _dtype_name(dtype) == "uint8" else None
+        return hwc is not None and video_shape_ok(*hwc)
+
+    def _encode(self, array: np.ndarray) -> EncodedTensor:
+        return self._encoded(array, encode_keyframe(array, self._hwc(array.shape)))
+
+    def _decode(
+        self, enc: EncodedTensor, dtype: np.dtype[Any], count: int, where: str
+    ) -> np.ndarray:
+        image = decode_keyframe(bytes(enc.data), self._hwc(enc.shape), where)
+        return image.reshape(enc.shape)
+
+
 # Every codec of the contract, by name, in the contract's order.
 CODECS: dict[str, Codec] = {
     codec.name: codec
@@ -504,6 +538,7 @@ CODECS: dict[str, Codec] = {
         RawCodec(CODEC_RAW_ZSTD, lossy=False, zstd=True),
         *(JpegCodec(q) for q in range(JPEG_QUALITY_MIN, JPEG_QUALITY_MAX + 1)),
         PngCodec(),
+        H264Codec(),
     )
 }
 # One codec per family (the JPEG qualities are one family), in the contract's order.
@@ -520,6 +555,13 @@ def parse_codec(name: str) -> Codec:
     if codec is None:
         raise UnknownCodec(_unknown(name))
     return codec
+
+
+def is_video(name: str) -> bool:
+    """Whether codec `name` is a video codec (its P-frames need their stream's decoder); False
+    for an unknown name."""
+    codec = CODECS.get(name) if isinstance(name, str) else None
+    return codec is not None and codec.video
 
 
 def applies(name: str, dtype: str | np.dtype[Any], shape: Sequence[int]) -> bool:
@@ -672,6 +714,12 @@ def _image_hwc(shape: Sequence[int]) -> tuple[int, int, int] | None:
     return h, w, c
 
 
+def image_hwc(shape: Sequence[int]) -> tuple[int, int, int] | None:
+    """(height, width, channels) of a shape the image codecs take ((H,W), (H,W,C), (1,H,W,C)
+    with C 1 or 3), else None."""
+    return _image_hwc(shape)
+
+
 def _as_array(array: Any) -> np.ndarray:
     if isinstance(array, np.generic):  # a numpy scalar (e.g. from a reduction) is a 0-d tensor
         array = np.asarray(array)
@@ -754,6 +802,7 @@ def _decompress(data: Buffer, expected: int, where: str) -> bytes:
 __all__ = [
     "CODECS",
     "CODEC_FP16",
+    "CODEC_H264",
     "CODEC_INT8",
     "CODEC_INT8_ZSTD",
     "CODEC_PNG",
@@ -767,5 +816,7 @@ __all__ = [
     "decode_encoded",
     "decode_tensors",
     "encode_tensor_as",
+    "image_hwc",
+    "is_video",
     "parse_codec",
 ]

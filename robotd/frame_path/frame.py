@@ -67,6 +67,15 @@ class Frame:
     # Its result was handed to the consumers (a hedged frame served by the robot is handed on
     # when served, before its reply completes its record).
     delivered: bool = False
+    # A video frame (`h264`): the deployment whose stream it was coded in
+    # (`robotd.frame_path.video_streams`; "" when no route was known).
+    video_at: str | None = None
+
+    @property
+    def keyframe(self) -> bool | None:
+        """A video frame: whether the frame last sent for it was a keyframe; None otherwise."""
+        video = self.call.video if self.call is not None else None
+        return None if video is None else video.keyframe
 
     @property
     def offloaded(self) -> bool:
@@ -107,6 +116,7 @@ class Frame:
             latency_s=self.latency_s,
             waited_s=None if answered else deadline_s,
             cpu_s=self.cpu_s,
+            keyframe=self.keyframe,
         )
 
     def record(
@@ -131,4 +141,5 @@ class Frame:
             stale=bool(self.stale),
             dropped_stale=self.dropped_stale,
             reply_awaited=reply_awaited,
+            keyframe=self.keyframe,
         )

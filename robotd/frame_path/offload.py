@@ -38,10 +38,19 @@ serving deployment, so the resend cannot make two deployments compute it; a NOT_
 the resend is passed over while another reply may still come. Each resend is kept with its
 reason (`ResendReason`: no reply, or only NOT_SERVING) in `CallResult.resends`, for the frame's
 telemetry and the robot's `resends_total` counter.
+
+A video frame (`h264`) that the deployment could not decode is answered NEED_KEYFRAME (its
+decoder does not hold the picture the P-frame is predicted from: frames were lost or served
+elsewhere, the decoder was freed). Given `rekey`, the call then sends the frame again, once, as a
+keyframe (`ResendReason.KEYFRAME`), with the deadline budget left and through the emulated uplink,
+and waits for that answer; without time for it, the NEED_KEYFRAME error is the frame's answer and
+the robot finishes the frame itself. Each query of the call has its generation: replies to an
+earlier one are ignored once the keyframe is sent.
 """
 
 from __future__ import annotations
 
+import functools
 import logging
 import threading
 import time
@@ -52,6 +61,7 @@ import zenoh
 
 from common.wire import ErrorCode, ErrorReply, Message, WireError, decode
 from common.wire.cloud_to_robot import INFER_REPLIES, BusyReply, InferReply
+from common.wire.robot_to_cloud import VideoStream
 from common.wire.telemetry import FallbackReason, ResendReason
 
 log = logging.getLogger("robotd")
@@ -78,6 +88,9 @@ MIN_RESEND_BUDGET_S = 0.005
 SMALL_REPLY_BYTES = 1024
 
 Clock = Callable[[], float]
+# A video frame's keyframe for a resend, given the budget left: (its payload, None when it cannot
+# reach the deployment in time; its emulated uplink delay in seconds; its stream position).
+Rekey = Callable[[float], tuple[bytes | None, float, VideoStream]]
 
 
 @dataclass(frozen=True)
@@ -129,8 +142,17 @@ class CloudCall:
         max_reply_bytes: int,
         clock: Clock = time.perf_counter,
         served: Callable[[float], bool] | None = None,
+        video: VideoStream | None = None,
+        rekey: Rekey | None = None,
     ) -> None:
         self._session = session
+        # A video frame: where it stands in its stream (a keyframe resend changes it), and what
+        # makes its keyframe when the deployment cannot decode it.
+        self.video = video
+        self._rekey = rekey
+        self._gen = 0  # the query whose replies count (a keyframe resend starts the next)
+        self._need_keyframe: bytes | None = None
+        self._sent_bytes = len(payload)
         # Waits at most the given seconds for a deployment serving the key (None: no resends).
         self._served = served
         self.resends_left = NO_ROUTE_RESENDS if served is not None else 0
@@ -165,7 +187,8 @@ class CloudCall:
 
     @property
     def bytes_up(self) -> int:
-        return len(self._payload)
+        """Bytes sent for this frame (a keyframe resend included)."""
+        return self._sent_bytes
 
     # -- sending ---------------------------------------------------------------------------
     def start(self, *, background: bool = False) -> None:
@@ -198,10 +221,13 @@ class CloudCall:
             return
         if self.sent_at is None:
             self.sent_at = self._clock()
+        gen = self._gen
         try:
             self._session.get(
                 self._key,
-                zenoh.handlers.Callback(self._on_reply, self._on_final),
+                zenoh.handlers.Callback(
+                    functools.partial(self._on_reply, gen), functools.partial(self._on_final, gen)
+                ),
                 payload=self._payload,
                 target=zenoh.QueryTarget.ALL if resend else zenoh.QueryTarget.BEST_MATCHING,
                 consolidation=zenoh.ConsolidationMode.NONE if resend else None,
@@ -212,19 +238,23 @@ class CloudCall:
             self._send_error = str(exc)
             self._finish()
 
-    def _on_reply(self, reply: zenoh.Reply) -> None:
+    def _on_reply(self, gen: int, reply: zenoh.Reply) -> None:
         now = self._clock()
         with self._lock:
-            if self.replied_at is not None or self._finished_at is not None:
+            if gen != self._gen or self.replied_at is not None or self._finished_at is not None:
                 return  # only the first reply counts (anycast: there is only one)
             if reply.ok is not None:
                 payload = reply.ok.payload.to_bytes()
                 small = None
-                if self._served is not None:
+                if self._served is not None or self._rekey is not None:
                     small = _decode_small(payload, self._max_reply_bytes)
                 if isinstance(small, ErrorReply) and small.error_code is ErrorCode.NOT_SERVING:
                     self._not_serving = payload  # settled (or resent) when the query finishes
                     return
+                if isinstance(small, ErrorReply) and small.error_code is ErrorCode.NEED_KEYFRAME:
+                    self._need_keyframe = payload  # the answer if no keyframe can be sent
+                    if self._rekey_now():
+                        return  # the keyframe's query answers the frame
                 self.replied_at = now
                 self._ok, self._decoded = payload, small
             else:
@@ -232,11 +262,42 @@ class CloudCall:
                 self._err = reply.err.payload.to_bytes() if reply.err is not None else b""
         self._set_settled()
 
-    def _on_final(self) -> None:
+    def _rekey_now(self) -> bool:
+        """NEED_KEYFRAME came (the lock is held): start the keyframe resend, once, if there is
+        time for it; True when it was started."""
+        if self._rekey is None or self.deadline_at - self._clock() <= MIN_RESEND_BUDGET_S:
+            return False
+        rekey, self._rekey = self._rekey, None
+        self._gen += 1  # the first query's replies and end no longer count
+        self.resends.append(ResendReason.KEYFRAME)
+        threading.Thread(
+            target=self._send_keyframe, args=(rekey,), name=f"keyframe-{self.frame}", daemon=True
+        ).start()
+        return True
+
+    def _send_keyframe(self, rekey: Rekey) -> None:
+        """Send the frame again as a keyframe (its uplink delay first); settle without an
+        answer when it cannot reach the deployment before the deadline."""
+        payload, delay_s, self.video = rekey(self.deadline_at - self._clock())
+        if payload is None:  # no time left for it: NEED_KEYFRAME is the frame's answer
+            with self._lock:
+                if self.replied_at is None and self._finished_at is None:
+                    self.replied_at, self._ok = self._clock(), self._need_keyframe
+            self._set_settled()
+            return
+        self._payload = payload
+        self._sent_bytes += len(payload)
+        if delay_s > 0:  # the emulated uplink; cut short if the call settles meanwhile
+            self._settled.wait(delay_s)
+        self._send()
+
+    def _on_final(self, gen: int) -> None:
         """Zenoh finished the query. Without a reply (or with only NOT_SERVING) and with time
         left, it found no serving deployment (a move under way, or a stale route): resend it
         from a thread of its own (this is Zenoh's callback thread), see the module docstring."""
         with self._lock:
+            if gen != self._gen:
+                return  # a query that a keyframe resend replaced
             resend = (
                 self.replied_at is None
                 and self._finished_at is None

@@ -7,6 +7,10 @@ bytes' time in a token bucket (`robotd.frame_path.pacing.TokenBucket`): a reques
 through before its deadline is never sent (it would only queue ahead of the next frames; the call
 still times out at the deadline, so the policy learns what that cut costs), and one that can is sent
 with the deadline budget left after the emulated link.
+
+A video frame (`h264`) carries its stream position (`video`) and, in `keyframe`, what codes it
+again as a keyframe: the call resends it so when the deployment cannot decode it
+(`robotd.frame_path.offload`), through the same emulated uplink, with the budget left.
 """
 
 from __future__ import annotations
@@ -17,7 +21,7 @@ from collections.abc import Callable
 
 import zenoh
 
-from common.wire.robot_to_cloud import InferRequest
+from common.wire.robot_to_cloud import InferRequest, VideoStream
 from common.wire.tensor_codecs import EncodedTensor
 from robotd.frame_path.offload import CloudCall
 from robotd.frame_path.pacing import TokenBucket
@@ -64,11 +68,15 @@ class RequestSender:
         background: bool = False,
         end: int | None = None,
         member: str | None = None,
+        video: VideoStream | None = None,
+        keyframe: Callable[[], tuple[dict[str, EncodedTensor], VideoStream]] | None = None,
     ) -> CloudCall:
         """Send frame `frame`'s tensors after cut index `cut`; the call is under way on return
         (`background`: handed to Zenoh from a thread of its own, see `CloudCall.start`). `end`:
         the cloud runs only the segment up to that cut and replies with its tensors. `member`:
-        the pool member that computes it (round robin); None: the anycast key."""
+        the pool member that computes it (round robin); None: the anycast key. `video`: the
+        video tensors' stream position; `keyframe`: what codes them again as a keyframe, for a
+        resend when the deployment cannot decode them."""
         request = InferRequest(
             robot=self._robot,
             frame=frame,
@@ -79,6 +87,7 @@ class RequestSender:
             sent_at=time.time(),
             epoch=epoch,
             end_cut=end,
+            video=video,
         )
         payload = request.to_wire()
         delay = 0.0
@@ -97,6 +106,12 @@ class RequestSender:
         key = self.key
         if member is not None and self._member_key is not None:
             key = self._member_key(member)
+        rekey = None
+        if keyframe is not None:
+
+            def rekey(budget_s: float) -> tuple[bytes | None, float, VideoStream]:
+                return self._keyframe_payload(request, keyframe, budget_s)
+
         call = CloudCall(
             self._session,
             key,
@@ -106,6 +121,32 @@ class RequestSender:
             delay_s=delay,
             max_reply_bytes=self._max_reply_bytes,
             served=self._served,
+            video=video,
+            rekey=rekey,
         )
         call.start(background=background)
         return call
+
+    def _keyframe_payload(
+        self,
+        request: InferRequest,
+        keyframe: Callable[[], tuple[dict[str, EncodedTensor], VideoStream]],
+        budget_s: float,
+    ) -> tuple[bytes | None, float, VideoStream]:
+        """`request` again with its video tensors coded as a keyframe, its deadline the
+        `budget_s` left: (its payload, its emulated uplink delay, its stream position); the
+        payload None when the uplink cannot carry it within the budget (the frame is then
+        finished on the robot, and the keyframe's stream marked unseen by the frame loop)."""
+        tensors, video = keyframe()
+        again = dataclasses.replace(
+            request, tensors={**request.tensors, **tensors}, video=video, deadline_s=budget_s
+        )
+        payload = again.to_wire()
+        delay = 0.0
+        if self.uplink is not None:
+            if self.uplink.delay_for(len(payload)) >= budget_s:
+                return None, 0.0, video
+            delay = self.uplink.reserve(len(payload))
+            if delay > 0:
+                payload = dataclasses.replace(again, deadline_s=budget_s - delay).to_wire()
+        return payload, delay, video

@@ -60,12 +60,15 @@ class FrameContext:
     `entropy` is the frame's normalized grey-level entropy in [0, 1] (`robotd.frame_path.entropy`);
     the policy turns it into its key-frame weight σ itself. `expected_costs` is filled by the
     simulator only: the true expected objective cost of each action, in the policy's action order
-    (cuts in profile order, then P). Real frames leave it `None`.
+    (cuts in profile order, then P). Real frames leave it `None`. `keyframe`: a video action
+    (`h264`) would send this frame as a keyframe (its stream is new or broken:
+    `robotd.frame_path.video_streams`), which costs 10-30 times a P-frame's bytes.
     """
 
     index: int
     entropy: float = 1.0
     expected_costs: Sequence[float] | None = None
+    keyframe: bool = False
 
 
 @dataclass(frozen=True, slots=True)
@@ -133,6 +136,8 @@ class Outcome:
     - `cpu_s`: the robot's CPU seconds for the frame (process time, every thread: a hedged
       local run included), when measured; the simulator, which models no CPU contention, leaves
       it None.
+    - `keyframe`: a video action's frame (`h264`): whether it was sent as a keyframe (its bytes
+      are learned apart from P-frames'); None for other actions.
     """
 
     prefix_s: float | None = None
@@ -143,6 +148,7 @@ class Outcome:
     latency_s: float | None = None
     waited_s: float | None = None
     cpu_s: float | None = None
+    keyframe: bool | None = None
 
 
 class _CodecModel(BaseModel):

@@ -413,13 +413,22 @@ def fit_frame(image: np.ndarray, height: int, width: int) -> np.ndarray:
     h, w = image.shape[:2]
     if (h, w) == (height, width):
         return image
-    rect_h, rect_w = fit_rect(h, w, height, width)
-    crop_h, crop_w = max(1, round(rect_h)), max(1, round(rect_w))
-    top, left = (h - crop_h) // 2, (w - crop_w) // 2
+    top, left, crop_h, crop_w = fit_crop(h, w, height, width)
     view = image[top : top + crop_h, left : left + crop_w]
     shrink = min(crop_h / height, crop_w / width)
     interpolation = cv2.INTER_AREA if shrink >= AREA_SHRINK else cv2.INTER_LINEAR
     return cv2.resize(view, (width, height), interpolation=interpolation)
+
+
+def fit_crop(h: int, w: int, height: int, width: int) -> tuple[int, int, int, int]:
+    """(top, left, crop height, crop width): the part of an h×w frame that `fit_frame` scales to
+    `height`×`width` (the whole frame when it is that size already). What a consumer of the
+    results needs to map the model's pixels back onto the camera's (`robotd.results.ros2`)."""
+    if (h, w) == (height, width):
+        return 0, 0, h, w
+    rect_h, rect_w = fit_rect(h, w, height, width)
+    crop_h, crop_w = max(1, round(rect_h)), max(1, round(rect_w))
+    return (h - crop_h) // 2, (w - crop_w) // 2, crop_h, crop_w
 
 
 def fit_rect(photo_h: int, photo_w: int, height: int, width: int) -> tuple[float, float]:

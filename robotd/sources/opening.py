@@ -76,12 +76,17 @@ def open_source(
             "daemon, on its session"
         )
     match parsed:
-        case Ros2Spec():
+        case Ros2Spec(right=None):
             assert session is not None
             # Imported here: rosbags' type store is built only for a ROS 2 source.
             from robotd.sources.ros2 import Ros2Source
 
             return Ros2Source(parsed, session, session.stop, height=height, width=width)
+        case Ros2Spec():
+            assert session is not None
+            from robotd.sources.ros2_stereo import Ros2StereoSource
+
+            return Ros2StereoSource(parsed, session, session.stop, height=height, width=width)
         case SyntheticSpec():
             return SyntheticSource(
                 height,

@@ -8,9 +8,9 @@ measured on the first frames it serves (`robotd.robot_profile.FirstFramesRefinem
 
 The test makes that install in a fresh virtual environment (pip with this host's configuration,
 so a local cache or index serves the pinned, hash-checked files), checks that the extras are not
-importable there, and runs that environment's `elasticfog`: a registry and a robot with a `ros2:`
-source, on loopback (no cloud: the robot finishes its frames itself). This process plays the
-camera, a ROS 2 publisher of `sensor_msgs/msg/Image` over rmw_zenoh made with the project's own
+importable there, and runs that environment's `elasticfog`: a registry, a cloud daemon (a cloud
+host installs the same lock) and a robot with a `ros2:` source, on loopback. This process plays
+the camera, a ROS 2 publisher of `sensor_msgs/msg/Image` over rmw_zenoh made with the project's own
 node (`robotd.ros2_node`; its frames are views of a photograph, from the test's environment), and
 reads the results on the robot's out key. What must hold: frames are served and each result
 carries its frame's header stamp, the codecs are measured on the robot's first frames, frames go
@@ -216,6 +216,7 @@ def test_a_robot_from_the_runtime_lock_serves_a_ros2_camera(
     fleet = make_fleet(machines={ROBOT: {"source": f"ros2:{CAMERA}"}})
     lf = local_fleet(fleet, argv0=[str(runtime_venv.elasticfog)])
     lf.start_registry()
+    lf.start_clouds(["edge-1"])
     sent: dict[int, int] = {}  # stamp -> frame published
     with RobotClient(fleet.config, ROBOT) as client:
         robot = lf.start_robot(ROBOT, wait=True)  # the fleet's policy, elastic: it learns codecs
