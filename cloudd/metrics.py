@@ -44,6 +44,8 @@ class RequestOutcome(str, enum.Enum):
     NOT_SERVING = "not_serving"  # reached a deployment not serving its robot (crossed a switch)
     EXPIRED = "expired"  # its deadline passed in the queue: answered without computing
     DROPPED = "dropped"  # held unanswered by fault injection (drop or stall)
+    # An h264 P-frame its robot's decoder here cannot decode: resent as a keyframe.
+    NEED_KEYFRAME = "need_keyframe"
 
     def __str__(self) -> str:
         return self.value
@@ -58,6 +60,7 @@ REFUSAL_OUTCOMES = {
     RefusalReason.QUEUE_FULL: RequestOutcome.BUSY,
     RefusalReason.STOPPING: RequestOutcome.BUSY,
     RefusalReason.BAD_REQUEST: RequestOutcome.BAD_REQUEST,
+    RefusalReason.NEED_KEYFRAME: RequestOutcome.NEED_KEYFRAME,
 }
 """The outcome of a request refused for each counted reason."""
 

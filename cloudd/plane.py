@@ -101,6 +101,10 @@ class ServicePlane:
         self.who = who
         self._parts = parts
         self.book = RobotBook(view.robot_ids, closing=parts.closing)
+        # The robots' h264 streams (decoded at admission; freed when a robot leaves service).
+        self.video = VideoDecoders(
+            max_streams=parts.limits.video_streams, idle_s=parts.limits.video_idle_s
+        )
         self._service_keys = ServiceKeys(view.fleet, self.name, parts.deployment, self.book)
         self.controller = Controller(
             parts.deployment,
@@ -112,10 +116,6 @@ class ServicePlane:
             set_in_flight=self._set_in_flight,
             left_service=self.video.forget,
             who=who,
-        )
-        # The robots' h264 streams (decoded at admission; freed when a robot leaves service).
-        self.video = VideoDecoders(
-            max_streams=parts.limits.video_streams, idle_s=parts.limits.video_idle_s
         )
         self._costs = BatchCosts()
         self.batch_stats = BatchStats()

@@ -41,7 +41,6 @@ from common.wire.tensor_codecs import image_hwc, is_video
 from common.wire.video_codec import H264Decoder
 
 
-
 @dataclass
 class _RobotStream:
     """One robot's stream here: its number, the last frame decoded whole, its decoders."""

@@ -20,9 +20,17 @@ bytes. By default only images may cross lossy (JPEG at the lowest quality of the
 answers meet the bound): a feature map crosses lossy only with `lossy_features: true`.
 A codec a baseline asks for by name (`cloud:jpeg80`) is measured and kept whatever the bound.
 
+Video (`h264`, image crossings, tried with `video: true` or when named): the calibration frames
+are coded as one stream, as a camera's frames would be (the first a keyframe, the others
+P-frames), and decoded in order; its fidelity is measured on every decoded frame like JPEG's,
+`bytes`, `encode_ms` and `decode_ms` are the P-frames' and `key_bytes` the median keyframe (each
+frame also coded alone). The calibration frames are some frames apart, so their P-frames are
+bigger than a running camera's: the policy learns the real ones as it sends them.
+
 The result is one list per cut of the profile's `codecs` entries
 (`{name, bytes, bytes_p10, bytes_p90, encode_ms, decode_ms, top1_agreement, rel_err,
-bad_pixel_share, lossy}`; a measure with no output of its kind is null), raw first;
+bad_pixel_share, lossy}`, and `key_bytes` for video; a measure with no output of its kind is
+null), raw first;
 `robotd.policies.CutTable` turns every entry into an action.
 """
 
@@ -41,7 +49,20 @@ from common.defaults import DEFAULT_MAX_BAD_PIXEL_SHARE, DEFAULT_MAX_OUTPUT_REL_
 from common.errors import UserError
 from common.partition import TensorSpec
 from common.wire import WireError
-from common.wire.tensor_codecs import CODEC_RAW, decode_encoded, encode_tensor_as, parse_codec
+from common.wire.tensor_codecs import (
+    CODEC_RAW,
+    decode_encoded,
+    encode_tensor_as,
+    image_hwc,
+    parse_codec,
+)
+from common.wire.video_codec import (
+    CODEC_H264,
+    DEFAULT_CRF,
+    H264Decoder,
+    H264Encoder,
+    encode_keyframe,
+)
 
 if TYPE_CHECKING:
     from common.config import FidelityConfig
@@ -171,6 +192,10 @@ class Fidelity:
     codecs: tuple[str, ...] | None = None
     """Only these codecs (and raw) are tried; None: every codec that applies."""
     max_bad_pixel_share: float | None = DEFAULT_MAX_BAD_PIXEL_SHARE
+    video: bool = False
+    """Image crossings may be h264 too (measured as a stream)."""
+    crf: int = DEFAULT_CRF
+    """The h264 streams' CRF (`video.crf` of the fleet file)."""
 
     def admits(
         self, top1: float | None, rel_err: float | None, bad_pixels: float | None = None
@@ -190,9 +215,9 @@ class Fidelity:
         )
 
 
-def fidelity_of(config: FidelityConfig) -> Fidelity:
-    """The codec profiler's bound from the fleet file's `fidelity:` section; UserError for a
-    codec name that does not exist."""
+def fidelity_of(config: FidelityConfig, crf: int = DEFAULT_CRF) -> Fidelity:
+    """The codec profiler's bound from the fleet file's `fidelity:` section (and its `video.crf`,
+    the CRF h264 is measured at); UserError for a codec name that does not exist."""
     for name in config.codecs or ():
         try:
             parse_codec(name)
@@ -204,6 +229,8 @@ def fidelity_of(config: FidelityConfig) -> Fidelity:
         lossy_features=config.lossy_features,
         codecs=tuple(config.codecs) if config.codecs is not None else None,
         max_bad_pixel_share=config.max_bad_pixel_share,
+        video=config.video,
+        crf=crf,
     )
 
 
@@ -219,6 +246,8 @@ def candidate_codecs(specs: Sequence[TensorSpec], fidelity: Fidelity) -> list[st
     every tensor of the cut: the cut's tensors cross together in one codec."""
     if all(is_image(s) for s in specs):
         names = [CODEC_RAW, *LOSSLESS_CODECS, *(f"jpeg{q}" for q in JPEG_LADDER)]
+        if fidelity.video:
+            names.append(CODEC_H264)
     else:
         names = [CODEC_RAW, "raw+zstd"]
         if fidelity.lossy_features:
@@ -244,9 +273,11 @@ class _Measured:
     agree: list[bool]
     rel_err: list[float]
     bad: list[float] = field(default_factory=list)
+    key_bytes: list[int] = field(default_factory=list)
 
     def entry(self) -> dict[str, Any]:
         sizes = np.asarray(self.bytes, dtype=np.float64)
+        video = {"key_bytes": float(np.median(self.key_bytes))} if self.key_bytes else {}
         return {
             "name": self.name,
             "bytes": float(np.median(sizes)),
@@ -258,6 +289,7 @@ class _Measured:
             "rel_err": float(max(self.rel_err)) if self.rel_err else None,
             "bad_pixel_share": float(max(self.bad)) if self.bad else None,
             "lossy": self.lossy,
+            **video,
         }
 
 
@@ -268,15 +300,20 @@ def measure_codecs(
     suffix: Callable[[Mapping[str, np.ndarray]], Mapping[str, np.ndarray]],
     names: Iterable[str],
     declared: Mapping[str, OutputKind] | None = None,
+    crf: int = DEFAULT_CRF,
 ) -> list[dict[str, Any]]:
     """Every codec in `names` on one cut: `crossings[i]` are the cut's tensors of calibration
     frame i, `references[i]` the uncompressed model's outputs for it, `suffix` runs the rest of
-    the model, `declared` the output kinds the model declares. Returns one profile entry per
-    codec (see the module docstring)."""
+    the model, `declared` the output kinds the model declares, `crf` a video codec's quality.
+    Returns one profile entry per codec (see the module docstring)."""
     out = []
     for name in names:
         codec = parse_codec(name)
         m = _Measured(name, codec.lossy, [], [], [], [], [])
+        if codec.video:
+            _measure_stream(m, specs, crossings, references, suffix, declared or {}, crf)
+            out.append(m.entry())
+            continue
         for tensors, reference in zip(crossings, references, strict=True):
             t0 = time.perf_counter()
             encoded = {s.name: encode_tensor_as(tensors[s.name], name) for s in specs}
@@ -300,6 +337,54 @@ def measure_codecs(
                     m.bad.append(bad)
         out.append(m.entry())
     return out
+
+
+def _measure_stream(
+    m: _Measured,
+    specs: Sequence[TensorSpec],
+    crossings: Sequence[Mapping[str, np.ndarray]],
+    references: Sequence[Mapping[str, np.ndarray]],
+    suffix: Callable[[Mapping[str, np.ndarray]], Mapping[str, np.ndarray]],
+    declared: Mapping[str, OutputKind],
+    crf: int,
+) -> None:
+    """A video codec on one cut: the calibration frames coded as one stream per tensor (a
+    keyframe, then P-frames) and decoded in order, the fidelity measured on every frame; the
+    bytes and times recorded are the P-frames' (all frames' with a single one), `key_bytes`
+    each frame coded alone as a keyframe."""
+    encoders, decoders, shapes = {}, {}, {}
+    for s in specs:
+        hwc = image_hwc(s.shape)
+        assert hwc is not None  # the codec applies to the cut (candidate_codecs)
+        encoders[s.name] = H264Encoder(*hwc, crf=crf)
+        decoders[s.name] = H264Decoder(*hwc)
+        shapes[s.name] = hwc
+    for i, (tensors, reference) in enumerate(zip(crossings, references, strict=True)):
+        key = i == 0
+        t0 = time.perf_counter()
+        coded = {s.name: encoders[s.name].encode(tensors[s.name], keyframe=key)[0] for s in specs}
+        t1 = time.perf_counter()
+        decoded = {
+            s.name: decoders[s.name]
+            .decode(coded[s.name], keyframe=key, where=s.name)
+            .reshape(s.shape)
+            for s in specs
+        }
+        t2 = time.perf_counter()
+        m.key_bytes.append(
+            sum(len(encode_keyframe(tensors[s.name], shapes[s.name], crf)) for s in specs)
+        )
+        if not key or len(crossings) == 1:
+            m.bytes.append(sum(len(d) for d in coded.values()))
+            m.encode_s.append(t1 - t0)
+            m.decode_s.append(t2 - t1)
+        agree, err, bad = compare_outputs(suffix(decoded), reference, declared)
+        if agree is not None:
+            m.agree.append(agree)
+        if err is not None:
+            m.rel_err.append(err)
+        if bad is not None:
+            m.bad.append(bad)
 
 
 def compare_outputs(
@@ -394,7 +479,9 @@ def profile_codecs(
         def suffix(tensors: Mapping[str, np.ndarray], k: int = k) -> Mapping[str, np.ndarray]:
             return model.run_suffix(k, tensors)
 
-        entries = measure_codecs(specs, crossings, references, suffix, names, declared)
+        entries = measure_codecs(
+            specs, crossings, references, suffix, names, declared, fidelity.crf
+        )
         chosen = {e["name"] for e in select_codecs(entries, fidelity, wanted)}
         result[cut.index] = [{**e, "action": e["name"] in chosen} for e in entries]
         if advance is not None:

@@ -360,6 +360,8 @@ DEFAULT_MAX_VIDEO_STREAMS = 64
 """h264 decoders kept per service plane: ~130 MB at 640x480, more robots than a plane serves."""
 DEFAULT_VIDEO_IDLE_S = 30.0
 """An h264 stream unused this long is freed: its robot went elsewhere or stopped."""
+DEFAULT_VIDEO_CRF = 28
+"""x264's CRF for h264 crossings (`common.wire.video_codec.DEFAULT_CRF`)."""
 
 
 class CloudLimitsConfig(_Model):
@@ -889,6 +891,24 @@ class FidelityConfig(_Model):
         description="Only these codecs may carry a crossing (raw always may); null: every "
         "codec that applies and meets the bound.",
     )
+    video: bool = Field(
+        default=False,
+        description="Let camera images (cut 0) cross as h264 video too, measured like JPEG "
+        "(as a stream of the calibration frames); naming h264 in `codecs` does the same.",
+    )
+
+
+class VideoConfig(_Model):
+    """How a robot codes the camera images it sends as video (codec `h264` at cut 0:
+    `common.wire.video_codec`); a deployment needs none of it to decode them."""
+
+    crf: int = Field(
+        default=DEFAULT_VIDEO_CRF,
+        ge=0,
+        le=51,
+        description="x264's constant rate factor (0 = lossless .. 51 = worst): the quality of "
+        "h264 frames, as Q is JPEG's; 23-24 matches JPEG 50's PSNR at 640x480 (docs/video.md).",
+    )
 
 
 class ServiceConfig(_Model):
@@ -1027,6 +1047,10 @@ class FleetConfig(_Model):
     fidelity: FidelityConfig = Field(
         default_factory=FidelityConfig,
         description="Which lossy codecs may carry a crossing (measured on calibration frames).",
+    )
+    video: VideoConfig = Field(
+        default_factory=VideoConfig,
+        description="How camera images crossing as h264 are coded (the robots' encoders).",
     )
     zenoh: ZenohConfig = Field(default_factory=ZenohConfig, description="Zenoh settings.")
     ros2: Ros2Config = Field(

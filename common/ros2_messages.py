@@ -671,7 +671,7 @@ def tensor_of(array: np.ndarray) -> np.ndarray:
     if dtype.str not in _TENSOR_CODES:
         known = ", ".join(str(d) for d in TENSOR_DATA_TYPES.values())
         raise BadMessageValue(f"a {values.dtype} output is not a tensor type; known: {known}")
-    return np.ascontiguousarray(values, dtype=dtype)
+    return values.astype(dtype, order="C", copy=False)  # a 0-d output stays 0-d
 
 
 def encode_tensor_list(outputs: Mapping[str, np.ndarray], header: Header) -> bytes:

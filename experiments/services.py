@@ -2,26 +2,30 @@
 
 One robot uses three services at once (`robotd.services`: one capture feeds them all, each has
 its own policy, route and frame loop, and they share the robot's uplink and CPU): a classifier
-(`zoo:mobilenet_v2` at 160x120, the highest priority and the tightest deadline), a dense model
-(`experiments.dense_model`: class scores for every pixel of a 320x240 image, whose feature maps
-are all larger than the image's JPEG) and a handler (`perception.apriltag:detect` on 640x480,
-FogROS2-LS's workload, the lowest priority and the loosest deadline; where the daemons cannot
-import it, a small OpenCV edge detector the bench writes beside the fleet file). One deployment,
-`edge-1`, serves all three. The robot's host is held at `robot_cpu` of a core (0.5 by default)
-and its uplink is capped with `tc`: `UNCONTENDED_MBIT` first, then, while the robot streams,
-`CONTENDED_MBIT`, where the three services' crossings together need more than the link carries.
+(`zoo:mobilenet_v2` at 160x120, priority 2, deadline 0.15 s), a dense model
+(`experiments.dense_model`: class scores for every pixel of a 320x240 image, priority 1,
+deadline 0.3 s) and a handler (`perception.apriltag:detect` on 640x480, FogROS2-LS's workload,
+priority 0, deadline 0.25 s; where the daemons cannot import it, a small OpenCV edge detector
+the bench writes beside the fleet file). The networks' policy is `elastic`; the handler's is
+`cloud:jpeg90` unless `--handler-policy` says otherwise (`HANDLER_POLICY`). One deployment,
+`edge-1`, serves all three, at `fps` each. The robot's host is held at `robot_cpu` of a core
+(0.5 by default) and its uplink is capped with `tc`: `UNCONTENDED_MBIT` first, then, while the
+robot streams, `CONTENDED_MBIT`, where the handler's image alone (about 40 KB) takes 0.16 s to
+cross and the three services' crossings together need most of the link.
 
-Each round runs the robot twice, with `--decisions joint` (a service gives way, running on the
-robot, where the link share the services ranking above it leave cannot carry its frame within
-its deadline, `robotd.shared_budget`) and with `--decisions independent` (the same policies,
-each blind to the others, as separate processes would be), alternated round after round so
-that a drift of the shared host falls on both. A run: the robot starts with the whole machine
-(start-up is not measured), its host gets its quota, `warmup_frames` frames of every service
-are left out (the services start streaming as each is ready, seconds apart: the warm-up ends
-with the last one's), the uncontended phase lasts `phase_s`, then the cap drops; the first
-`settle_s` after the change are left out (the policies learn the new link and the queue of the
-old rate drains), the contended phase lasts `phase_s`, and the robot is stopped with SIGINT
-(its `--frames` is only a bound). `services_rows` turns the records into rows.
+After a robot run that is not measured (the deployment's and the host's first runs would
+otherwise fall on the first measured run, always a joint one), each round runs the robot twice:
+with `--decisions joint` (a service gives way, running on the robot, where the link share the
+services ranking above it leave cannot carry its frame within its deadline,
+`robotd.shared_budget`) and with `--decisions independent` (the same policies, each blind to
+the others, as separate processes would be), in that order round after round, so that a drift
+of the shared host falls on both. A run: the robot starts with the whole machine (start-up is
+not measured), its host gets its quota, `warmup_frames` frames of every service are left out
+(the services start streaming as each is ready, seconds apart: the warm-up ends with the last
+one's), the uncontended phase lasts `phase_s`, then the cap drops; the first `settle_s` after
+the change are left out (the policies learn the new link and the queue of the old rate drains),
+the contended phase lasts `phase_s`, and the robot is stopped with SIGINT (its `--frames` is
+only a bound). `services_rows` turns the records into rows.
 """
 
 from __future__ import annotations
@@ -36,6 +40,7 @@ from pathlib import Path
 from typing import Any
 
 from common.config import FleetConfig, fleet_from_dict
+from common.daemon import FORCED_EXIT_CODE
 from common.errors import UserError
 from deploy.procs import DaemonError
 
@@ -46,6 +51,7 @@ from .report import save_plot, use_agg
 from .runner import NetnsDaemon, TestbedFleet
 from .services_rows import (
     CONTENDED,
+    INDEPENDENT,
     MODES,
     PHASES,
     UNCONTENDED,
@@ -73,6 +79,8 @@ FULL_WARMUP, QUICK_WARMUP = 8, 4
 WARMUP_WAIT_S = 300.0
 """Bound of the wait for every service's warm-up frames (start-up and calibration included)."""
 CAP_MARGIN_S = 30.0
+WARM_UP_RUN_S = 5.0
+"""How long the unmeasured first run streams past its warm-up frames."""
 HOLD_POLL_S = 0.2
 
 CLASSIFIER = "classify"
@@ -311,6 +319,8 @@ def run(
         )
         prepare(tf, spec, tf.workdir / spec.fleet)
         tf.launch(spec, prepare=False)
+        options.log("a warm-up run (not measured)")
+        warm_up(tf, settings, infos)
         for turn in range(settings.rounds):
             for mode in MODES:
                 options.log(f"round {turn + 1} of {settings.rounds}: --decisions {mode}")
@@ -324,6 +334,15 @@ def _fields(settings: ServicesSettings) -> dict[str, Any]:
     return {f: getattr(settings, f) for f in settings.__dataclass_fields__}
 
 
+def warm_up(tf: TestbedFleet, settings: ServicesSettings, infos: list[ServiceInfo]) -> None:
+    """A robot run that is not measured, before the first round: the deployment's first
+    frames of each service (its sessions' first runs) and the host's caches would otherwise
+    fall on the first measured run, always a joint one."""
+    robot = _start(tf, settings, infos, INDEPENDENT, "warm-up")
+    _hold(robot, WARM_UP_RUN_S)
+    _stop(robot, tf)
+
+
 def run_once(
     tf: TestbedFleet,
     settings: ServicesSettings,
@@ -333,16 +352,37 @@ def run_once(
 ) -> RunWindows:
     """One robot run in `mode`: warm-up, the uncontended phase, the change, the contended
     phase; then the robot is stopped (SIGINT: the frames in flight are finished and reported)."""
+    robot = _start(tf, settings, infos, mode, f"{mode}-{turn + 1}")
+    start = time.time()
+    _hold(robot, settings.phase_s)
+    tf.shape_robot(settings.uplinks_mbit[CONTENDED])
+    change = time.time()
+    _hold(robot, settings.settle_s + settings.phase_s)
+    stop = time.time()
+    _stop(robot, tf)
+    records = tf.follower.records()
+    windows = {UNCONTENDED: (start, change), CONTENDED: (change + settings.settle_s, stop)}
+    run = RunWindows(mode, turn + 1, records, windows)
+    phases = ", ".join(f"{p} {len(_of(run, infos, p))} frames" for p in PHASES)
+    tf.log(f"{mode}: {phases}")
+    return run
+
+
+def _start(
+    tf: TestbedFleet, settings: ServicesSettings, infos: list[ServiceInfo], mode: str, tag: str
+) -> NetnsDaemon:
+    """The robot in `mode` on the uncontended uplink, under its quota, past every service's
+    warm-up frames. The services start streaming as each is ready, seconds apart: the warm-up
+    waits for the last. The frame in flight when the quota came ran partly unthrottled: the
+    warm-up counts after it."""
     tf.shape_robot(settings.uplinks_mbit[UNCONTENDED])
     robot = tf.start_robot(
         None,
         frames=settings.frames_cap,
         cpu_fraction=settings.robot_cpu,
         extra=["--decisions", mode],
-        tag=f"{mode}-{turn + 1}",
+        tag=tag,
     )
-    # The services start streaming as each is ready, seconds apart: the warm-up waits for the
-    # last. The frame in flight when the quota came ran partly unthrottled: it counts after it.
     last = _last_frames(tf.follower.records(), infos)
     for info in infos:
         tf.follower.wait_for(
@@ -351,25 +391,23 @@ def run_once(
             what=f"{settings.warmup_frames} warm-up frames of service {info.name}",
             procs=[robot],
         )
-    start = time.time()
-    _hold(robot, settings.phase_s)
-    tf.shape_robot(settings.uplinks_mbit[CONTENDED])
-    change = time.time()
-    _hold(robot, settings.settle_s + settings.phase_s)
-    stop = time.time()
+    return robot
+
+
+def _stop(robot: NetnsDaemon, tf: TestbedFleet) -> None:
+    """SIGINT (the robot finishes its frames in flight, starts no more), its quota lifted. A
+    robot that stopped its frame loops but not its Zenoh sessions within its limit leaves
+    with FORCED_EXIT_CODE: its records are written, the run counts."""
     stopped = robot.stop()
     tf.cpu_robot(None)
+    if stopped.returncode == FORCED_EXIT_CODE and not stopped.killed:
+        tf.log(f"{robot.name}: its sessions did not close in time (exit {FORCED_EXIT_CODE})")
+        return
     if stopped.killed or stopped.returncode != 0:
         raise DaemonError(
             f"{robot.name} did not stop cleanly (exit {stopped.returncode}, "
             f"{'killed' if stopped.killed else 'not killed'}); log: {robot.log_path}"
         )
-    records = tf.follower.records()
-    windows = {UNCONTENDED: (start, change), CONTENDED: (change + settings.settle_s, stop)}
-    run = RunWindows(mode, turn + 1, records, windows)
-    phases = ", ".join(f"{p} {len(_of(run, infos, p))} frames" for p in PHASES)
-    tf.log(f"{mode}: {phases}")
-    return run
 
 
 def _of(run: RunWindows, infos: list[ServiceInfo], phase: str) -> list[Any]:

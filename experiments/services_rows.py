@@ -101,12 +101,13 @@ class RunWindows:
         }
 
     def to_json(self) -> dict[str, Any]:
-        """{"mode", "round", "windows_s": {phase: [start, stop]} in seconds from the
-        uncontended phase's start}."""
+        """{"mode", "round", "started_at" (the uncontended phase's start, wall clock, as the
+        records' `at`), "windows_s": {phase: [start, stop]} in seconds from it}."""
         origin = self.windows[UNCONTENDED][0]
         return {
             "mode": self.mode,
             "round": self.round,
+            "started_at": origin,
             "windows_s": {
                 phase: [round(a - origin, 3), round(b - origin, 3)]
                 for phase, (a, b) in self.windows.items()

@@ -83,6 +83,7 @@ from robotd.frame_path.probes import PROBE_INTERVAL_S, CloudTime, RobotProber, p
 from robotd.frame_path.registry_link import REGISTRY_RETRY_INITIAL_S, RegistryLink
 from robotd.frame_path.request_sender import RequestSender
 from robotd.frame_path.service_match import ServiceMatch
+from robotd.frame_path.video_streams import VideoEncoders
 from robotd.metrics import RobotMetrics
 from robotd.policies import Objective, Policy
 from robotd.results.sinks import ResultSink, open_result_sinks
@@ -351,6 +352,7 @@ class RobotDaemon(Daemon):
             result_sinks=self._result_sinks,
             on_result=self._on_result,
             refinement=refinement,
+            video=VideoEncoders(crf=cfg.video.crf),
         )
         self._started = _Started(model=model, link=link, loop=loop)
         log.info(

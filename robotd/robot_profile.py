@@ -131,7 +131,7 @@ def measured_profile(
     lowest = min(cut.index for cut in model.partition.cuts)
     calibration = CodecCalibration(
         model,
-        fidelity_of(fidelity),
+        fidelity_of(fidelity, config.video.crf),
         required_codecs(policy_spec, lowest, fleet_params(policy_spec, config)),
         {
             "source": str(source_spec),

@@ -24,6 +24,13 @@ had no frame at start (`zenoh`, `ros2:`) starts on raw actions and has a `refine
 flight are finished (each decision observed by the policy that made it), the codecs are measured
 on those frames, and the policy built on them takes over. This happens once, on this thread,
 between two frames; frames that arrive meanwhile wait as any frame does (the newest is kept).
+
+A video action (`h264`, cut 0) codes the frame in the stream of the deployment it goes to
+(`robotd.frame_path.video_streams.VideoEncoders`): the policy is told before deciding whether
+that frame would be a keyframe (`FrameContext.keyframe`), a frame served without a video frame
+breaks the streams (the next is a keyframe), one whose request was refused, lost or timed out
+marks its stream unseen, and a frame the deployment could not decode is resent as a keyframe
+within its deadline (`robotd.frame_path.offload.CloudCall`).
 """
 
 from __future__ import annotations
@@ -39,8 +46,9 @@ import numpy as np
 
 from common.partition.runtime import SplitModel
 from common.throttled_log import ThrottledLog
+from common.wire.robot_to_cloud import VideoStream
 from common.wire.telemetry import TelemetryRecord
-from common.wire.tensor_codecs import encode_tensor_as
+from common.wire.tensor_codecs import EncodedTensor, encode_tensor_as, is_video
 from robotd.emulation import Emulation, Slowdown
 from robotd.frame_path.entropy import frame_entropy
 from robotd.frame_path.failure_runs import FailureRuns
@@ -54,6 +62,7 @@ from robotd.frame_path.pool_turns import PoolTurns
 from robotd.frame_path.probes import CloudTime
 from robotd.frame_path.registry_link import RegistryLink
 from robotd.frame_path.request_sender import RequestSender
+from robotd.frame_path.video_streams import VideoEncoders
 from robotd.policies import PURE_ROBOT, FrameContext, Objective, Policy
 from robotd.results.sinks import ResultSink
 from robotd.robot_model import RobotModel
@@ -101,6 +110,8 @@ class FrameLoop:
     on_result: Callable[[FrameResult], None] | None = None
     refinement: FirstFramesRefinement | None = None
     """The policy measured on the first frames served, when the source had none at start."""
+    video: VideoEncoders = field(default_factory=VideoEncoders)
+    """The video streams of `h264` actions, one per deployment sent to."""
     frames_done: int = 0
 
     def __post_init__(self) -> None:
@@ -196,9 +207,14 @@ class FrameLoop:
         cpu_started = time.process_time()
         feeds = self.robot_model.feeds(frame)
         entropy = frame_entropy(first_view(frame))
-        decision = self.policy.decide(FrameContext(index=n, entropy=entropy))
         held = self.link.held
         epoch = held.epoch
+        keyframe = self.video.keyframe_due(self._turns.peek(held.pool) or held.deployment, epoch)
+        context = FrameContext(index=n, entropy=entropy, keyframe=keyframe)
+        decision = self.policy.decide(context)
+        video = decision.action != PURE_ROBOT and is_video(decision.codec)
+        if not video:
+            self.video.skipped()  # the camera's sequence is broken: the next video is a key
         f = Frame(n, decision, entropy, feeds, started, cpu_started, epoch, stamp_ns)
         f.dropped_stale = dropped_stale
         model = self.model
@@ -212,8 +228,19 @@ class FrameLoop:
         cut = self.model.partition.cuts[k]
         t = time.perf_counter()
         sent = self._compute(lambda options: model.run_prefix(k, feeds, run_options=options))
+        member = self._turns.next(held.pool)
+        streamed: dict[str, Any] = {}  # a video frame's stream position and keyframe resend
         # Encoding is the robot's part of the action: it counts in its prefix time.
-        encoded = {name: encode_tensor_as(a, decision.codec) for name, a in sent.items()}
+        if video:
+            f.video_at = where = member or held.deployment or ""
+            encoded, stream = self.video.encode(n, where, epoch, sent)
+
+            def rekey() -> tuple[dict[str, EncodedTensor], VideoStream]:
+                return self.video.encode(n, where, epoch, sent, keyframe=True)
+
+            streamed = {"video": stream, "keyframe": rekey}
+        else:
+            encoded = {name: encode_tensor_as(a, decision.codec) for name, a in sent.items()}
         f.prefix_s = time.perf_counter() - t
         # In flight beside other frames, the request is handed to Zenoh from a thread of its own.
         background = decision.hedge or self.max_in_flight > 1
@@ -224,7 +251,8 @@ class FrameLoop:
             epoch,
             background=background,
             end=decision.end,
-            member=self._turns.next(held.pool),
+            member=member,
+            **streamed,
         )
         f.bytes_up = call.bytes_up
         if decision.hedge:
@@ -391,6 +419,11 @@ class FrameLoop:
         A stale frame (a newer one's result was applied first) is handed to none of them: it is
         counted in its record and the summary."""
         res = f.result
+        call = f.call
+        if call is not None:
+            f.bytes_up = call.bytes_up  # a keyframe resend included
+            if call.video is not None and (res is None or res.reply is None):
+                self.video.unseen(f.video_at, call.video)  # refused, lost or timed out
         self.policy.observe(f.decision, f.outcome(self.deadline_s))
         if f.stale is None:  # applied now, unless a newer frame's result was
             f.stale = not self._order.admit(f.n)

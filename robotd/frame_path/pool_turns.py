@@ -27,3 +27,10 @@ class PoolTurns:
             member = pool[self._turn % len(pool)]
             self._turn += 1
         return member
+
+    def peek(self, pool: tuple[str, ...]) -> str | None:
+        """The member `next` would give now, without taking the turn."""
+        if len(pool) < 2:
+            return None
+        with self._lock:
+            return pool[self._turn % len(pool)]

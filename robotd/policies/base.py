@@ -62,7 +62,7 @@ class FrameContext:
     simulator only: the true expected objective cost of each action, in the policy's action order
     (cuts in profile order, then P). Real frames leave it `None`. `keyframe`: a video action
     (`h264`) would send this frame as a keyframe (its stream is new or broken:
-    `robotd.frame_path.video_streams`), which costs 10-30 times a P-frame's bytes.
+    `robotd.frame_path.video_streams`), which costs several times a P-frame's bytes.
     """
 
     index: int
@@ -158,6 +158,12 @@ class _CodecModel(BaseModel):
     bytes: float = Field(gt=0, description="Median bytes sent with this codec.")
     encode_ms: float = Field(default=0.0, ge=0, description="Encode time on the robot.")
     decode_ms: float = Field(default=0.0, ge=0, description="Decode time in the cloud.")
+    key_bytes: float | None = Field(
+        default=None,
+        gt=0,
+        description="A video codec's keyframe bytes (median); `bytes` are its P-frames'. "
+        "Absent: `bytes`.",
+    )
 
 
 class _CutModel(BaseModel):
@@ -198,7 +204,9 @@ class CutTable:
     `output_bytes` for every action; a segment's: its end cut's tensors, raw) and `tails` the
     robot's part after the reply (empty: none; a segment's: its end cut's suffix, which its
     `prefix_s` includes). Per-frame lookups key on (cut, codec, end) (`positions`), so a
-    segment's outcome is never learned as its start cut's.
+    segment's outcome is never learned as its start cut's. `keys` (empty: `bytes`) is what a
+    keyframe of each action sends: a video codec's (`h264`) keyframe, several times its P-frame;
+    every other action's is its `bytes`.
     """
 
     indices: tuple[int, ...]
@@ -212,10 +220,18 @@ class CutTable:
     ends: tuple[int | None, ...] = ()
     returns: tuple[float, ...] = ()
     tails: tuple[float, ...] = ()
+    keys: tuple[float, ...] = ()
 
     def __post_init__(self) -> None:
         n = len(self.indices)
-        for name, empty in (("ends", None), ("returns", float(self.output_bytes)), ("tails", 0.0)):
+        if not self.keys:
+            object.__setattr__(self, "keys", tuple(float(b) for b in self.bytes))
+        for name, empty in (
+            ("ends", None),
+            ("returns", float(self.output_bytes)),
+            ("tails", 0.0),
+            ("keys", 0.0),
+        ):
             if not getattr(self, name):
                 object.__setattr__(self, name, (empty,) * n)
             if len(getattr(self, name)) != n:
@@ -239,7 +255,7 @@ class CutTable:
         if len(set(seen)) != len(seen):
             dup = next(i for i in seen if seen.count(i) > 1)
             raise UserError(f"{source}: cuts: index {dup} appears more than once")
-        rows: list[tuple[int, str, float, float, float, float]] = []
+        rows: list[tuple[int, str, float, float, float, float, float]] = []
         for c in cuts:
             codecs = (
                 c.codecs if c.codecs is not None else [_CodecModel(name=RAW_CODEC, bytes=c.bytes)]
@@ -252,7 +268,10 @@ class CutTable:
             for codec in codecs:
                 prefix_ms = c.prefix_ms + codec.encode_ms
                 cloud_ms = c.suffix_ms + codec.decode_ms
-                rows.append((c.index, codec.name, codec.bytes, prefix_ms, c.suffix_ms, cloud_ms))
+                key = codec.key_bytes if codec.key_bytes is not None else codec.bytes
+                rows.append(
+                    (c.index, codec.name, codec.bytes, prefix_ms, c.suffix_ms, cloud_ms, key)
+                )
         columns = list(zip(*rows, strict=True))
         return cls(
             indices=tuple(int(i) for i in columns[0]),
@@ -263,6 +282,7 @@ class CutTable:
             cloud_s=np.array(columns[5], dtype=np.float64) / MS_PER_S,
             full_s=model.full_ms / MS_PER_S,
             output_bytes=model.output_bytes,
+            keys=tuple(float(b) for b in columns[6]),
         )
 
     @property
@@ -335,6 +355,7 @@ class CutTable:
             ends=(*self.ends, end),
             returns=(*self.returns, float(self.bytes[last])),
             tails=(*self.tails, float(self.suffix_s[last])),
+            keys=(*self.keys, self.keys[first]),
         )
 
     def with_segments(self, pairs: Sequence[Sequence[int]]) -> CutTable:
@@ -410,6 +431,7 @@ class CutTable:
             ends=tuple(self.ends[j] for j in cols),
             returns=tuple(self.returns[j] for j in cols),
             tails=tuple(self.tails[j] for j in cols),
+            keys=tuple(self.keys[j] for j in cols),
         )
 
     def decision_at(self, position: int, **fields: Any) -> Decision:

@@ -48,6 +48,19 @@ update the regression.
 
 A frame the cloud did not answer teaches y = the time the robot waited (its deadline): a dead or
 congested route then looks expensive instead of unknown, and the miss feeds change detection.
+
+Video actions (`h264`, `robotd.frame_path.video_streams`): a keyframe sends several times a
+P-frame's bytes, and the robot's stream needs one after every frame served otherwise. Each video
+action has two learned byte counts, its P-frames' (its context, as any action's bytes) and its
+keyframes' (`CutTable.keys`, then learned from the keyframes sent), and two sets of scores:
+on a frame whose video frame would be a keyframe (`FrameContext.keyframe`: the first after a
+switch, after frames served on the robot or lost) the video actions are scored with their
+keyframe's bytes, so a return to the cloud is priced at what it sends and exploration does not
+thrash between cloud and robot. A keyframe's cloud-side cost is learned as its excess over the
+P-frame's prediction (EWMA; before the first keyframe is answered, α̂'s seconds per MB times
+its extra MB): the regression's MB coefficient is learned poorly when every action sends tens
+of kilobytes (its prior outweighs the data), while the excess is measured directly. The
+regression, change detection and take-up follow the P-frames, the stream's ordinary frames.
 """
 
 from __future__ import annotations
@@ -57,6 +70,7 @@ from typing import Any
 
 import numpy as np
 
+from common.wire.tensor_codecs import is_video
 from robotd.policies.base import (
     BYTES_PER_MB,
     PURE_ROBOT,
@@ -107,6 +121,11 @@ class ElasticPolicy(Policy):
         self.contexts = action_contexts(cuts)
         # Bytes sent per action, learned online: a JPEG's size follows the content.
         self._bytes: list[float] = cuts.bytes.tolist()
+        # Video actions: their keyframes' bytes, learned apart (the P-frames' are `_bytes`).
+        self._video = [j for j, codec in enumerate(cuts.codecs) if is_video(codec)]
+        self._key_bytes: list[float] = list(cuts.keys)
+        # Their keyframes' cloud-side cost over the P-frame's prediction (None: none seen yet).
+        self._key_extra: dict[int, float | None] = dict.fromkeys(self._video)
         self._ridge = self.ridge_type(self.contexts, params.gamma)
         self._robot = RobotCostModel(cuts, objective, params)
         self._wait_rate = objective.wait_rate
@@ -160,6 +179,12 @@ class ElasticPolicy(Policy):
         self._width: list[float] = []
         self._bonus_scale = 0.0
         self._best_key = self._best_nonkey = self._cheapest = (math.inf, 0)
+        # The same on a frame whose video frame would be a keyframe (`_refresh_keyframes`).
+        self._kf_base: list[float] = []
+        self._kf_pred: list[float] = []
+        self._kf_width: list[float] = []
+        self._kf_allowed: list[float] = []
+        self._kf_best_key = self._kf_best_nonkey = self._kf_cheapest = (math.inf, 0)
         self._refresh(learned=True)
 
     # -- decisions -------------------------------------------------------------------------
@@ -175,7 +200,14 @@ class ElasticPolicy(Policy):
         take_up = self._take_up
         updating = detector.updating
         p_allowed = detector.p_allowed
-        best, j = self._best_key if ctx.entropy >= params.key_entropy else self._best_nonkey
+        keyframe = ctx.keyframe and bool(self._video)
+        key = ctx.entropy >= params.key_entropy
+        if keyframe:  # the video actions would send a keyframe: scored with its bytes
+            best, j = self._kf_best_key if key else self._kf_best_nonkey
+            base, pred, cheapest_pair = self._kf_base, self._kf_pred, self._kf_cheapest
+        else:
+            best, j = self._best_key if key else self._best_nonkey
+            base, pred, cheapest_pair = self._base, self._pred, self._cheapest
         p_cost = robot.full_cost
         regular_p = p_allowed and p_cost <= best
         forced = detector.confirm or self._schedule.is_forced(n)
@@ -189,7 +221,7 @@ class ElasticPolicy(Policy):
         if regular_p and not forced:
             return Decision(PURE_ROBOT, updating=updating, predicted_cost=p_cost)
         # P's distance spaces the probes of a robot that reports its CPU (they cost it there).
-        cheapest_cost = self._cheapest[0]
+        cheapest_cost = cheapest_pair[0]
         distance = p_cost / cheapest_cost if self._cpu_counted and cheapest_cost > 0 else 1.0
         probe = self._probes.due(j, distance)
         if probe and p_allowed and not forced and (not params.hedge or self._probes.wants_p):
@@ -199,10 +231,10 @@ class ElasticPolicy(Policy):
             return Decision(PURE_ROBOT, updating=updating, predicted_cost=p_cost)
         if not params.hedge:
             return self.cuts.decision_at(
-                j, forced=forced, updating=updating, predicted_cost=self._base[j]
+                j, forced=forced, updating=updating, predicted_cost=base[j]
             )
         # Exploring = serving something else than the estimates alone would choose.
-        cheapest, greedy = self._cheapest
+        cheapest, greedy = cheapest_pair
         if p_allowed and p_cost <= cheapest:
             greedy = -1
         hedge = greedy != j or updating or probe
@@ -214,7 +246,7 @@ class ElasticPolicy(Policy):
         if hedge:
             self._probes.tried()  # a hedged frame times the robot when its local run wins
             if not probe:
-                after_s = self._hedge_after_s(j, greedy)
+                after_s = self._hedge_after_s(j, greedy, pred)
                 if after_s == math.inf:  # insurance not worth its robot time: no local run
                     hedge, after_s = False, 0.0
         decision = self.cuts.decision_at(
@@ -222,7 +254,7 @@ class ElasticPolicy(Policy):
             hedge=hedge,
             forced=forced,
             updating=updating,
-            predicted_cost=self._base[j],
+            predicted_cost=base[j],
             hedge_after_s=after_s,
             local_expected=hedge and greedy < 0,
         )
@@ -230,7 +262,7 @@ class ElasticPolicy(Policy):
             self._probes.hedged(decision)
         return decision
 
-    def _hedge_after_s(self, j: int, greedy: int) -> float:
+    def _hedge_after_s(self, j: int, greedy: int, pred: list[float]) -> float:
         """When a hedged frame of cut j starts its local run, in seconds after the request left.
 
         The local run is speculative: started at once it competes with the offload for the
@@ -247,10 +279,10 @@ class ElasticPolicy(Policy):
         if greedy < 0:
             target_s = self.cuts.full_s * scale
         else:
-            target_s = self._prefix_s[greedy] * scale + max(self._pred[greedy], 0.0) / rate
+            target_s = self._prefix_s[greedy] * scale + max(pred[greedy], 0.0) / rate
         slack_s = target_s - self._prefix_s[j] * scale - self._suffix_s[j] * scale
         local_s = self._suffix_s[j] * scale
-        reply_s = max(self._pred[j], 0.0) / rate
+        reply_s = max(pred[j], 0.0) / rate
         if reply_s >= local_s:
             return max(slack_s, 0.0)
         overdue_s = (1.0 + self.params.change_tolerance) * reply_s
@@ -272,7 +304,12 @@ class ElasticPolicy(Policy):
             self._refresh(learned=False)
             return
         j = self._position[(int(decision.action), decision.codec, decision.end)]
-        self._learn_bytes(j, outcome.bytes_up)
+        keyframe = bool(outcome.keyframe) and j in self._video
+        if keyframe:
+            self._learn_key_bytes(j, outcome.bytes_up)
+        else:
+            self._learn_bytes(j, outcome.bytes_up)
+        pred = self._kf_pred if keyframe else self._pred
         robot_s = self._prefix_s[j] if outcome.cloud_s is not None else self._head_s[j]
         self._probes.timed(robot.observe(outcome.prefix_s, robot_s))
         if outcome.local_s is not None:
@@ -286,7 +323,7 @@ class ElasticPolicy(Policy):
         elif outcome.waited_s is not None:
             target = cloud_cost(self._wait_rate, self._radio_rate, outcome.waited_s, None)
         else:
-            target = UNKNOWN_WAIT_FACTOR * max(self._pred[j], MIN_PREDICTION)
+            target = UNKNOWN_WAIT_FACTOR * max(pred[j], MIN_PREDICTION)
         if decision.hedge:
             busy_s = (outcome.cloud_s or 0.0) - decision.hedge_after_s
             if outcome.local_s is None and outcome.cpu_s is not None:
@@ -298,9 +335,17 @@ class ElasticPolicy(Policy):
                 busy_s=busy_s,
                 cpu_known=outcome.cpu_s is not None,
                 frame_cost=self._current()[0],
-                excess=target - self._pred[j],
+                excess=target - pred[j],
             )
-        if self._take_up.observe(j, target, self._base[j] - self._pred[j], self._current):
+        if keyframe:
+            # A keyframe teaches its excess over the P-frame; the regression, change detection
+            # and take-up follow the P-frames (the stream's ordinary frames).
+            excess = target - self._pred[j]
+            known = self._key_extra[j]
+            self._key_extra[j] = (
+                excess if known is None else known + self.params.bytes_ewma * (excess - known)
+            )
+        elif self._take_up.observe(j, target, self._base[j] - self._pred[j], self._current):
             pass  # the observation started an update period on this action's evidence
         elif self.params.change_detection:
             self._track(j, target)
@@ -317,6 +362,11 @@ class ElasticPolicy(Policy):
         if waited_s is not None and rate > 0:
             overdue_s = (1.0 + self.params.change_tolerance) * max(self._pred[j], 0.0) / rate
             self._insurance.observe(waited_s, overdue_s)
+
+    def _learn_key_bytes(self, j: int, sent: int) -> None:
+        """Follow the bytes video action j's keyframes really send (EWMA)."""
+        if sent > 0:
+            self._key_bytes[j] += self.params.bytes_ewma * (sent - self._key_bytes[j])
 
     def _learn_bytes(self, j: int, sent: int) -> None:
         """Follow the bytes action j really sends (EWMA): its context and byte cost move with
@@ -383,6 +433,39 @@ class ElasticPolicy(Policy):
         )
         self._bonus_scale = self.params.beta * robot.full_cost
         self._choose()
+        if self._video:
+            self._refresh_keyframes(learned)
+
+    def _refresh_keyframes(self, learned: bool) -> None:
+        """The scores of a frame whose video frame would be a keyframe: each video action's
+        prediction moved by its keyframe's learned excess (before one was answered, its extra
+        MB at α̂'s seconds per MB), its base cost by that and its extra MB's byte cost, its
+        width at its keyframe's context."""
+        alpha_mb = self._ridge.alpha[0]
+        base, pred = list(self._base), list(self._pred)
+        width = list(self._width) if learned or not self._kf_width else self._kf_width
+        q_inv = self._ridge.q_inv if learned else None
+        for j in self._video:
+            extra_mb = (self._key_bytes[j] - self._bytes[j]) / BYTES_PER_MB
+            known = self._key_extra[j]
+            extra = extra_mb * alpha_mb if known is None else max(known, 0.0)
+            base[j] += extra + extra_mb * self.objective.bytes
+            pred[j] += extra
+            if q_inv is not None:
+                v = self.contexts[j].copy()
+                v[0] = self._key_bytes[j] / BYTES_PER_MB
+                width[j] = math.sqrt(max(float(v @ q_inv @ v), 0.0))
+        self._kf_base, self._kf_pred, self._kf_width = base, pred, width
+        mask = self._detector.mask
+        self._kf_allowed = (
+            base
+            if mask is None
+            else [b if ok else math.inf for b, ok in zip(base, mask, strict=True)]
+        )
+        self._kf_best_key = self._best(self._key_factor, self._kf_allowed, width)
+        self._kf_best_nonkey = self._best(self._nonkey_factor, self._kf_allowed, width)
+        cheapest = min(self._kf_allowed)
+        self._kf_cheapest = (cheapest, self._kf_allowed.index(cheapest))
 
     def _choose(self) -> None:
         """The best score for key and for other frames, and the cheapest action. The scores
@@ -393,11 +476,19 @@ class ElasticPolicy(Policy):
         cheapest = min(self._allowed_base)
         self._cheapest = (cheapest, self._allowed_base.index(cheapest))
 
-    def _best(self, factor: float) -> tuple[float, int]:
-        """(lowest score, its column; the first of equal ones) for frames of this sqrt(1−σ)."""
+    def _best(
+        self,
+        factor: float,
+        allowed: list[float] | None = None,
+        width: list[float] | None = None,
+    ) -> tuple[float, int]:
+        """(lowest score, its column; the first of equal ones) for frames of this sqrt(1−σ)
+        (by default on the current scores; a keyframe's are passed in)."""
         c = factor * self._bonus_scale
+        allowed = self._allowed_base if allowed is None else allowed
+        width = self._width if width is None else width
         # Equal lengths by construction (strict=True would cost a check on every refresh).
-        scores = [b - c * w for b, w in zip(self._allowed_base, self._width, strict=False)]
+        scores = [b - c * w for b, w in zip(allowed, width, strict=False)]
         best = min(scores)
         return best, scores.index(best)
 
@@ -436,13 +527,21 @@ class ElasticPolicy(Policy):
         cuts = [labels[i] for i in range(self._k) if mask is None or mask[i]]
         return [*cuts, PURE_ROBOT] if self._detector.p_allowed else cuts
 
-    def predicted_cloud_cost(self) -> dict[str, float]:
-        """α̂ᵀv_a for every offloading action, by label (objective units)."""
-        return dict(zip(self.cuts.labels, self._pred, strict=False))
+    def predicted_cloud_cost(self, *, keyframe: bool = False) -> dict[str, float]:
+        """α̂ᵀv_a for every offloading action, by label (objective units); `keyframe`: on a
+        frame whose video frame would be a keyframe (video actions at their keyframe's bytes)."""
+        pred = self._kf_pred if keyframe and self._video else self._pred
+        return dict(zip(self.cuts.labels, pred, strict=False))
 
     def learned_bytes(self) -> dict[str, float]:
-        """The bytes each offloading action is expected to send, by label."""
+        """The bytes each offloading action is expected to send, by label (a video action's
+        P-frames)."""
         return dict(zip(self.cuts.labels, self._bytes, strict=False))
+
+    def learned_key_bytes(self) -> dict[str, float]:
+        """The bytes each video action's keyframe is expected to send, by label."""
+        labels = self.cuts.labels
+        return {labels[j]: self._key_bytes[j] for j in self._video}
 
     def state(self) -> dict[str, Any]:
         return {

@@ -16,13 +16,20 @@ Cost model, per segment (times in seconds; the profile was taken on some host):
 - a segment (cut_in → cut_out) is never hedged; its robot part is the prefix and, after the
   reply, the tail; a reply past the deadline is finished from cut_in, without the tail.
 
-The expected cost of an action is its cost at the mean conditions of its segment. The oracle
+- a video action (`h264`) sends a keyframe (`CutTable.keys` bytes) on its first frame and on the
+  first after any frame it did not serve from the cloud (another action, P, or no reply in time),
+  a P-frame (`CutTable.bytes`) otherwise, as the robot's streams do
+  (`robotd.frame_path.video_streams`); the policy is told which (`FrameContext.keyframe`).
+
+The expected cost of an action is its cost at the mean conditions of its segment (a video
+action's, at its P-frames' bytes: a keyframe frame's served cost is at its keyframe's). The oracle
 picks the least expected cost in every segment; regret sums, frame by frame, the expected cost of
 what the policy served (a hedged frame: its faster path) minus the oracle's.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Mapping, Sequence
@@ -33,6 +40,7 @@ from typing import Any
 import numpy as np
 
 from common.errors import UserError
+from common.wire.tensor_codecs import is_video
 from robotd.policies import make_policy
 from robotd.policies.base import (
     BYTES_PER_MB,
@@ -266,6 +274,12 @@ class Simulator:
         self.segments = [
             segment_costs(cuts, seg, self.objective, self.deadline_s) for seg in trace.segments
         ]
+        # A video action's keyframe: the same action sending its keyframe's bytes.
+        self.video = [j for j, codec in enumerate(cuts.codecs) if is_video(codec)]
+        keyed = dataclasses.replace(cuts, bytes=np.array(cuts.keys, dtype=np.float64))
+        self.key_segments = [
+            segment_costs(keyed, seg, self.objective, self.deadline_s) for seg in trace.segments
+        ]
         total = trace.total_frames
         self.segment_of = np.repeat(
             np.arange(len(trace.segments)), [s.frames for s in trace.segments]
@@ -337,6 +351,13 @@ class Simulator:
         total = self.trace.total_frames
         position = cuts.positions()
         bytes_up = [int(b) for b in cuts.bytes]
+        key_bytes_up = [int(b) for b in cuts.keys]
+        video = set(self.video)
+        stream_whole = False  # a video action's next frame is a P-frame
+        key_tables = [
+            (seg.uplink_s.tolist(), seg.plain.tolist(), seg.hedged.tolist())
+            for seg in self.key_segments
+        ]
         # Python lists: scalar reads from lists are several times cheaper than from arrays.
         tables = [
             (
@@ -367,7 +388,8 @@ class Simulator:
             s = segment_of[t]
             table = tables[s]
             prefix, local, full, uplink, compute, downlink, plain, hedge_cost, truth, head = table
-            ctx = FrameContext(index=t, entropy=entropy[t], expected_costs=truth)
+            keyframe = bool(video) and not stream_whole
+            ctx = FrameContext(index=t, entropy=entropy[t], expected_costs=truth, keyframe=keyframe)
             started = clock()
             decision = policy.decide(ctx)
             decision_ns[t] = clock() - started
@@ -377,8 +399,16 @@ class Simulator:
                 lat = full * fr
                 outcome = Outcome(prefix_s=lat, latency_s=lat)
                 cost = plain[k]
+                stream_whole = False
             else:
                 j = position[(int(decision.action), decision.codec, decision.end)]
+                sent = bytes_up[j]
+                is_key: bool | None = None
+                if j in video:
+                    is_key = keyframe
+                    if keyframe:  # its keyframe's uplink and costs
+                        uplink, plain, hedge_cost = key_tables[s]
+                        sent = key_bytes_up[j]
                 pre = prefix[j] * fr
                 cc = compute[j] * fc_all[t]
                 y = uplink[j] * fu_all[t] + cc + downlink[j] * fd_all[t]
@@ -409,11 +439,13 @@ class Simulator:
                     prefix_s=pre,
                     cloud_s=y if answered else None,
                     cloud_compute_s=cc if answered else None,
-                    bytes_up=bytes_up[j],
+                    bytes_up=sent,
                     local_s=loc if ran_local else None,
                     latency_s=lat,
                     waited_s=None if answered else deadline,
+                    keyframe=is_key,
                 )
+                stream_whole = j in video and answered
             policy.observe(decision, outcome)
             column[t] = j
             latency[t] = lat

@@ -191,3 +191,29 @@ def e2e_watchdog() -> Iterator[None]:
     finally:
         signal.setitimer(signal.ITIMER_REAL, 0)
         signal.signal(signal.SIGALRM, previous)
+
+
+@pytest.fixture(scope="session")
+def sdk_messages(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The .msg files zenoh-ros2-sdk reads (`tests.e2e.ros2_sdk`), registered with it once."""
+    from tests.e2e.ros2_sdk import write_messages
+
+    return write_messages(tmp_path_factory.mktemp("msgs"))
+
+
+@pytest.fixture
+def sdk_peer(sdk_messages: Path) -> Iterator[Callable[[int], Any]]:
+    """`sdk_peer(port)` -> zenoh-ros2-sdk's peer on the router at `port`, closed at teardown."""
+    from tests.e2e.ros2_sdk import SdkPeer
+
+    peers: list[SdkPeer] = []
+
+    def make(port: int) -> SdkPeer:
+        peers.append(SdkPeer(port))
+        return peers[-1]
+
+    try:
+        yield make
+    finally:
+        for peer in peers:
+            peer.close()

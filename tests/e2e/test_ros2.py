@@ -10,15 +10,14 @@ subscription and publishers. Bad input on the topic (truncated CDR, a wrong type
 encoding, a 0×0 image) is a named line in the robot's log, and the robot keeps serving. And
 `elasticfog nav assist` filters an SDK teleop's Twists with the d_coll a stereo robot publishes.
 
-The SDK looks for `.msg` files in a local folder (`get_registry(DIR)`) and would otherwise try
-to download them: `sdk_messages` writes the few it needs, as ROS 2 Jazzy defines them.
+The SDK's peer and the `.msg` files it reads are `tests.e2e.ros2_sdk`'s (its fixtures are the
+tier's, in conftest).
 """
 
 from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -33,6 +32,7 @@ from common.partition.runtime import SplitModel
 from deploy.readiness import wait_until
 from robotd.sources.frame_sources import fit_frame
 from tests.e2e.conftest import TEST_INPUT_SHAPE, TEST_MODEL
+from tests.e2e.ros2_sdk import SdkPeer, header
 
 pytestmark = [pytest.mark.e2e, pytest.mark.usefixtures("e2e_watchdog")]
 
@@ -43,90 +43,6 @@ RESULTS = "/elasticfog/robot_1"
 WAIT_S = 30.0
 # Raw tensors cross the network: a result equals the whole model's up to float rounding.
 RESULT_ATOL = 1e-4
-
-# The .msg files the SDK needs, as ROS 2 Jazzy defines them (comments left out).
-MSG_FILES = {
-    "builtin_interfaces/msg/Time.msg": "int32 sec\nuint32 nanosec\n",
-    "std_msgs/msg/Header.msg": "builtin_interfaces/Time stamp\nstring frame_id\n",
-    "sensor_msgs/msg/Image.msg": (
-        "std_msgs/Header header\nuint32 height\nuint32 width\nstring encoding\n"
-        "uint8 is_bigendian\nuint32 step\nuint8[] data\n"
-    ),
-    "sensor_msgs/msg/CompressedImage.msg": "std_msgs/Header header\nstring format\nuint8[] data\n",
-    "std_msgs/msg/MultiArrayDimension.msg": "string label\nuint32 size\nuint32 stride\n",
-    "std_msgs/msg/MultiArrayLayout.msg": "MultiArrayDimension[] dim\nuint32 data_offset\n",
-    "std_msgs/msg/Float32MultiArray.msg": "MultiArrayLayout layout\nfloat32[] data\n",
-    "geometry_msgs/msg/Vector3.msg": "float64 x\nfloat64 y\nfloat64 z\n",
-    "geometry_msgs/msg/Twist.msg": "Vector3 linear\nVector3 angular\n",
-}
-
-
-@pytest.fixture(scope="session")
-def sdk_messages(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A folder of the .msg files above, registered with the SDK before it looks for any."""
-    from zenoh_ros2_sdk import get_registry
-
-    root = tmp_path_factory.mktemp("msgs")
-    for name, text in MSG_FILES.items():
-        (root / name).parent.mkdir(parents=True, exist_ok=True)
-        (root / name).write_text(text)
-    registry = get_registry(str(root))
-    assert registry.messages_dir == root, "the SDK's registry was made before this fixture"
-    return root
-
-
-class SdkPeer:
-    """The SDK's (process-wide) session on the fleet's router, and what it declared."""
-
-    def __init__(self, port: int) -> None:
-        from zenoh_ros2_sdk import ZenohSession
-
-        self.port = port
-        self.session = ZenohSession.get_instance("127.0.0.1", port)
-        self.entities: list[Any] = []
-
-    def publisher(self, topic: str, msg_type: str) -> Any:
-        from zenoh_ros2_sdk import ROS2Publisher
-
-        pub = ROS2Publisher(topic, msg_type, node_name="camera", router_port=self.port)
-        self.entities.append(pub)
-        return pub
-
-    def subscriber(self, topic: str, msg_type: str, callback: Any) -> Any:
-        from zenoh_ros2_sdk import ROS2Subscriber
-
-        sub = ROS2Subscriber(topic, msg_type, callback, node_name="planner", router_port=self.port)
-        self.entities.append(sub)
-        return sub
-
-    def types(self, msg_type: str) -> Any:
-        return self.session.store.types[msg_type]
-
-    def close(self) -> None:
-        from zenoh_ros2_sdk import ZenohSession, get_registry
-
-        for entity in reversed(self.entities):
-            entity.close()
-        self.session.close()
-        # The SDK keeps one session (with its type store) per process, and its registry notes
-        # which types it put in that store: the next test's peer starts both afresh.
-        ZenohSession._instance = None
-        get_registry()._loaded_types.clear()
-
-
-@pytest.fixture
-def sdk_peer(sdk_messages: Path) -> Iterator[Any]:
-    peers: list[SdkPeer] = []
-
-    def make(port: int) -> SdkPeer:
-        peers.append(SdkPeer(port))
-        return peers[-1]
-
-    try:
-        yield make
-    finally:
-        for peer in peers:
-            peer.close()
 
 
 def photograph(height: int = 480, width: int = 640) -> np.ndarray:
@@ -148,14 +64,6 @@ def reference(bgr: np.ndarray) -> dict[str, np.ndarray]:
     # (robotd.sources.frame_sources).
     fitted = fit_frame(bgr, inputs.height, inputs.width)
     return dict(zip(names, session.run(names, inputs.feeds(fitted)), strict=True))
-
-
-def header(peer: SdkPeer, stamp_ns: int, frame_id: str = "camera_optical") -> Any:
-    sec, nanosec = divmod(stamp_ns, 1_000_000_000)
-    time_type = peer.types("builtin_interfaces/msg/Time")
-    return peer.types("std_msgs/msg/Header")(
-        stamp=time_type(sec=sec, nanosec=nanosec), frame_id=frame_id
-    )
 
 
 def start_fleet(make_fleet: Any, local_fleet: Any, source: str) -> tuple[Any, Any, int]:

@@ -111,3 +111,54 @@ def test_safe_commands_follow_d_coll(open_peer: Callable[..., zenoh.Session]) ->
     finally:
         sub.undeclare()
         node.close()
+
+
+def test_stamped_commands_keep_their_header_and_a_future_stamp_is_refused(
+    open_peer: Callable[..., zenoh.Session],
+) -> None:
+    """`--stamped`: TwistStamped in and out, each safe command with its command's header; a
+    command stamped ahead of this host's clock is refused by name and not forwarded."""
+    from common.ros2_messages import Header, decode_twist_stamped, encode_twist_stamped
+
+    assist_session, peer = open_peer(), open_peer()
+    node = AssistNode(
+        assist_session,
+        domain=0,
+        robot="robot-1",
+        results_prefix=PREFIX,
+        cmd_in="/cmd_vel_nav",
+        cmd_out="/cmd_vel",
+        stamped=True,
+    )
+    out: queue.Queue[tuple[Header, Twist]] = queue.Queue()
+    sub = peer.declare_subscriber(
+        _key("/cmd_vel", MessageType.TWIST_STAMPED),
+        lambda s: out.put(decode_twist_stamped(s.payload.to_bytes())),
+    )
+    cmd_key = _key("/cmd_vel_nav", MessageType.TWIST_STAMPED)
+    try:
+        _wait_tokens(
+            peer,
+            [
+                "@ros2_lv/0/*/0/*/MS/%/%/elasticfog_assist_robot_1/%cmd_vel_nav/"
+                "geometry_msgs::msg::dds_::TwistStamped_/**"
+            ],
+        )
+        reverse = Twist((-0.2, 0.0, 0.0), (0.0, 0.0, 0.0))  # reverse passes unchanged
+        got = None
+        deadline = time.monotonic() + WAIT_S
+        while got is None and time.monotonic() < deadline:  # bounded
+            header = Header(time.time_ns(), "base_link")
+            peer.put(cmd_key, encode_twist_stamped(reverse, header))
+            with contextlib.suppress(queue.Empty):
+                got = out.get(timeout=0.2)
+        assert got is not None, "no safe command"
+        assert got[1] == reverse and got[0].frame_id == "base_link"
+        before = node.forwarded
+        future = Header(time.time_ns() + 5_000_000_000, "base_link")
+        peer.put(cmd_key, encode_twist_stamped(reverse, future))
+        wait_until(lambda: node.refused >= 1 or None, timeout_s=WAIT_S, what="the refusal")
+        assert node.forwarded == before
+    finally:
+        sub.undeclare()
+        node.close()

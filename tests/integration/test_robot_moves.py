@@ -213,4 +213,9 @@ def test_resends_are_counted_by_reason(
     per_frame, summary, counter = _count([nobody, answered, refused])
     assert per_frame == [NO_ROUTE_RESENDS, 0, NO_ROUTE_RESENDS]
     assert summary["resends"] == 2 * NO_ROUTE_RESENDS
-    assert counter == {"no_reply": NO_ROUTE_RESENDS, "not_serving": NO_ROUTE_RESENDS}
+    # Every reason is served from the start (`keyframe`: h264 frames resent as keyframes).
+    assert counter == {
+        "no_reply": NO_ROUTE_RESENDS,
+        "not_serving": NO_ROUTE_RESENDS,
+        "keyframe": 0,
+    }

@@ -1,5 +1,7 @@
 """Fuzzing the ROS 2 message decoders (common/ros2_messages.py): Image, CompressedImage,
-Float32MultiArray and Twist in CDR, as they arrive from a ROS 2 topic or a bag record.
+Float32MultiArray, Twist, and the stamped standard messages (TwistStamped, CameraInfo, Isaac
+ROS's TensorList, vision_msgs' Classification) in CDR, as they arrive from a ROS 2 topic or a bag
+record.
 
 Inputs: valid messages (random pixels in every known encoding, JPEG and PNG data, arrays,
 velocities) with their bytes corrupted or cut; valid CDR of fields a decoder must refuse (any
@@ -11,6 +13,7 @@ bound that does not grow with what a header claims.
 
 from __future__ import annotations
 
+import math
 import struct
 import zlib
 from collections.abc import Callable
@@ -36,6 +39,10 @@ DECODERS: dict[str, Callable[[bytes], Any]] = {
     "compressed": lambda b: rm.decode_compressed_image(b, max_bytes=LIMIT_BYTES),
     "array": rm.decode_float32_multi_array,
     "twist": rm.decode_twist,
+    "twist_stamped": rm.decode_twist_stamped,
+    "camera_info": rm.decode_camera_info,
+    "tensors": rm.decode_tensor_list,
+    "classification": rm.decode_classification,
 }
 
 
@@ -48,11 +55,25 @@ def decode_checked(kind: str, payload: bytes) -> Any:
         assert image.dtype == np.uint8 and image.ndim == 3 and image.shape[2] == 3
         assert image.flags.c_contiguous and image.size > 0 and image.nbytes <= LIMIT_BYTES
         assert isinstance(value.stamp_ns, int)
-    elif isinstance(value, tuple):
+    elif kind == "array" and value is not None:
         array, labels = value
         assert array.dtype == np.float32 and len(labels) == array.ndim
-    elif value is not None:
+    elif kind == "twist" and value is not None:
         assert isinstance(value, rm.Twist)
+    elif kind == "twist_stamped" and value is not None:
+        header, twist = value
+        assert isinstance(header, rm.Header) and isinstance(twist, rm.Twist)
+        assert all(math.isfinite(v) for v in twist.linear + twist.angular)
+    elif kind == "camera_info" and value is not None:
+        assert isinstance(value, rm.CameraInfo) and value.fx > 0 and value.k[4] > 0
+        assert value.height > 0 and value.width > 0
+    elif kind == "tensors" and value is not None:
+        header, tensors = value
+        assert isinstance(header, rm.Header)
+        assert all(t.dtype in rm.TENSOR_DATA_TYPES.values() for t in tensors.values())
+    elif kind == "classification" and value is not None:
+        header, results = value
+        assert all(isinstance(c, str) and math.isfinite(score) for c, score in results)
     return value
 
 
@@ -186,7 +207,110 @@ _twists = st.builds(
     st.lists(st.floats(), min_size=6, max_size=6),
 ).map(bytes)
 
-MESSAGES = {"image": _images(), "compressed": _compressed(), "array": _arrays(), "twist": _twists}
+_finite_or_not = st.floats() | st.floats(allow_nan=False, allow_infinity=False, width=32)
+
+
+@st.composite
+def _twists_stamped(draw: st.DrawFn) -> bytes:
+    types = rm.typestore().types
+    values = draw(st.lists(_finite_or_not, min_size=6, max_size=6))
+    msg = types["geometry_msgs/msg/TwistStamped"](
+        header=_header(draw(_stamps), draw(_frame_ids)),
+        twist=types["geometry_msgs/msg/Twist"](
+            linear=types["geometry_msgs/msg/Vector3"](*values[:3]),
+            angular=types["geometry_msgs/msg/Vector3"](*values[3:]),
+        ),
+    )
+    return _serialize(msg, rm.MessageType.TWIST_STAMPED)
+
+
+@st.composite
+def _camera_infos(draw: st.DrawFn) -> bytes:
+    """A CameraInfo: calibrated, or with a zero, negative or non-finite focal length."""
+    types = rm.typestore().types
+    fx, fy = draw(st.sampled_from([500.0, 0.0, -1.0])), draw(st.sampled_from([500.0, 0.0]))
+    k = [fx, 0.0, 320.0, 0.0, fy, 240.0, 0.0, 0.0, 1.0]
+    p = [fx, 0.0, 320.0, draw(_finite_or_not), 0.0, fy, 240.0, 0.0, 0.0, 0.0, 1.0, 0.0]
+    if draw(st.booleans()):
+        k[draw(st.integers(0, 8))] = draw(_finite_or_not)
+    msg = types["sensor_msgs/msg/CameraInfo"](
+        header=_header(draw(_stamps), draw(_frame_ids)),
+        height=draw(st.integers(0, 4096)),
+        width=draw(st.integers(0, 4096)),
+        distortion_model=draw(st.sampled_from(["plumb_bob", "", "rational_polynomial"])),
+        d=np.asarray(draw(st.lists(_finite_or_not, max_size=8)), np.float64),
+        k=np.asarray(k, np.float64),
+        r=np.eye(3).reshape(-1),
+        p=np.asarray(p, np.float64),
+        binning_x=0,
+        binning_y=0,
+        roi=types["sensor_msgs/msg/RegionOfInterest"](
+            x_offset=0, y_offset=0, height=0, width=0, do_rectify=False
+        ),
+    )
+    return _serialize(msg, rm.MessageType.CAMERA_INFO)
+
+
+_tensor_dtypes = st.sampled_from(
+    [np.uint8, np.int8, np.int16, np.uint16, np.int32, np.uint32, np.int64, np.float32, np.float64]
+)
+
+
+@st.composite
+def _tensor_lists(draw: st.DrawFn) -> bytes:
+    """A TensorList of real tensors, or with a tensor's type, rank, dims, strides or data
+    made inconsistent."""
+    outputs = {
+        f"t{i}": draw(hnp.arrays(draw(_tensor_dtypes), hnp.array_shapes(max_dims=3, max_side=4)))
+        for i in range(draw(st.integers(0, 3)))
+    }
+    header = rm.Header(draw(st.integers(0, 2**31 * 10**9 - 1)), draw(_frame_ids))
+    payload = rm.encode_tensor_list(outputs, header)
+    if outputs and draw(st.booleans()):
+        msg = rm.typestore().deserialize_cdr(payload, rm.MessageType.TENSOR_LIST.value)
+        tensor = msg.tensors[draw(st.integers(0, len(msg.tensors) - 1))]
+        wrong = draw(st.sampled_from(["data_type", "rank", "dims", "strides", "data", "name"]))
+        if wrong == "data_type":
+            tensor.data_type = draw(st.integers(-(2**31), 2**31 - 1))
+        elif wrong == "rank":
+            tensor.shape.rank = draw(st.integers(0, 255))
+        elif wrong == "dims":
+            tensor.shape.dims = np.asarray(
+                draw(st.lists(st.integers(0, 2**32 - 1), max_size=4)), np.uint32
+            )
+        elif wrong == "strides":
+            tensor.strides = np.asarray(
+                draw(st.lists(st.integers(0, 2**64 - 1), max_size=4)), np.uint64
+            )
+        elif wrong == "data":
+            tensor.data = draw(hnp.arrays(np.uint8, st.integers(0, 64)))
+        else:
+            tensor.name = msg.tensors[0].name
+        payload = _serialize(msg, rm.MessageType.TENSOR_LIST)
+    return payload
+
+
+@st.composite
+def _classifications(draw: st.DrawFn) -> bytes:
+    pairs = draw(st.lists(st.tuples(st.text(max_size=6), _finite_or_not), max_size=6))
+    types = rm.typestore().types
+    msg = types["vision_msgs/msg/Classification"](
+        header=_header(draw(_stamps), draw(_frame_ids)),
+        results=[types["vision_msgs/msg/ObjectHypothesis"](class_id=c, score=s) for c, s in pairs],
+    )
+    return _serialize(msg, rm.MessageType.CLASSIFICATION)
+
+
+MESSAGES = {
+    "image": _images(),
+    "compressed": _compressed(),
+    "array": _arrays(),
+    "twist": _twists,
+    "twist_stamped": _twists_stamped(),
+    "camera_info": _camera_infos(),
+    "tensors": _tensor_lists(),
+    "classification": _classifications(),
+}
 _kinds_and_payloads = st.sampled_from(sorted(MESSAGES)).flatmap(
     lambda kind: st.tuples(st.just(kind), MESSAGES[kind])
 )

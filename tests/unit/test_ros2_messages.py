@@ -346,3 +346,158 @@ def test_message_type_names_the_known_types() -> None:
     assert rm.message_type("sensor_msgs/msg/Image") is rm.MessageType.IMAGE
     with pytest.raises(rm.BadMessageValue, match="known: sensor_msgs/msg/Image"):
         rm.message_type("sensor_msgs/msg/PointCloud2")
+
+
+# -- stamped standard messages ---------------------------------------------------------------------
+# The RIHS01 hashes of the types this project registers from their upstream definitions, as
+# zenoh-ros2-sdk (an rmw_zenoh written apart from this project, with its own type hashing)
+# computes them from upstream's .msg files, comments included (vision_msgs 4.1.1, Isaac ROS
+# 4.4.0); the core ones as rosbags' Jazzy store gives them.
+STANDARD_HASHES = {
+    rm.MessageType.CLASSIFICATION: (
+        "RIHS01_f74db28d0eaef3afb78f48bf2161cd709a1383a0309d3454383b25be11345143"
+    ),
+    rm.MessageType.TENSOR_LIST: (
+        "RIHS01_498b4418eed651d1eb843a154ac3dd6b7612b3fa851e1bd930f9f0c2e862cf6c"
+    ),
+    rm.MessageType.CAMERA_INFO: (
+        "RIHS01_b3dfd68ff46c9d56c80fd3bd4ed22c7a4ddce8c8348f2f59c299e73118e7e275"
+    ),
+    rm.MessageType.TWIST_STAMPED: (
+        "RIHS01_5f0fcd4f81d5d06ad9b4c4c63e3ea51b82d6ae4d0558f1d475229b1121db6f64"
+    ),
+}
+HEADER = rm.Header(STAMP_NS, "camera_optical")
+
+
+def test_standard_type_hashes() -> None:
+    for msgtype, expected in STANDARD_HASHES.items():
+        assert rm.type_hash(msgtype) == expected
+    assert rm.dds_type_name(rm.MessageType.TENSOR_LIST) == (
+        "isaac_ros_tensor_list_interfaces::msg::dds_::TensorList_"
+    )
+
+
+@pytest.mark.parametrize(
+    ("dtype", "code"),
+    [
+        (np.int8, 1),
+        (np.uint8, 2),
+        (np.int16, 3),
+        (np.uint16, 4),
+        (np.int32, 5),
+        (np.uint32, 6),
+        (np.int64, 7),
+        (np.uint64, 8),
+        (np.float32, 9),
+        (np.float64, 10),
+    ],
+)
+def test_tensor_list_round_trip_with_isaac_ros_codes(dtype: type, code: int) -> None:
+    array = (np.arange(24).reshape(2, 3, 4) % 100).astype(dtype)
+    payload = rm.encode_tensor_list({"output.1": array, "scalar": np.asarray(dtype(7))}, HEADER)
+    msg = rm.typestore().deserialize_cdr(payload, rm.MessageType.TENSOR_LIST.value)
+    tensor = msg.tensors[0]
+    assert (tensor.name, tensor.data_type, int(tensor.shape.rank)) == ("output.1", code, 3)
+    assert list(tensor.shape.dims) == [2, 3, 4]
+    assert list(tensor.strides) == [12 * array.itemsize, 4 * array.itemsize, array.itemsize]
+    header, tensors = rm.decode_tensor_list(payload)
+    assert header == HEADER
+    assert tensors["output.1"].dtype == array.dtype and np.array_equal(tensors["output.1"], array)
+    assert tensors["scalar"].shape == () and tensors["scalar"] == 7
+
+
+def test_tensor_list_widens_float16_and_bool_and_refuses_the_rest() -> None:
+    _, tensors = rm.decode_tensor_list(
+        rm.encode_tensor_list(
+            {"h": np.array([0.5, 2.0], np.float16), "b": np.array([True, False])}, HEADER
+        )
+    )
+    assert tensors["h"].dtype == np.float32 and tensors["h"].tolist() == [0.5, 2.0]
+    assert tensors["b"].dtype == np.uint8 and tensors["b"].tolist() == [1, 0]
+    with pytest.raises(rm.BadMessageValue, match="not a tensor type"):
+        rm.encode_tensor_list({"c": np.zeros(2, np.complex64)}, HEADER)
+
+
+def _tensor_list_with(**changes: object) -> bytes:
+    payload = rm.encode_tensor_list({"t": np.zeros((2, 3), np.float32)}, HEADER)
+    msg = rm.typestore().deserialize_cdr(payload, rm.MessageType.TENSOR_LIST.value)
+    tensor = msg.tensors[0]
+    for name, value in changes.items():
+        if name == "rank":
+            tensor.shape.rank = value
+        else:
+            setattr(tensor, name, value)
+    return bytes(rm.typestore().serialize_cdr(msg, rm.MessageType.TENSOR_LIST.value))
+
+
+@pytest.mark.parametrize(
+    ("changes", "error", "named"),
+    [
+        ({"data_type": 11}, rm.BadMessageValue, "data type 11"),
+        ({"rank": 3}, rm.LayoutMismatch, "rank 3, 2 dims"),
+        ({"strides": np.array([4, 4], np.uint64)}, rm.LayoutMismatch, "C-order byte strides"),
+        ({"data": np.zeros(5, np.uint8)}, rm.LayoutMismatch, "5 bytes"),
+    ],
+)
+def test_a_tensor_list_that_disagrees_with_itself_is_named(
+    changes: dict[str, object], error: type[Exception], named: str
+) -> None:
+    with pytest.raises(error, match=named):
+        rm.decode_tensor_list(_tensor_list_with(**changes))
+
+
+def test_classification_is_the_softmax_top_5() -> None:
+    logits = np.array([[0.5, 3.0, -1.0, 2.0, 2.0, 0.0, 4.0]], np.float32)
+    top = rm.top_classes(logits)
+    expected = np.exp(logits[0] - logits.max()) / np.exp(logits[0] - logits.max()).sum()
+    assert [c for c, _ in top] == ["6", "1", "3", "4", "0"]  # a tie: the lower index first
+    assert [s for _, s in top] == pytest.approx([expected[int(c)] for c, _ in top])
+    header, results = rm.decode_classification(rm.encode_classification(top, HEADER))
+    assert header == HEADER and [c for c, _ in results] == [c for c, _ in top]
+    assert [s for _, s in results] == pytest.approx([s for _, s in top])
+    assert rm.top_classes(np.array([1.0, 2.0]))[0][0] == "1"
+    assert rm.is_class_scores((1, 1000)) and rm.is_class_scores((3,))
+    assert not rm.is_class_scores((1, 1)) and not rm.is_class_scores((2, 3))
+    with pytest.raises(rm.BadMessageValue, match="no classifier's scores"):
+        rm.top_classes(np.array([[1.0, float("nan")]]))
+
+
+def _camera_info(fx: float = 500.0, fy: float = 500.0, **fields: object) -> bytes:
+    k = (fx, 0.0, 320.0, 0.0, fy, 240.0, 0.0, 0.0, 1.0)
+    p = (fx, 0.0, 320.0, 0.0, 0.0, fy, 240.0, 0.0, 0.0, 0.0, 1.0, 0.0)
+    info = rm.CameraInfo(HEADER, 480, 640, k=k, p=p, d=(0.1, 0.0, 0.0, 0.0, 0.0))
+    msg = rm.typestore().deserialize_cdr(
+        rm.encode_camera_info(info), rm.MessageType.CAMERA_INFO.value
+    )
+    for name, value in fields.items():
+        setattr(msg, name, value)
+    return bytes(rm.typestore().serialize_cdr(msg, rm.MessageType.CAMERA_INFO.value))
+
+
+def test_camera_info_round_trip_and_bad_geometry_named() -> None:
+    info = rm.decode_camera_info(_camera_info())
+    assert (info.header, info.height, info.width, info.fx, info.cx, info.cy) == (
+        HEADER,
+        480,
+        640,
+        500.0,
+        320.0,
+        240.0,
+    )
+    assert info.d == (0.1, 0.0, 0.0, 0.0, 0.0)
+    with pytest.raises(rm.BadCameraInfo, match="not a calibrated camera"):
+        rm.decode_camera_info(_camera_info(fx=0.0))
+    with pytest.raises(rm.BadCameraInfo, match="not a calibrated camera"):
+        rm.decode_camera_info(_camera_info(fy=-1.0))
+    with pytest.raises(rm.BadCameraInfo, match="non-finite"):
+        rm.decode_camera_info(_camera_info(d=np.array([float("nan")])))
+    with pytest.raises(rm.BadCameraInfo, match="no pixels"):
+        rm.decode_camera_info(_camera_info(width=0))
+
+
+def test_twist_stamped_round_trip() -> None:
+    twist = rm.Twist((0.3, 0.0, 0.0), (0.0, 0.0, 0.1))
+    assert rm.decode_twist_stamped(rm.encode_twist_stamped(twist, HEADER)) == (HEADER, twist)
+    with pytest.raises(rm.BadMessageValue, match="finite velocities"):
+        rm.encode_twist_stamped(rm.Twist((math.inf, 0.0, 0.0)), HEADER)

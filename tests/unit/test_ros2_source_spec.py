@@ -37,11 +37,25 @@ def test_topic_type_and_domain() -> None:
         ("ros2:/cam,type", "expected name=value"),
         ("ros2", "not a ROS 2 topic name"),
         ("ros3:/cam", "unknown frame source"),
+        ("ros2:/l,slop_ms=5", "slop_ms pairs a stereo camera's images: give right="),
+        ("ros2:/l,right=/l", "left and right are both /l"),
+        ("ros2:/l,right=/r,slop_ms=0", "slop_ms must be a positive number"),
+        ("ros2:/l,right=/r,slop_ms=x", "slop_ms='x' is not a number"),
+        ("ros2:/l,right=r//x", "right='r//x'"),
     ],
 )
 def test_bad_specs_are_named(spec: str, named: str) -> None:
     with pytest.raises(UserError, match=named.replace(".", r"\.").replace("(", r"\(")):
         parse_ros2_source(spec)
+
+
+def test_a_stereo_camera_from_two_topics() -> None:
+    spec = parse_ros2_source("ros2:/left/image_raw,right=right/image_raw")
+    assert (spec.topic, spec.right, spec.slop_ms) == ("/left/image_raw", "/right/image_raw", 10.0)
+    assert spec.topics == ("/left/image_raw", "/right/image_raw")
+    spec = parse_ros2_source("ros2:/l,right=/r,slop_ms=2.5,type=compressed,domain=1")
+    assert (spec.slop_ms, spec.type, spec.domain) == (2.5, Ros2FrameType.COMPRESSED, 1)
+    assert parse_ros2_source("ros2:/cam").topics == ("/cam",)
 
 
 def test_results_topics_colliding_with_the_input_are_refused() -> None:
@@ -54,6 +68,9 @@ def test_results_topics_colliding_with_the_input_are_refused() -> None:
     check_results_topics("ros2:/ef/outside", "/ef/out", 0)
     check_results_topics("photo", "/ef/out", 0)
     check_results_topics("ros2:/ef/out/x", None, 0)
+    # Either image of a stereo pair.
+    with pytest.raises(UserError, match="collides with the input topic /ef/out/right"):
+        check_results_topics("ros2:/left,right=/ef/out/right", "/ef/out", 0)
 
 
 def test_newest_frame_wins_and_the_dropped_are_counted() -> None:

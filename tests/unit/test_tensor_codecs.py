@@ -48,7 +48,7 @@ from common.wire.tensor_codecs import CODECS
 
 MAX_BYTES = 64 * 1024 * 1024
 FLOAT_CODECS = ["raw", "fp16", "int8", "int8+zstd", "raw+zstd"]
-IMAGE_CODECS = ["raw", "raw+zstd", "jpeg<Q>", "png"]
+IMAGE_CODECS = ["raw", "raw+zstd", "jpeg<Q>", "png", "h264"]
 # jpeg80 of the photographs below measures 32.5-37.3 dB; a regression in quality, subsampling or
 # colorspace handling drops well under this.
 JPEG80_MIN_PSNR_DB = 30.0
@@ -127,7 +127,7 @@ def psnr_db(a: np.ndarray, b: np.ndarray) -> float:
 
 # -- names -----------------------------------------------------------------------------------------
 def test_codec_names_are_the_contract() -> None:
-    fixed = ["raw", "fp16", "int8", "int8+zstd", "raw+zstd", "png"]
+    fixed = ["raw", "fp16", "int8", "int8+zstd", "raw+zstd", "png", "h264"]
     jpeg = [f"jpeg{q}" for q in range(1, 101)]
     assert sorted(CODECS) == sorted(fixed + jpeg)
     for name in fixed + jpeg:
@@ -143,7 +143,7 @@ def test_unknown_codec_names_list_the_valid_ones(name: Any) -> None:
         parse_codec(name)
     text = str(info.value)
     assert repr(name) in text
-    assert "raw, fp16, int8, int8+zstd, raw+zstd, jpeg<Q> (Q = 1..100), png" in text
+    assert "raw, fp16, int8, int8+zstd, raw+zstd, jpeg<Q> (Q = 1..100), png, h264" in text
 
 
 def test_which_codecs_apply() -> None:
@@ -152,6 +152,8 @@ def test_which_codecs_apply() -> None:
     assert codec_names_for("float16", (3,)) == ["raw", "int8", "int8+zstd", "raw+zstd"]
     for shape in [(240, 320), (240, 320, 1), (240, 320, 3), (1, 240, 320, 1), (1, 240, 320, 3)]:
         assert codec_names_for("uint8", shape) == IMAGE_CODECS
+    # h264's 4:2:0 chroma needs even sides.
+    assert codec_names_for("uint8", (239, 320, 3)) == IMAGE_CODECS[:-1]
     # NCHW, a batch of 2, 4 channels, an empty image: not images.
     for shape in [(1, 3, 240, 320), (2, 240, 320, 3), (240, 320, 4), (0, 320), (320,)]:
         assert codec_names_for("uint8", shape) == ["raw", "raw+zstd"]
