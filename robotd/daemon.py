@@ -370,7 +370,7 @@ class RobotDaemon(Daemon):
             # Phases describe themselves as they start.
             "" if self.options.phases else emulation_note(self.uplink_mbit, self._slowdown.factor),
         )
-        self._warn_if_refused_past_limit()
+        warn_if_refused_past_limit(self.config, self.robot, self.max_in_flight)
         self._wait_for_fleet()
 
     def _start_policy(self, robot_model: RobotModel) -> tuple[Policy, FirstFramesRefinement | None]:
@@ -400,20 +400,6 @@ class RobotDaemon(Daemon):
             robot=self.robot,
         )
         return build(profile), refinement
-
-    def _warn_if_refused_past_limit(self) -> None:
-        """A robot with more frames in flight than a deployment admits per robot gets `busy`
-        there for the rest (finished on the robot: nothing is lost, but the overlap is not)."""
-        short = self.config.short_of_in_flight(self.max_in_flight)
-        if short:
-            log.warning(
-                "%s: %d frames in flight, but %s admit(s) fewer of one robot's requests at once "
-                "(batching.max_in_flight_per_robot): frames past that are answered busy there "
-                "and finished here",
-                self.robot,
-                self.max_in_flight,
-                ", ".join(f"{c} ({limit})" for c, limit in short.items()),
-            )
 
     def _open_zenoh(
         self, model: SplitModel, robot_model: RobotModel
@@ -575,3 +561,18 @@ class RobotDaemon(Daemon):
             log.info("%s: frames at the source's own pace", self.robot)
             return TimelinePacer(self.loop.source.next_offset_s)
         return None
+
+
+def warn_if_refused_past_limit(config: FleetConfig, robot: str, max_in_flight: int) -> None:
+    """A robot with more frames in flight than a deployment admits per robot gets `busy` there
+    for the rest (finished on the robot: nothing is lost, but the overlap is not)."""
+    short = config.short_of_in_flight(max_in_flight)
+    if short:
+        log.warning(
+            "%s: %d frames in flight, but %s admit(s) fewer of one robot's requests at once "
+            "(batching.max_in_flight_per_robot): frames past that are answered busy there "
+            "and finished here",
+            robot,
+            max_in_flight,
+            ", ".join(f"{c} ({limit})" for c, limit in short.items()),
+        )

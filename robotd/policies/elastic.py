@@ -52,15 +52,13 @@ congested route then looks expensive instead of unknown, and the miss feeds chan
 Video actions (`h264`, `robotd.frame_path.video_streams`): a keyframe sends several times a
 P-frame's bytes, and the robot's stream needs one after every frame served otherwise. Each video
 action has two learned byte counts, its P-frames' (its context, as any action's bytes) and its
-keyframes' (`CutTable.keys`, then learned from the keyframes sent), and two sets of scores:
-on a frame whose video frame would be a keyframe (`FrameContext.keyframe`: the first after a
-switch, after frames served on the robot or lost) the video actions are scored with their
-keyframe's bytes, so a return to the cloud is priced at what it sends and exploration does not
-thrash between cloud and robot. A keyframe's cloud-side cost is learned as its excess over the
-P-frame's prediction (EWMA; before the first keyframe is answered, α̂'s seconds per MB times
-its extra MB): the regression's MB coefficient is learned poorly when every action sends tens
-of kilobytes (its prior outweighs the data), while the excess is measured directly. The
-regression, change detection and take-up follow the P-frames, the stream's ordinary frames.
+keyframes' (`robotd.policies.keyframes`), and the policy two sets of scores
+(`robotd.policies.scores`), refreshed together: on a frame whose video frame would be a keyframe
+(`FrameContext.keyframe`: the first after a switch, after frames served on the robot or lost)
+the video actions are scored with their keyframe's bytes, so a return to the cloud is priced at
+what it sends and exploration does not thrash between cloud and robot. A keyframe's cloud-side
+cost is learned as its excess over the P-frame's prediction (`keyframes`); the regression,
+change detection and take-up follow the P-frames, the stream's ordinary frames.
 """
 
 from __future__ import annotations
@@ -70,7 +68,6 @@ from typing import Any
 
 import numpy as np
 
-from common.wire.tensor_codecs import is_video
 from robotd.policies.base import (
     BYTES_PER_MB,
     PURE_ROBOT,
@@ -82,12 +79,14 @@ from robotd.policies.base import (
 )
 from robotd.policies.change_detector import MIN_PREDICTION, ChangeDetector, miss_tolerance
 from robotd.policies.insurance import Insurance
+from robotd.policies.keyframes import KeyframeCosts
 from robotd.policies.objective import Objective, cloud_cost
 from robotd.policies.params import AnsParams, ElasticParams
 from robotd.policies.ridge import RidgeEstimator, quadratic_features
 from robotd.policies.robot_probes import RobotProbes
 from robotd.policies.robotcost import SHORT_RUN_SHARE, RobotCostModel
 from robotd.policies.schedule import ForcedSchedule
+from robotd.policies.scores import Scores
 from robotd.policies.segment_actions import action_contexts
 from robotd.policies.take_up import TakeUp
 
@@ -121,12 +120,11 @@ class ElasticPolicy(Policy):
         self.contexts = action_contexts(cuts)
         # Bytes sent per action, learned online: a JPEG's size follows the content.
         self._bytes: list[float] = cuts.bytes.tolist()
-        # Video actions: their keyframes' bytes, learned apart (the P-frames' are `_bytes`).
-        self._video = [j for j, codec in enumerate(cuts.codecs) if is_video(codec)]
-        self._key_bytes: list[float] = list(cuts.keys)
-        # Their keyframes' cloud-side cost over the P-frame's prediction (None: none seen yet).
-        self._key_extra: dict[int, float | None] = dict.fromkeys(self._video)
         self._ridge = self.ridge_type(self.contexts, params.gamma)
+        # Video actions' keyframes, learned apart (the P-frames' bytes are `_bytes`).
+        self._keyframes = KeyframeCosts(
+            cuts, params, objective, self._ridge, self.contexts, self._bytes
+        )
         self._robot = RobotCostModel(cuts, objective, params)
         self._wait_rate = objective.wait_rate
         self._radio_rate = objective.radio_rate
@@ -170,21 +168,14 @@ class ElasticPolicy(Policy):
         self._probes = RobotProbes(params, self._robot, self._untimed, objective.robot_rate)
         self._cpu_counted = False  # the robot reports its CPU (Outcome.cpu_s)
         self._insurance = Insurance(objective.wait_rate, objective.robot_rate)
-        # Score parts, cut order: base = E^c + bytes cost + α̂ᵀv (inf where restricted away in
-        # `_allowed_base`), width = sqrt(vᵀQ⁻¹v); score = base − sqrt(1−σ)·β·E_P·width, with
-        # `_bonus_scale` = β·E_P; `_pred` = α̂ᵀv.
-        self._base: list[float] = []
-        self._pred: list[float] = []
-        self._allowed_base: list[float] = []
-        self._width: list[float] = []
+        # The scores of ordinary frames, and of those whose video frame would be a keyframe
+        # (kept only with video actions); `_bonus_scale` = β·E_P.
+        self._scores = Scores()
+        self._kf_scores = Scores()
+        self._score_sets: tuple[Scores, ...] = (
+            (self._scores, self._kf_scores) if self._keyframes.video else (self._scores,)
+        )
         self._bonus_scale = 0.0
-        self._best_key = self._best_nonkey = self._cheapest = (math.inf, 0)
-        # The same on a frame whose video frame would be a keyframe (`_refresh_keyframes`).
-        self._kf_base: list[float] = []
-        self._kf_pred: list[float] = []
-        self._kf_width: list[float] = []
-        self._kf_allowed: list[float] = []
-        self._kf_best_key = self._kf_best_nonkey = self._kf_cheapest = (math.inf, 0)
         self._refresh(learned=True)
 
     # -- decisions -------------------------------------------------------------------------
@@ -200,14 +191,10 @@ class ElasticPolicy(Policy):
         take_up = self._take_up
         updating = detector.updating
         p_allowed = detector.p_allowed
-        keyframe = ctx.keyframe and bool(self._video)
-        key = ctx.entropy >= params.key_entropy
-        if keyframe:  # the video actions would send a keyframe: scored with its bytes
-            best, j = self._kf_best_key if key else self._kf_best_nonkey
-            base, pred, cheapest_pair = self._kf_base, self._kf_pred, self._kf_cheapest
-        else:
-            best, j = self._best_key if key else self._best_nonkey
-            base, pred, cheapest_pair = self._base, self._pred, self._cheapest
+        # A frame where the video actions would send a keyframe: scored with its bytes.
+        scores = self._kf_scores if ctx.keyframe and self._keyframes.video else self._scores
+        best, j = scores.best_key if ctx.entropy >= params.key_entropy else scores.best_nonkey
+        base, pred, cheapest_pair = scores.base, scores.pred, scores.cheapest
         p_cost = robot.full_cost
         regular_p = p_allowed and p_cost <= best
         forced = detector.confirm or self._schedule.is_forced(n)
@@ -304,12 +291,12 @@ class ElasticPolicy(Policy):
             self._refresh(learned=False)
             return
         j = self._position[(int(decision.action), decision.codec, decision.end)]
-        keyframe = bool(outcome.keyframe) and j in self._video
+        keyframe = bool(outcome.keyframe) and j in self._keyframes.video
         if keyframe:
-            self._learn_key_bytes(j, outcome.bytes_up)
+            self._keyframes.learn_bytes(j, outcome.bytes_up)
         else:
             self._learn_bytes(j, outcome.bytes_up)
-        pred = self._kf_pred if keyframe else self._pred
+        pred = self._kf_scores.pred if keyframe else self._scores.pred
         robot_s = self._prefix_s[j] if outcome.cloud_s is not None else self._head_s[j]
         self._probes.timed(robot.observe(outcome.prefix_s, robot_s))
         if outcome.local_s is not None:
@@ -337,15 +324,12 @@ class ElasticPolicy(Policy):
                 frame_cost=self._current()[0],
                 excess=target - pred[j],
             )
+        scores = self._scores
         if keyframe:
             # A keyframe teaches its excess over the P-frame; the regression, change detection
             # and take-up follow the P-frames (the stream's ordinary frames).
-            excess = target - self._pred[j]
-            known = self._key_extra[j]
-            self._key_extra[j] = (
-                excess if known is None else known + self.params.bytes_ewma * (excess - known)
-            )
-        elif self._take_up.observe(j, target, self._base[j] - self._pred[j], self._current):
+            self._keyframes.learn_cost(j, target, scores.pred[j])
+        elif self._take_up.observe(j, target, scores.base[j] - scores.pred[j], self._current):
             pass  # the observation started an update period on this action's evidence
         elif self.params.change_detection:
             self._track(j, target)
@@ -360,13 +344,8 @@ class ElasticPolicy(Policy):
         waited_s = outcome.cloud_s if outcome.cloud_s is not None else outcome.waited_s
         rate = self._wait_rate + self._radio_rate
         if waited_s is not None and rate > 0:
-            overdue_s = (1.0 + self.params.change_tolerance) * max(self._pred[j], 0.0) / rate
+            overdue_s = (1.0 + self.params.change_tolerance) * max(self._scores.pred[j], 0.0) / rate
             self._insurance.observe(waited_s, overdue_s)
-
-    def _learn_key_bytes(self, j: int, sent: int) -> None:
-        """Follow the bytes video action j's keyframes really send (EWMA)."""
-        if sent > 0:
-            self._key_bytes[j] += self.params.bytes_ewma * (sent - self._key_bytes[j])
 
     def _learn_bytes(self, j: int, sent: int) -> None:
         """Follow the bytes action j really sends (EWMA): its context and byte cost move with
@@ -390,18 +369,17 @@ class ElasticPolicy(Policy):
         """Feed one cloud-side observation of column j to the change detector (which updates
         the regression); a surprise on an action the model does not know may hint at a cheaper
         one (`TakeUp.hint`; a known action's misses are confirmed by the detector)."""
-        pred = self._pred[j]
-        known = self._width[j] <= self._known_width
+        scores = self._scores
+        pred = scores.pred[j]
+        known = scores.width[j] <= self._known_width
         if not known and pred - target > miss_tolerance(self.params, pred)[1]:
-            self._take_up.hint(
-                j, target, self._frame, self._current(), self._allowed_base, self._pred
-            )
+            self._take_up.hint(j, target, self._frame, self._current(), scores.allowed, scores.pred)
         if self._detector.observe(j, target, pred, known):
             self._take_up.forget()  # candidates were judged against the old conditions
 
     def _current(self) -> tuple[float, int]:
         """(estimated cost, column) of what the estimates alone choose now; column -1: P."""
-        current, greedy = self._cheapest
+        current, greedy = self._scores.cheapest
         p_cost = self._robot.full_cost
         if self._detector.p_allowed and p_cost <= current:
             return p_cost, -1
@@ -410,87 +388,35 @@ class ElasticPolicy(Policy):
     def _refresh(self, learned: bool) -> None:
         """Recompute the score parts after an observation (`learned`: the regression changed)."""
         robot = self._robot
+        scores = self._scores
         coef = self._ridge.coefficients()
         coef += (robot.unit_cost, 1.0)
         self._coef[:] = coef
         if not learned:
-            self._base = base = self._base_features.dot(self._coef).tolist()
+            scores.base = self._base_features.dot(self._coef).tolist()
         else:
             values = self._features.dot(self._coef).tolist()
             k = self._k
-            self._base = base = values[:k]
+            scores.base = values[:k]
             quad = values[k : 2 * k]
             try:
-                self._width = list(map(math.sqrt, quad))
+                scores.width = list(map(math.sqrt, quad))
             except ValueError:  # round-off can leave a tiny negative form once Q is large
-                self._width = [math.sqrt(x) if x > 0.0 else 0.0 for x in quad]
-            self._pred = values[2 * k :]
-        mask = self._detector.mask
-        self._allowed_base = (
-            base
-            if mask is None
-            else [b if ok else math.inf for b, ok in zip(base, mask, strict=True)]
-        )
+                scores.width = [math.sqrt(x) if x > 0.0 else 0.0 for x in quad]
+            scores.pred = values[2 * k :]
+        if self._keyframes.video:
+            self._keyframes.rescore(scores, self._kf_scores, learned)
         self._bonus_scale = self.params.beta * robot.full_cost
         self._choose()
-        if self._video:
-            self._refresh_keyframes(learned)
-
-    def _refresh_keyframes(self, learned: bool) -> None:
-        """The scores of a frame whose video frame would be a keyframe: each video action's
-        prediction moved by its keyframe's learned excess (before one was answered, its extra
-        MB at α̂'s seconds per MB), its base cost by that and its extra MB's byte cost, its
-        width at its keyframe's context."""
-        alpha_mb = self._ridge.alpha[0]
-        base, pred = list(self._base), list(self._pred)
-        width = list(self._width) if learned or not self._kf_width else self._kf_width
-        q_inv = self._ridge.q_inv if learned else None
-        for j in self._video:
-            extra_mb = (self._key_bytes[j] - self._bytes[j]) / BYTES_PER_MB
-            known = self._key_extra[j]
-            extra = extra_mb * alpha_mb if known is None else max(known, 0.0)
-            base[j] += extra + extra_mb * self.objective.bytes
-            pred[j] += extra
-            if q_inv is not None:
-                v = self.contexts[j].copy()
-                v[0] = self._key_bytes[j] / BYTES_PER_MB
-                width[j] = math.sqrt(max(float(v @ q_inv @ v), 0.0))
-        self._kf_base, self._kf_pred, self._kf_width = base, pred, width
-        mask = self._detector.mask
-        self._kf_allowed = (
-            base
-            if mask is None
-            else [b if ok else math.inf for b, ok in zip(base, mask, strict=True)]
-        )
-        self._kf_best_key = self._best(self._key_factor, self._kf_allowed, width)
-        self._kf_best_nonkey = self._best(self._nonkey_factor, self._kf_allowed, width)
-        cheapest = min(self._kf_allowed)
-        self._kf_cheapest = (cheapest, self._kf_allowed.index(cheapest))
 
     def _choose(self) -> None:
-        """The best score for key and for other frames, and the cheapest action. The scores
-        change only in `_refresh`, and σ takes two values: each frame's choice is ready before
-        the frame comes, so `decide` costs the same for 4 actions or 64."""
-        self._best_key = self._best(self._key_factor)
-        self._best_nonkey = self._best(self._nonkey_factor)
-        cheapest = min(self._allowed_base)
-        self._cheapest = (cheapest, self._allowed_base.index(cheapest))
-
-    def _best(
-        self,
-        factor: float,
-        allowed: list[float] | None = None,
-        width: list[float] | None = None,
-    ) -> tuple[float, int]:
-        """(lowest score, its column; the first of equal ones) for frames of this sqrt(1−σ)
-        (by default on the current scores; a keyframe's are passed in)."""
-        c = factor * self._bonus_scale
-        allowed = self._allowed_base if allowed is None else allowed
-        width = self._width if width is None else width
-        # Equal lengths by construction (strict=True would cost a check on every refresh).
-        scores = [b - c * w for b, w in zip(allowed, width, strict=False)]
-        best = min(scores)
-        return best, scores.index(best)
+        """Each score set's best score for key and for other frames, and its cheapest action,
+        under the current direction restriction (`Scores.choose`)."""
+        mask = self._detector.mask
+        key_bonus = self._key_factor * self._bonus_scale
+        nonkey_bonus = self._nonkey_factor * self._bonus_scale
+        for scores in self._score_sets:
+            scores.choose(mask, key_bonus, nonkey_bonus)
 
     # -- introspection ---------------------------------------------------------------------
 
@@ -530,7 +456,7 @@ class ElasticPolicy(Policy):
     def predicted_cloud_cost(self, *, keyframe: bool = False) -> dict[str, float]:
         """α̂ᵀv_a for every offloading action, by label (objective units); `keyframe`: on a
         frame whose video frame would be a keyframe (video actions at their keyframe's bytes)."""
-        pred = self._kf_pred if keyframe and self._video else self._pred
+        pred = self._kf_scores.pred if keyframe and self._keyframes.video else self._scores.pred
         return dict(zip(self.cuts.labels, pred, strict=False))
 
     def learned_bytes(self) -> dict[str, float]:
@@ -541,7 +467,7 @@ class ElasticPolicy(Policy):
     def learned_key_bytes(self) -> dict[str, float]:
         """The bytes each video action's keyframe is expected to send, by label."""
         labels = self.cuts.labels
-        return {labels[j]: self._key_bytes[j] for j in self._video}
+        return {labels[j]: self._keyframes.key_bytes[j] for j in self._keyframes.video}
 
     def state(self) -> dict[str, Any]:
         return {

@@ -43,6 +43,7 @@ def fields(**overrides: Any) -> dict[str, Any]:
         "dropped_stale": 0,
         "resends": 0,
         "service": None,
+        "keyframe": None,
     }
     return {**base, **overrides}
 

@@ -172,9 +172,9 @@ def test_key_frames_explore_less() -> None:
     # The same uncertain cut: its bonus beats P on a non-key frame but not on a key frame.
     policy = elastic(change_detection=False, forced_schedule="off")
     p_cost = policy._robot.full_cost
-    policy._base = policy._allowed_base = [p_cost + 0.5, p_cost + 0.5, p_cost + 0.5]
+    policy._scores.base = [p_cost + 0.5, p_cost + 0.5, p_cost + 0.5]
     policy._bonus_scale = 1.0
-    policy._width = [0.0, 0.0, 0.8]  # score = base - sqrt(1-σ)·bonus
+    policy._scores.width = [0.0, 0.0, 0.8]  # score = base - sqrt(1-σ)·bonus
     policy._choose()
     nonkey = policy.decide(FrameContext(0, entropy=0.1))  # sqrt(0.8)·0.8 = 0.72 > 0.5
     key = policy.decide(FrameContext(1, entropy=0.95))  # sqrt(0.2)·0.8 = 0.36 < 0.5
