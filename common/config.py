@@ -428,8 +428,11 @@ class ResultsConfig(_Model):
     ros2: Annotated[str | None, AfterValidator(_check_ros_topic)] = Field(
         default=None,
         description="ROS 2 topic prefix: each output also published on <prefix>/<output name> "
-        "as std_msgs/msg/Float32MultiArray (and an H×W or 1×1×H×W output also as a 32FC1 "
-        "sensor_msgs/msg/Image on <prefix>/<output name>/image), over rmw_zenoh; null: none.",
+        "as std_msgs/msg/Float32MultiArray (an H×W or 1×1×H×W output also as a 32FC1 "
+        "sensor_msgs/msg/Image on <prefix>/<output name>/image, a 1×N one as a "
+        "vision_msgs/msg/Classification on <prefix>/<output name>/classification), all outputs "
+        "as an Isaac ROS TensorList on <prefix>/tensors and the model view's CameraInfo on "
+        "<prefix>/camera_info, each with the input frame's header, over rmw_zenoh; null: none.",
     )
 
 
@@ -562,7 +565,7 @@ class MachineConfig(_Model):
             "photo[:NAME], video:PATH[,loop=false], bag:PATH[:TOPIC] (a rosbag2 recording), "
             "camera:INDEX|/dev/videoINDEX, stereo:world|motorcycle|LEFT,RIGHT[,OPTIONS], zenoh "
             "(frames an application publishes on ef/<fleet>/in/<robot>) or ros2:TOPIC[,OPTIONS] "
-            "(a ROS 2 image topic)."
+            "(a ROS 2 image topic; ros2:LEFT,right=RIGHT[,slop_ms=N]: a stereo camera's two)."
         ),
     )
     fps: float | None = Field(

@@ -17,7 +17,14 @@ Zenoh is a ROS 2 participant without any ROS installed. This module is for rmw_z
   rmw_zenoh's compact form (`qos_to_keyexpr`: a value is written only where it differs from
   rmw_zenoh's default, e.g. `::,10:,:,:,,` for reliable, volatile, keep-last 10).
 - The attachment of every published sample (33 bytes, little endian): int64 sequence number
-  (from 1), int64 source timestamp (ns since the epoch), 1 byte GID length (16), 16 GID bytes.
+  (from 1), int64 source timestamp (ns since the epoch), 1 byte GID length (16), 16 GID bytes:
+  zenoh-ext's serialization of (int64, int64, bytes), rmw_zenoh_cpp >= 0.2.4 (Jazzy). Earlier
+  rmw_zenoh builds on Zenoh 1.x wrote a labelled attachment (77 bytes: each value after its name,
+  `sequence_number`, `source_timestamp`, `source_gid`, in the same serialization); both are read,
+  the 33-byte one is written.
+- A publisher's GID: XXH3-128 of its liveliness token, the low 64 bits then the high 64 bits,
+  little endian (rmw_zenoh's `liveliness_utils.cpp`), so a ROS 2 tool that compares the GID of a
+  message with the GID its graph cache derives from the token finds the same.
 
 Payloads are CDR with its 4-byte encapsulation header, made and read by rosbags
 (`common.ros2_messages`).
@@ -27,7 +34,6 @@ from __future__ import annotations
 
 import enum
 import functools
-import hashlib
 import os
 import re
 import struct
@@ -49,6 +55,20 @@ GID_BYTES = 16
 # <q: sequence number, <q: source timestamp (ns), B: GID length, then the GID.
 _ATTACHMENT = struct.Struct("<qqB")
 ATTACHMENT_BYTES = _ATTACHMENT.size + GID_BYTES
+# The labelled attachment of rmw_zenoh builds before 0.2.4: each name as zenoh-ext serializes a
+# string (its length, one byte here, then its bytes) before its value.
+
+
+def _label(name: str) -> bytes:
+    return bytes([len(name)]) + name.encode()
+
+
+_LABELLED = struct.Struct(
+    f"<{len(_label('sequence_number'))}sq{len(_label('source_timestamp'))}sq"
+    f"{len(_label('source_gid'))}sB{GID_BYTES}s"
+)
+_LABELS = (_label("sequence_number"), _label("source_timestamp"), _label("source_gid"))
+LABELLED_ATTACHMENT_BYTES = _LABELLED.size
 # The namespace and enclave of a node that has none: rcl's "/" (mangled to "%").
 ROOT_NAMESPACE = "/"
 # The deepest keep-last history a publisher may announce (a bound on what a file may ask).
@@ -65,7 +85,8 @@ class Ros2NameError(UserError, ValueError):
 
 
 class AttachmentError(ValueError):
-    """An rmw_zenoh attachment that is not 33 bytes of sequence, stamp, GID length 16 and GID."""
+    """An rmw_zenoh attachment that is neither 33 bytes of sequence, stamp, GID length 16 and GID
+    nor the labelled form of the same."""
 
 
 class EntityKind(str, enum.Enum):
@@ -320,9 +341,12 @@ def node_tokens_key(domain: int) -> str:
 
 # -- attachment ------------------------------------------------------------------------------------
 def gid_of(token: str) -> bytes:
-    """A publisher's 16-byte GID, derived from its liveliness token like rmw_zenoh's (which
-    hashes the same string), so it is stable for an entity and unique in the graph."""
-    return hashlib.blake2b(token.encode(), digest_size=GID_BYTES).digest()
+    """A publisher's 16-byte GID as rmw_zenoh derives it from the liveliness token: XXH3-128 of
+    the token, the low 64 bits then the high 64 bits, little endian."""
+    import xxhash  # the one user: a publisher's GID
+
+    digest: int = xxhash.xxh3_128_intdigest(token.encode())
+    return digest.to_bytes(GID_BYTES, "little")
 
 
 @dataclass(frozen=True)
@@ -340,11 +364,28 @@ class Attachment:
 
     @classmethod
     def decode(cls, data: bytes) -> Attachment:
+        """The 33-byte attachment, or the labelled one of earlier rmw_zenoh builds."""
+        if len(data) == LABELLED_ATTACHMENT_BYTES and data.startswith(_LABELS[0]):
+            return cls._decode_labelled(data)
         if len(data) != ATTACHMENT_BYTES:
             raise AttachmentError(
-                f"an rmw_zenoh attachment is {ATTACHMENT_BYTES} bytes, got {len(data)}"
+                f"an rmw_zenoh attachment is {ATTACHMENT_BYTES} bytes (or "
+                f"{LABELLED_ATTACHMENT_BYTES}, labelled), got {len(data)}"
             )
         sequence, stamp_ns, gid_len = _ATTACHMENT.unpack_from(data)
         if gid_len != GID_BYTES:
             raise AttachmentError(f"attachment GID length {gid_len}, expected {GID_BYTES}")
         return cls(sequence, stamp_ns, bytes(data[_ATTACHMENT.size :]))
+
+    @classmethod
+    def _decode_labelled(cls, data: bytes) -> Attachment:
+        seq_label, sequence, stamp_label, stamp_ns, gid_label, gid_len, gid = _LABELLED.unpack(data)
+        if (seq_label, stamp_label, gid_label) != _LABELS:
+            raise AttachmentError(
+                "a labelled rmw_zenoh attachment names sequence_number, source_timestamp and "
+                f"source_gid in that order, got {seq_label[1:]!r}, {stamp_label[1:]!r}, "
+                f"{gid_label[1:]!r}"
+            )
+        if gid_len != GID_BYTES:
+            raise AttachmentError(f"attachment GID length {gid_len}, expected {GID_BYTES}")
+        return cls(sequence, stamp_ns, gid)

@@ -77,7 +77,8 @@ def robot_command(
         "camera:N|/dev/videoN, a stereo pair for a two-image model: stereo:world, "
         "stereo:motorcycle, stereo:LEFT,RIGHT, zenoh (frames an application publishes on "
         "ef/<fleet>/in/<robot>) or a ROS 2 image topic "
-        "ros2:TOPIC[,type=image|compressed][,domain=ID]; default: the machine's.",
+        "ros2:TOPIC[,right=TOPIC][,slop_ms=N][,type=image|compressed][,domain=ID]; default: "
+        "the machine's.",
     ),
     frames: int | None = typer.Option(
         None, "--frames", help="Stop after this many frames (default: run until Ctrl-C)."

@@ -9,7 +9,9 @@ Lifecycle (`common.daemon.Daemon`: startup -> main loop -> shutdown, in reverse 
    the heap memory those runs freed to the system (`common.heap`), open the `--telemetry` file.
 2. Open a Zenoh *peer* session connected to the registry endpoint only (the robot's config names
    no cloud host: it finds deployments through the registry's router and queries its anycast
-   service key). Make the result sinks (`robotd.results.sinks`) and open the frame source on it
+   service key; its ROS 2 node, where it has one, is on a ROS 2 session of its own when
+   `ros2.endpoint` is set, `robotd.ros2_node`). Make the result sinks (`robotd.results.sinks`) and
+   open the frame source on it
    (`robotd.sources.frame_sources.SourceSession`: a source fed over Zenoh needs the session; every
    source is opened here, so each is released before the session). Declare the telemetry and probe
    publishers, the route subscriber (handled by the registry link), one membership view of the

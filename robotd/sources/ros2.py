@@ -218,7 +218,7 @@ class Ros2Source(FrameSource):
         self.height, self.width = height, width
         self.message = FRAME_MESSAGES[spec.type]
         self.taken = 0
-        self._stop = stop
+        self._stop = stop if stop is not None else session.stop
         self._frames = NewestFrame[bytes]()
         self._node = acquire_robot_node(
             session.config, session.robot, session.session, domain=spec.domain

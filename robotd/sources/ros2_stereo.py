@@ -169,7 +169,7 @@ class Ros2StereoSource(FrameSource):
         self.message = FRAME_MESSAGES[spec.type]
         self.pairing = StereoPairing(round(spec.slop_ms * NS_PER_MS))
         self.taken = 0
-        self._stop = stop
+        self._stop = stop if stop is not None else session.stop
         self._lock = threading.Lock()
         self._pairs = NewestFrame[StereoPair]()
         self._geometry: StereoGeometry | None = None

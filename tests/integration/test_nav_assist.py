@@ -102,12 +102,16 @@ def test_safe_commands_follow_d_coll(open_peer: Callable[..., zenoh.Session]) ->
             peer.put(cmd_key, forward)
             limited = out.get(timeout=WAIT_S).linear[0]
         assert 0.0 < limited < 0.3, limited
-        # Garbage on both topics: refused by name, nothing forwarded for it.
-        before = node.forwarded
+        # Garbage on both topics: refused by name, nothing forwarded for it: every safe command
+        # out since is one of the good commands put before (regression: counting forwards raced
+        # with a good command still in flight).
         peer.put(cmd_key, b"\x00\x01\x00\x00\x01")
         peer.put(d_coll_key, b"garbage", attachment=attachment)
         wait_until(lambda: node.refused >= 2 or None, timeout_s=WAIT_S, what="2 refusals")
-        assert node.refused == 2 and node.forwarded == before
+        assert node.refused == 2
+        while not out.empty():  # bounded: what was forwarded, no more
+            late = out.get_nowait()
+            assert 0.0 <= late.linear[0] <= 0.3 and late.angular == (0.0, 0.0, 0.0), late
     finally:
         sub.undeclare()
         node.close()
@@ -154,11 +158,11 @@ def test_stamped_commands_keep_their_header_and_a_future_stamp_is_refused(
                 got = out.get(timeout=0.2)
         assert got is not None, "no safe command"
         assert got[1] == reverse and got[0].frame_id == "base_link"
-        before = node.forwarded
         future = Header(time.time_ns() + 5_000_000_000, "base_link")
         peer.put(cmd_key, encode_twist_stamped(reverse, future))
         wait_until(lambda: node.refused >= 1 or None, timeout_s=WAIT_S, what="the refusal")
-        assert node.forwarded == before
+        while not out.empty():  # bounded: commands forwarded before, never the future one
+            assert out.get_nowait()[0].stamp_ns != future.stamp_ns
     finally:
         sub.undeclare()
         node.close()

@@ -129,7 +129,41 @@ def test_bad_attachments_are_named_errors(data: bytes) -> None:
         Attachment.decode(data)
 
 
-@given(st.binary(max_size=64))
+def test_both_attachment_forms_as_zenoh_serializes_them() -> None:
+    """The 33-byte form is zenoh-ext's serialization of (int64, int64, bytes); the labelled form
+    of rmw_zenoh builds before 0.2.4 names each value first. Both made by zenoh's own
+    serializer, both read; a labelled one with other names is refused."""
+    from zenoh.ext import Int64, z_serialize
+
+    gid = bytes(range(40, 56))
+    plain = z_serialize((Int64(9), Int64(1_700_000_000_000_000_001), gid)).to_bytes()
+    assert plain == Attachment(9, 1_700_000_000_000_000_001, gid).encode()
+    labelled = z_serialize(
+        (
+            "sequence_number",
+            Int64(9),
+            "source_timestamp",
+            Int64(1_700_000_000_000_000_001),
+            "source_gid",
+            gid,
+        )
+    ).to_bytes()
+    assert len(labelled) == rmw_zenoh.LABELLED_ATTACHMENT_BYTES
+    assert Attachment.decode(labelled) == Attachment(9, 1_700_000_000_000_000_001, gid)
+    wrong = labelled.replace(b"source_gid", b"source_xid")
+    with pytest.raises(AttachmentError, match="names sequence_number, source_timestamp"):
+        Attachment.decode(wrong)
+
+
+def test_gid_is_rmw_zenohs_xxh3_128_of_the_token() -> None:
+    import xxhash
+
+    token = "@ros2_lv/0/aac3178e146ba6f1fc6e6a4085e77f21/0/11/MP/%/%/talker/%chatter"
+    canonical = xxhash.xxh3_128(token.encode()).digest()  # big endian: high 64, low 64
+    assert rmw_zenoh.gid_of(token) == canonical[8:][::-1] + canonical[:8][::-1]
+
+
+@given(st.binary(max_size=96))
 def test_any_bytes_decode_or_raise_attachment_error(data: bytes) -> None:
     with contextlib.suppress(AttachmentError):
         Attachment.decode(data)
