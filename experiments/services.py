@@ -43,6 +43,7 @@ from common.config import FleetConfig, fleet_from_dict
 from common.daemon import FORCED_EXIT_CODE
 from common.errors import UserError
 from deploy.procs import DaemonError
+from deploy.readiness import wait_until
 
 from .dense_model import write_dense_model
 from .fleet import ROBOT_HOST, ROBOT_ID, FleetSpec, endpoint, fleet_dict
@@ -76,12 +77,20 @@ FULL_ROUNDS, QUICK_ROUNDS = 3, 1
 FULL_PHASE_S, QUICK_PHASE_S = 20.0, 8.0
 FULL_SETTLE_S, QUICK_SETTLE_S = 3.0, 2.0
 FULL_WARMUP, QUICK_WARMUP = 8, 4
+ROUTE_WAIT_S = 240.0
+"""Bound of the wait for the registry to route every service to the deployment."""
 WARMUP_WAIT_S = 300.0
 """Bound of the wait for every service's warm-up frames (start-up and calibration included)."""
 CAP_MARGIN_S = 30.0
+"""Seconds of frames beyond the start-up bound and the phases in the robot's --frames bound."""
 WARM_UP_RUN_S = 5.0
 """How long the unmeasured first run streams past its warm-up frames."""
+LEASE_MS = 10_000
+"""The fleet's Zenoh lease: when the robot's three services started at once on the 2-core host,
+a 3 s lease between the registry and `edge-1` lapsed in 4 of 16 runs, and the registry then left
+the robot on itself for 2 to 4 minutes. Nothing here measures failure detection."""
 HOLD_POLL_S = 0.2
+"""How often a phase's wait looks at the robot (it must not exit meanwhile)."""
 
 CLASSIFIER = "classify"
 DENSE = "dense"
@@ -283,6 +292,7 @@ def fleet_spec(tf: TestbedFleet, settings: ServicesSettings) -> tuple[FleetSpec,
         services=mapping,
         deadline_s=max(i.deadline_s for i in infos),
         fps=settings.fps,
+        lease_ms=LEASE_MS,
         # Each service's frame loop holds a session of its own, and each would listen on the
         # robot's one fixed port: port 0 lets each take a free one (gossip tells the peers).
         changes={
@@ -383,6 +393,7 @@ def _start(
         extra=["--decisions", mode],
         tag=tag,
     )
+    _wait_routes(tf, infos, robot)
     last = _last_frames(tf.follower.records(), infos)
     for info in infos:
         tf.follower.wait_for(
@@ -392,6 +403,32 @@ def _start(
             procs=[robot],
         )
     return robot
+
+
+def _wait_routes(tf: TestbedFleet, infos: list[ServiceInfo], robot: NetnsDaemon) -> None:
+    """Until the registry routes every service of the robot to the deployment: on a loaded
+    host its lease to `edge-1` may lapse, and the robot is then routed to itself until the
+    registry places it again (minutes), which would measure a robot without a deployment."""
+    assert tf.observer is not None
+    observer = tf.observer
+    wanted = {i.name for i in infos}
+
+    def routed() -> bool:
+        rows = observer.view("routes", timeout_s=2.0)
+        served = {
+            r.get("service")
+            for r in rows
+            if r.get("robot") == ROBOT_ID and r.get("deployment") == CLOUD
+        }
+        return wanted <= served
+
+    wait_until(
+        routed,
+        timeout_s=ROUTE_WAIT_S,
+        what=f"the registry to route every service of {ROBOT_ID} to {CLOUD}",
+        procs=[robot],
+        interval_s=0.5,
+    )
 
 
 def _stop(robot: NetnsDaemon, tf: TestbedFleet) -> None:

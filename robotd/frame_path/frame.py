@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from common.wire.telemetry import TelemetryRecord
+from common.wire.telemetry import FallbackReason, TelemetryRecord
 from robotd.frame_path.offload import CallResult, CloudCall
 from robotd.policies import PURE_ROBOT, Decision, Outcome
 from robotd.telemetry import SERVED_BY_CLOUD, SERVED_BY_ROBOT, RemoteTimes, frame_record
@@ -115,6 +115,7 @@ class Frame:
             local_s=self.local_s,
             latency_s=self.latency_s,
             waited_s=None if answered else deadline_s,
+            timed_out=res is not None and res.reason is FallbackReason.TIMEOUT,
             cpu_s=self.cpu_s,
             keyframe=self.keyframe,
         )

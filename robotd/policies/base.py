@@ -133,6 +133,8 @@ class Outcome:
     - `latency_s`: end-to-end latency of the frame as served.
     - `waited_s`: how long the robot waited for the cloud before giving up (the deadline), when it
       did not answer.
+    - `timed_out`: the cloud did not answer within the deadline (not an early failure such as no
+      route or busy): what a congested link looks like.
     - `cpu_s`: the robot's CPU seconds for the frame (process time, every thread: a hedged
       local run included), when measured; the simulator, which models no CPU contention, leaves
       it None.
@@ -149,6 +151,7 @@ class Outcome:
     waited_s: float | None = None
     cpu_s: float | None = None
     keyframe: bool | None = None
+    timed_out: bool = False
 
 
 class _CodecModel(BaseModel):
