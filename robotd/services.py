@@ -24,6 +24,7 @@ reverse order. A service whose daemon fails to start stops the others and the er
 from __future__ import annotations
 
 import logging
+import re
 import threading
 from dataclasses import replace
 from pathlib import Path
@@ -88,6 +89,8 @@ class RobotServices(Daemon):
                 f"{len(self.services)} ({', '.join(self.services)})"
             )
         self.views = {name: config.for_service(name) for name in self.services}
+        for name in self.services[1:]:
+            _listen_anywhere(self.views[name], robot_id)
         self._check_ros2_topics()
         self.budget = SharedBudget(self.views, joint=joint)
         self.daemons: dict[str, RobotDaemon] = {}
@@ -219,8 +222,6 @@ class RobotServices(Daemon):
         except BaseException as exc:  # handed to the main thread, which raises it
             self._errors[name] = exc
             self.should_exit.set()
-        if all(not t.is_alive() or t is threading.current_thread() for t in self._threads):
-            self.should_exit.set()
 
     def main_loop(self) -> None:
         while not self.should_exit.wait(0.1):
@@ -249,6 +250,14 @@ def service_recording(path: Path, service: str) -> Path:
     if path.suffix == MCAP_SUFFIX:
         return path.with_name(f"{path.stem}.{service}{path.suffix}")
     return path.with_name(f"{path.name}.{service}")
+
+
+def _listen_anywhere(view: FleetConfig, robot: str) -> None:
+    """The robot's listen endpoints in service `view` on a port of the system's choosing: each
+    service's daemon has a session of its own, and only the first can have the machine's port."""
+    machine = view.machines[robot]
+    listen = [re.sub(r":\d+(?=$|[?#])", ":0", endpoint) for endpoint in machine.listen]
+    view.machines[robot] = machine.model_copy(update={"listen": listen})
 
 
 def _image_size(view: FleetConfig) -> tuple[int, int]:
