@@ -202,11 +202,11 @@ class RobotServices(Daemon):
             thread.start()
             self._threads.append(thread)
         self.on_release(self._stop_services, what="services")
-        for name, daemon in self.daemons.items():
+        for (name, daemon), thread in zip(self.daemons.items(), self._threads, strict=True):
             while not daemon.ready.wait(0.1):
                 if name in self._errors:
                     raise self._errors[name]
-                if self.should_exit.is_set():
+                if self.should_exit.is_set() or not thread.is_alive():
                     return
         log.info(
             "%s: %d services (%s) from one capture (%s)",
