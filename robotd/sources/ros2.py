@@ -35,7 +35,7 @@ import logging
 import threading
 from collections import Counter
 from collections.abc import Callable
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -271,10 +271,7 @@ class Ros2Source(FrameSource):
             return fit_frame(frame.image, self.height, self.width)
 
     def _release(self) -> None:
-        for entity in reversed(self._entities):
-            entity.close()
-        self._entities.clear()
-        self._node.release()
+        release_topics(self._entities, self._node)
 
     def close(self) -> None:
         self.dropped_stale = self._frames.dropped_stale
@@ -287,3 +284,11 @@ class Ros2Source(FrameSource):
             self.dropped_stale,
             self.refusals.summary(),
         )
+
+
+def release_topics(entities: list[Any], node: Any) -> None:
+    """Close a ROS 2 source's subscriptions (newest first), then let go of the robot's node."""
+    for entity in reversed(entities):
+        entity.close()
+    entities.clear()
+    node.release()

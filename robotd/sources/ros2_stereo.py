@@ -42,7 +42,13 @@ from common.wire.errors import ErrorCode
 from robotd.ros2_node import InputFrame, acquire_robot_node, remember_frame
 from robotd.sources.frame_sources import EndOfStream, FrameSource, fit_crop, fit_frame
 from robotd.sources.newest_frame import NewestFrame
-from robotd.sources.ros2 import FRAME_MESSAGES, CameraInfoWatch, ImageTopic, Refusals
+from robotd.sources.ros2 import (
+    FRAME_MESSAGES,
+    CameraInfoWatch,
+    ImageTopic,
+    Refusals,
+    release_topics,
+)
 from robotd.sources.stereo_frame import LEFT_VIEW, RIGHT_VIEW, STEREO_VIEWS, StereoFrame
 
 if TYPE_CHECKING:
@@ -270,10 +276,7 @@ class Ros2StereoSource(FrameSource):
         return StereoFrame(views, pair.left.stamp_ns / 1e9 if pair.left.stamp_ns else time.time())
 
     def _release(self) -> None:
-        for entity in reversed(self._entities):
-            entity.close()
-        self._entities.clear()
-        self._node.release()
+        release_topics(self._entities, self._node)
 
     def close(self) -> None:
         self.dropped_stale = self._pairs.dropped_stale

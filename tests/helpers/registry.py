@@ -11,7 +11,7 @@ import time
 import uuid
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import pytest
 import yaml
@@ -179,6 +179,30 @@ def peer() -> Iterator[Callable[[FleetConfig], zenoh.Session]]:
 
 
 # -- the fakes -------------------------------------------------------------------------------------
+T = TypeVar("T")
+
+
+def wait_logged(
+    cond: threading.Condition,
+    log: list[T],
+    predicate: Callable[[T], bool],
+    failure: str,
+    timeout_s: float = WAIT_S,
+) -> T:
+    """The first entry of `log` (appended to under `cond`, which is notified) that matches
+    `predicate`, so far or from now on; the test fails with `failure` after `timeout_s`."""
+    deadline = time.monotonic() + timeout_s
+    with cond:
+        while True:
+            for entry in log:
+                if predicate(entry):
+                    return entry
+            left = deadline - time.monotonic()
+            if left <= 0:
+                pytest.fail(f"{failure} within {timeout_s} s: {log}")
+            cond.wait(left)
+
+
 class FakeDeployment:
     """A cloud daemon's registry-facing half: token, probe and ctl with its epoch rules (a
     request with an epoch lower than the one held for the robot is refused; the same epoch is
@@ -299,16 +323,7 @@ class FakeDeployment:
         self, what: str, predicate: Callable[[CtlRequest], bool], timeout_s: float = WAIT_S
     ) -> CtlRequest:
         """The first ctl request received (so far or from now on) that matches `predicate`."""
-        deadline = time.monotonic() + timeout_s
-        with self.cond:
-            while True:
-                for req in self.ctl_log:
-                    if predicate(req):
-                        return req
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    pytest.fail(f"{self.name}: no {what} within {timeout_s} s: {self.ctl_log}")
-                self.cond.wait(left)
+        return wait_logged(self.cond, self.ctl_log, predicate, f"{self.name}: no {what}", timeout_s)
 
     def die(self) -> None:
         """Vanish like a killed process: the session closes, the token goes with it."""

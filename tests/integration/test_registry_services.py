@@ -22,13 +22,11 @@ from __future__ import annotations
 
 import json
 import threading
-import time
 import uuid
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-import pytest
 import yaml
 import zenoh
 from typer.testing import CliRunner
@@ -61,12 +59,12 @@ from tests.helpers.registry import (
     DEADLINE_S,
     HYSTERESIS_S,
     LEASE_MS,
-    WAIT_S,
     WINDOW,
     FakeRobot,
     RunningRegistry,
     ask,
     view,
+    wait_logged,
     wait_view,
 )
 from tests.integration.conftest import find_free_port, loopback_endpoint
@@ -236,16 +234,7 @@ class ServicesDeployment:
 
     def wait_ctl(self, what: str, predicate: Callable[[CtlRequest], bool]) -> CtlRequest:
         """The first ctl request received (so far or from now on) matching `predicate`."""
-        deadline = time.monotonic() + WAIT_S
-        with self.cond:
-            while True:
-                for req in self.ctl_log:
-                    if predicate(req):
-                        return req
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    pytest.fail(f"{self.name}: no {what} within {WAIT_S} s: {self.ctl_log}")
-                self.cond.wait(left)
+        return wait_logged(self.cond, self.ctl_log, predicate, f"{self.name}: no {what}")
 
     def die(self) -> None:
         """Vanish like a killed process: the session closes, the token goes with it."""
