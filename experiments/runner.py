@@ -488,13 +488,19 @@ class TestbedFleet:
         return self.follower.records()
 
     def stop_robot(self) -> None:
-        if self.robot is not None:
-            self.robot.stop()
+        # The quota goes first: a robot held at a few % of a core takes seconds to shut down.
         with contextlib.suppress(UserError):
             self.testbed.cpu(ROBOT_HOST, None)
+        if self.robot is not None:
+            self.robot.stop()
 
     def stop_daemons(self) -> None:
-        """Stop every daemon of the current run and the observer (the testbed stays up)."""
+        """Stop every daemon of the current run and the observer (the testbed stays up); CPU
+        quotas are lifted first, so that a Ctrl-C does not wait on a daemon shutting down at a
+        few % of a core."""
+        for host in self.testbed.hosts:
+            with contextlib.suppress(UserError, OSError):
+                self.testbed.cpu(host, None)
         try:
             self.procs.stop_all()
         finally:

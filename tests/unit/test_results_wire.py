@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import re
 
+import cv2
 import numpy as np
 import pytest
 
@@ -170,6 +171,18 @@ def test_a_frame_is_fitted_to_the_model_without_stretching() -> None:
     # The centred 480×480 square, shrunk: its left edge is the image's column 80.
     square = image[:, 80:560]
     np.testing.assert_allclose(fitted[:, 0].mean(0), square[:, :2].mean((0, 1)), atol=6)
+
+
+def test_a_fitted_frame_is_anti_aliased_at_whole_and_other_ratios() -> None:
+    """Stripes one pixel wide, shrunk 2x (a box average) and 480 -> 224 (a low-pass filter
+    first): grey, not the moiré plain sampling gives."""
+    stripes = np.zeros((480, 480, 3), np.uint8)
+    stripes[:, ::2] = 255
+    assert np.all(fit_frame(stripes, 240, 240) == 128)  # each box is one black, one white
+    fitted = fit_frame(stripes, 224, 224).astype(np.float64)
+    sampled = cv2.resize(stripes, (224, 224), interpolation=cv2.INTER_LINEAR).astype(np.float64)
+    assert abs(fitted.mean() - 127.5) < 2
+    assert fitted.std() < 0.2 * sampled.std()
 
 
 def test_top5_of_a_vector_and_of_each_row() -> None:
