@@ -47,6 +47,9 @@ from common.defaults import (
     DEFAULT_MAX_OUTPUT_REL_ERR,
     DEFAULT_MAX_REQUEST_BYTES,
     DEFAULT_REGISTRY_PORT,
+    DEFAULT_STEREO_BASELINE_M,
+    DEFAULT_STEREO_HEIGHT_M,
+    DEFAULT_STEREO_HFOV_DEG,
     ZOO_PREFIX,
 )
 from common.errors import UserError
@@ -914,6 +917,84 @@ class VideoConfig(_Model):
     )
 
 
+# The ranges a stereo camera's geometry (`nav.camera`) is checked against: wide enough for any
+# robot's rectified pair, narrow enough to catch a value in the wrong unit (a field of view in
+# radians, a baseline in millimetres, a height in centimetres).
+STEREO_HFOV_DEG_RANGE = (10.0, 170.0)
+MAX_STEREO_BASELINE_M = 2.0
+MAX_STEREO_HEIGHT_M = 5.0
+
+
+class NavCameraConfig(_Model):
+    """The stereo camera zoo:stereo is built for (`nav.camera.CameraModel`: a level, rectified
+    pair at the model's input size, principal point at the image centre). Every robot and
+    deployment builds the same model from it; a ROS 2 stereo source whose CameraInfo says
+    otherwise is named in a warning with the lines to put here (docs/ros2.md)."""
+
+    baseline_m: float = Field(
+        default=DEFAULT_STEREO_BASELINE_M,
+        description="Distance between the two cameras' centres, m (a right CameraInfo's "
+        "-P[3]/P[0]); in (0, 2].",
+    )
+    hfov_deg: float = Field(
+        default=DEFAULT_STEREO_HFOV_DEG,
+        description="Horizontal field of view of the rectified left image, degrees "
+        "(2·atan(width / (2·fx))); in 10..170.",
+    )
+    height_m: float = Field(
+        default=DEFAULT_STEREO_HEIGHT_M,
+        description="Height of the camera above the floor, m; in (0, 5].",
+    )
+
+    @field_validator("baseline_m")
+    @classmethod
+    def _baseline(cls, value: float) -> float:
+        if not 0 < value <= MAX_STEREO_BASELINE_M:
+            raise ValueError(
+                f"the stereo baseline must be in (0, {MAX_STEREO_BASELINE_M:g}] m, got {value} "
+                "(in metres: 0.06 for 6 cm)"
+            )
+        return float(value)
+
+    @field_validator("hfov_deg")
+    @classmethod
+    def _hfov(cls, value: float) -> float:
+        low, high = STEREO_HFOV_DEG_RANGE
+        if not low <= value <= high:
+            raise ValueError(
+                f"the horizontal field of view must be in {low:g}..{high:g} degrees, got "
+                f"{value} (in degrees, not radians)"
+            )
+        return float(value)
+
+    @field_validator("height_m")
+    @classmethod
+    def _height(cls, value: float) -> float:
+        if not 0 < value <= MAX_STEREO_HEIGHT_M:
+            raise ValueError(
+                f"the camera height above the floor must be in (0, {MAX_STEREO_HEIGHT_M:g}] m, "
+                f"got {value} (in metres: 0.3 for 30 cm)"
+            )
+        return float(value)
+
+    def zoo_options(self) -> dict[str, float]:
+        """The geometry as zoo build options (`common.zoo.ZooGraph.options`: zoo:stereo's)."""
+        return {
+            "baseline_m": self.baseline_m,
+            "hfov_deg": self.hfov_deg,
+            "height_m": self.height_m,
+        }
+
+
+class NavConfig(_Model):
+    """The navigation app's settings (zoo:stereo)."""
+
+    camera: NavCameraConfig = Field(
+        default_factory=NavCameraConfig,
+        description="The stereo camera zoo:stereo is built for: baseline_m, hfov_deg, height_m.",
+    )
+
+
 class ServiceConfig(_Model):
     """One service of the fleet: an ONNX model (split like any model) or a Python handler (run
     whole, on the robot or a deployment: its only cut is 0), with the fleet-level keys it
@@ -1054,6 +1135,10 @@ class FleetConfig(_Model):
     video: VideoConfig = Field(
         default_factory=VideoConfig,
         description="How camera images crossing as h264 are coded (the robots' encoders).",
+    )
+    nav: NavConfig = Field(
+        default_factory=NavConfig,
+        description="The navigation app's settings: the stereo camera zoo:stereo is built for.",
     )
     zenoh: ZenohConfig = Field(default_factory=ZenohConfig, description="Zenoh settings.")
     ros2: Ros2Config = Field(
@@ -1389,6 +1474,12 @@ class FleetConfig(_Model):
     def zoo_model(self) -> str | None:
         """The (first) service's zoo model name for `model: zoo:NAME`, else None."""
         return self.service_config.zoo_model
+
+    @property
+    def zoo_options(self) -> dict[str, float]:
+        """The build options of the fleet's zoo models (`common.models.resolve_model`): the
+        `nav.camera` geometry, which zoo:stereo takes and the other zoo models ignore."""
+        return self.nav.camera.zoo_options()
 
     @property
     def tls(self) -> bool:

@@ -25,3 +25,10 @@ DEFAULT_MAX_REQUEST_BYTES = 64 * 1024
 
 ZOO_PREFIX = "zoo:"
 """A model spec naming a zoo entry (`zoo:NAME`) rather than an ONNX file."""
+
+# The stereo camera zoo:stereo is built for when the fleet file has no `nav: camera:` section
+# (fleet.yaml `nav.camera`; `nav.camera.CameraModel`): a common small stereo camera, 60°
+# horizontal field of view and a 6 cm baseline, 0.30 m above the floor on a small indoor robot.
+DEFAULT_STEREO_HFOV_DEG = 60.0
+DEFAULT_STEREO_BASELINE_M = 0.06
+DEFAULT_STEREO_HEIGHT_M = 0.30

@@ -15,7 +15,9 @@ from common.zoo import DEFAULT_INPUT_SHAPE
 
 def fleet_partition(cfg: FleetConfig) -> Partition:
     """`cfg.model` split at the fleet's cuts (`cuts.names`, `cuts.max_cut_tensors`, segments
-    when `cuts.segments`) for its `input_shape`, from the partition cache when it is there."""
+    when `cuts.segments`) for its `input_shape`, from the partition cache when it is there. A
+    zoo model is built with the fleet's build options (`FleetConfig.zoo_options`: zoo:stereo
+    for the `nav.camera` geometry), so robot and deployments hold the same file and digest."""
     if cfg.handler is not None:
         from common.handlers import identity_model_path
 
@@ -27,6 +29,7 @@ def fleet_partition(cfg: FleetConfig) -> Partition:
         cfg.cuts.max_cut_tensors,
         shape,
         segments=cfg.cuts.segments,
+        zoo_options=cfg.zoo_options,
     )
 
 

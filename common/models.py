@@ -10,6 +10,7 @@ import hashlib
 import json
 import os
 import tempfile
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -72,18 +73,25 @@ def file_digest(path: Path) -> str:
     return h.hexdigest()
 
 
-def resolve_model(spec: str | Path, input_shape: tuple[int, ...] | None = None) -> ModelRef:
+def resolve_model(
+    spec: str | Path,
+    input_shape: tuple[int, ...] | None = None,
+    zoo_options: Mapping[str, float] | None = None,
+) -> ModelRef:
     """Resolve ``spec`` (an ONNX file or ``zoo:NAME``) to a file on disk and its digest.
 
-    A zoo model is exported once per name and input shape (C, H, W; a leading batch dimension
-    of 1 is accepted) into the cache directory and reused afterwards. For a file, ``input_shape``
-    is not used here: the partitioner applies it to the model's dynamic dimensions.
+    A zoo model is exported once per name, input shape (C, H, W; a leading batch dimension
+    of 1 is accepted) and build options into the cache directory and reused afterwards.
+    ``zoo_options`` are build options (a fleet's: `FleetConfig.zoo_options`, the stereo camera's
+    geometry); a zoo model takes those it knows (`common.zoo.options_for`), a file none. For a
+    file, ``input_shape`` is not used here: the partitioner applies it to the model's dynamic
+    dimensions.
     """
     text = str(spec).strip()
     if not text:
         raise UserError("empty model name: give an ONNX file or zoo:NAME")
     if text.startswith(ZOO_PREFIX):
-        return _resolve_zoo(text, text[len(ZOO_PREFIX) :], input_shape)
+        return _resolve_zoo(text, text[len(ZOO_PREFIX) :], input_shape, zoo_options)
     path = Path(text).expanduser()
     if not path.exists():
         raise UserError(f"model file not found: {text}")
@@ -92,17 +100,22 @@ def resolve_model(spec: str | Path, input_shape: tuple[int, ...] | None = None) 
     return ModelRef(path=path, digest=file_digest(path), name=path.stem, spec=text)
 
 
-def _resolve_zoo(spec: str, name: str, input_shape: tuple[int, ...] | None) -> ModelRef:
+def _resolve_zoo(
+    spec: str,
+    name: str,
+    input_shape: tuple[int, ...] | None,
+    options: Mapping[str, float] | None,
+) -> ModelRef:
     from common import zoo  # light: the graph builder (numpy, onnx) loads when a model is built
 
     entry = zoo.get(name)
     shape = zoo_shape(input_shape)
     # The zoo's format is in the file name: a cache filled by an older build (float input
-    # before the camera image entered the model) is not mistaken for today's models.
-    name = f"{entry.name}-{zoo.format_shape(shape)}-v{zoo.cache_version(entry)}.onnx"
-    path = cache_dir() / "zoo" / name
+    # before the camera image entered the model) is not mistaken for today's models; so are
+    # the build options off their defaults: two camera geometries never share a file.
+    path = cache_dir() / "zoo" / zoo.cache_file_name(entry, shape, options)
     if not path.is_file():
-        zoo.export(entry.name, path, shape)
+        zoo.export(entry.name, path, shape, options)
     return ModelRef(path=path, digest=file_digest(path), name=entry.name, spec=spec)
 
 

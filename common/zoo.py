@@ -32,6 +32,12 @@ Other packages add models built as ONNX graphs in code (no weights to learn) thr
 ``elasticfog.zoo`` entry point group, each a :class:`ZooGraph` with its own inputs and format
 version: ``stereo`` (nav.zoo_entry, the stereo navigation pipeline; its inputs are the left and
 right camera images). ``common`` never imports them by name.
+
+Build options: a ZooGraph may take options besides the shape (``ZooGraph.options``, each with
+its default; zoo:stereo takes its camera's geometry, fleet.yaml ``nav.camera``). The cached file
+of a model built with options off their defaults carries them in its name
+(:func:`cache_file_name`), so two geometries never share a file; at the defaults the name is the
+one it had before options existed, and so are the bytes.
 """
 
 from __future__ import annotations
@@ -39,8 +45,8 @@ from __future__ import annotations
 import functools
 import os
 import tempfile
-from collections.abc import Callable
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
 from importlib.metadata import entry_points
 from pathlib import Path
 from typing import Any
@@ -111,16 +117,23 @@ MAX_SPATIAL_PX = 4096
 ZOO_ENTRY_POINT_GROUP = "elasticfog.zoo"
 
 
+ZooOptions = Mapping[str, float]
+"""Build options of a zoo model by name (fleet.yaml `nav.camera` for zoo:stereo)."""
+
+
 @dataclass(frozen=True)
 class ZooGraph:
-    """A zoo entry built as an ONNX graph: ``build`` takes the image shape (C, H, W) and returns
-    the onnx.ModelProto. ``format`` is bumped when the graph changes for the same name and shape
-    (it names the cached file)."""
+    """A zoo entry built as an ONNX graph: ``build`` takes the image shape (C, H, W), and each
+    of ``options`` as a keyword argument when the entry has any, and returns the
+    onnx.ModelProto. ``format`` is bumped when the graph changes for the same name, shape and
+    options (it names the cached file). ``options`` are the names the entry takes with their
+    defaults."""
 
     name: str
     description: str
-    build: Callable[[tuple[int, int, int]], Any]
+    build: Callable[..., Any]
     format: int = 1
+    options: Mapping[str, float] = field(default_factory=dict, hash=False)
 
 
 def _build_network(name: str, shape: tuple[int, int, int]) -> Any:
@@ -205,6 +218,33 @@ def cache_version(entry: ZooGraph) -> int:
     return entry.format
 
 
+def options_for(entry: ZooGraph, given: ZooOptions | None) -> dict[str, float]:
+    """The options `entry` is built with: its defaults, replaced by those of `given` it takes.
+    Options it does not take are left out (a fleet's camera geometry means nothing to a CNN)."""
+    chosen = dict(entry.options)
+    for name, value in (given or {}).items():
+        if name in chosen:
+            chosen[name] = float(value)
+    return chosen
+
+
+def cache_file_name(
+    entry: ZooGraph, shape: tuple[int, ...], options: ZooOptions | None = None
+) -> str:
+    """The cached file of `entry` built for `shape` with `options` (`options_for`): name, shape,
+    each option off its default as NAME+VALUE (the shortest text that reads back the same
+    float, so two values never share a name), format version;
+    e.g. ``stereo-3x240x320-baseline_m0.12-v4.onnx``, ``stereo-3x240x320-v4.onnx`` at the
+    defaults."""
+    chosen = options_for(entry, options)
+    changed = "".join(
+        f"-{name}{value!r}"
+        for name, value in sorted(chosen.items())
+        if value != entry.options[name]
+    )
+    return f"{entry.name}-{format_shape(shape)}{changed}-v{cache_version(entry)}.onnx"
+
+
 def get(name: str) -> ZooGraph:
     """The zoo entry called ``name``; raises UserError listing the known names otherwise."""
     entry = ZOO_MODELS.get(name) or graph_models().get(name)
@@ -214,20 +254,27 @@ def get(name: str) -> ZooGraph:
     return entry
 
 
-def export(name: str, out: Path, input_shape: tuple[int, ...] = DEFAULT_INPUT_SHAPE) -> Path:
+def export(
+    name: str,
+    out: Path,
+    input_shape: tuple[int, ...] = DEFAULT_INPUT_SHAPE,
+    options: ZooOptions | None = None,
+) -> Path:
     """Build zoo model ``name`` with seeded weights and write it to ``out`` as ONNX (batch 1).
 
-    ``input_shape`` is C×H×W; the file's input is the uint8 camera image 1×H×W×C.
+    ``input_shape`` is C×H×W; the file's input is the uint8 camera image 1×H×W×C. ``options``
+    are build options (`options_for`: those the entry does not take are left out).
 
     The file is written next to ``out`` and renamed into place, so a reader never sees half a
-    model. The same name and shape give a byte-identical file on every host, hence the same
-    digest on the robot and on the cloud.
+    model. The same name, shape and options give a byte-identical file on every host, hence the
+    same digest on the robot and on the cloud.
     """
     import onnx
 
     entry = get(name)
     shape = check_input_shape(tuple(input_shape))
-    model = entry.build(shape)
+    chosen = options_for(entry, options)
+    model = entry.build(shape, **chosen) if chosen else entry.build(shape)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent)

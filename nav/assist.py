@@ -153,13 +153,15 @@ def bins_of_model(props: dict[str, str]) -> CurvatureBins | None:
 
 
 def _model_props(cfg: FleetConfig) -> dict[str, str]:
-    """The metadata of the fleet's model (a zoo model is exported once into the cache)."""
+    """The metadata of the fleet's model (a zoo model is exported once into the cache, for the
+    fleet's camera geometry: the very file its robot and deployments run)."""
     import onnx
 
     from common.models import resolve_model
 
     shape = tuple(cfg.input_shape) if cfg.input_shape else None
-    model = onnx.load(str(resolve_model(cfg.model_spec, shape).path), load_external_data=False)
+    ref = resolve_model(cfg.model_spec, shape, cfg.zoo_options)
+    model = onnx.load(str(ref.path), load_external_data=False)
     return {p.key: p.value for p in model.metadata_props}
 
 

@@ -18,14 +18,20 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from common.defaults import (
+    DEFAULT_STEREO_BASELINE_M,
+    DEFAULT_STEREO_HEIGHT_M,
+    DEFAULT_STEREO_HFOV_DEG,
+)
 from common.errors import UserError
 
 # A common small stereo camera: 60° horizontal field of view and a 6 cm baseline (the
-# disparity range then covers obstacles from about half a metre, see nav.stereo_params).
-DEFAULT_HFOV_DEG = 60.0
-DEFAULT_BASELINE_M = 0.06
+# disparity range then covers obstacles from about half a metre, see nav.stereo_params). The
+# fleet file's `nav: camera:` section (defaults in common.defaults) says another.
+DEFAULT_HFOV_DEG = DEFAULT_STEREO_HFOV_DEG
+DEFAULT_BASELINE_M = DEFAULT_STEREO_BASELINE_M
 # Mounted on a small indoor robot (the paper's Erratic is about 0.4 m tall).
-DEFAULT_HEIGHT_M = 0.30
+DEFAULT_HEIGHT_M = DEFAULT_STEREO_HEIGHT_M
 DEFAULT_FORWARD_M = 0.10
 
 
@@ -57,6 +63,7 @@ class CameraModel:
         height: int,
         hfov_deg: float = DEFAULT_HFOV_DEG,
         baseline_m: float = DEFAULT_BASELINE_M,
+        height_m: float = DEFAULT_HEIGHT_M,
     ) -> CameraModel:
         """The camera at a resolution: the same lens, so fx scales with the width and the
         principal point is the image centre."""
@@ -65,7 +72,7 @@ class CameraModel:
         if not 0 < hfov_deg < 180:
             raise UserError(f"horizontal field of view must be in (0, 180) degrees: {hfov_deg}")
         fx = (width / 2) / math.tan(math.radians(hfov_deg) / 2)
-        return cls(fx, baseline_m, (width - 1) / 2, (height - 1) / 2)
+        return cls(fx, baseline_m, (width - 1) / 2, (height - 1) / 2, height_m)
 
     def depth_m(self, disparity_px: float) -> float:
         """Distance along the optical axis of a point seen with this disparity."""

@@ -32,6 +32,7 @@ from robotd.robot_profile import StartProfile, measured_profile
 from robotd.sources.frame_sources import FrameSource, SourceSession
 from robotd.sources.opening import open_source_for
 from robotd.sources.stereo_frame import CameraFrame, StereoFrame
+from robotd.sources.stereo_geometry import model_camera
 
 
 def open_split_model(
@@ -102,8 +103,10 @@ class RobotModel:
     ) -> FrameSource:
         """The frame source `spec` at the model's input size (one fed over Zenoh on the
         daemon's `session`); a one-line UserError when its views do not match the model's
-        image inputs."""
-        return open_source_for(spec, self.inputs, seed=seed, session=session)
+        image inputs. A stereo model's source is told the camera the model was built for (its
+        metadata `nav.camera`): a ROS 2 camera with another geometry is named in a warning."""
+        built_for = model_camera(self.model.partition.full) if self.inputs.views else None
+        return open_source_for(spec, self.inputs, seed=seed, session=session, built_for=built_for)
 
     def feeds(self, frame: CameraFrame) -> dict[str, np.ndarray]:
         """The model's input for camera frame `frame` (an image, or a stereo frame's views)."""

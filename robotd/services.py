@@ -51,6 +51,7 @@ from robotd.shared_budget import SharedBudget
 from robotd.sources.capture import Capture
 from robotd.sources.frame_sources import SourceSession
 from robotd.sources.opening import open_source
+from robotd.sources.stereo_geometry import ModelCamera, model_camera
 from robotd.telemetry import RunSummary, TelemetryFile
 
 log = logging.getLogger("robotd")
@@ -141,9 +142,9 @@ class RobotServices(Daemon):
     # -- lifecycle -----------------------------------------------------------------------------
     def startup(self) -> None:
         cfg, options = self.config, self.options
-        sizes = {name: _image_size(view) for name, view in self.views.items()}
-        height = max(h for h, _ in sizes.values())
-        width = max(w for _, w in sizes.values())
+        inputs = {name: _image_inputs(view) for name, view in self.views.items()}
+        height = max(i.height for i in inputs.values())
+        width = max(i.width for i in inputs.values())
         session_for_source = None
         if self.source_spec.needs_session:
             session_for_source = self.hold(
@@ -158,6 +159,7 @@ class RobotServices(Daemon):
                 session=None
                 if session_for_source is None
                 else SourceSession(session_for_source, cfg, self.robot, stop=self.should_exit),
+                built_for=_built_for(self.views, inputs, height, width),
             ),
             "frame source",
         )
@@ -182,7 +184,7 @@ class RobotServices(Daemon):
                     name,
                 )
                 service_options = replace(service_options, policy="robot")
-            h, w = sizes[name]
+            h, w = inputs[name].height, inputs[name].width
             daemon = RobotDaemon(
                 view,
                 self.robot,
@@ -260,8 +262,23 @@ def _listen_anywhere(view: FleetConfig, robot: str) -> None:
     view.machines[robot] = machine.model_copy(update={"listen": listen})
 
 
-def _image_size(view: FleetConfig) -> tuple[int, int]:
-    """(height, width) of a service's image inputs, from its split (cached)."""
+def _image_inputs(view: FleetConfig) -> ImageInputs:
+    """A service's image inputs, from its split (cached)."""
     partition = fleet_partition(view)
-    inputs = ImageInputs([partition.specs[n] for n in partition.inputs], view.service_name)
-    return inputs.height, inputs.width
+    return ImageInputs([partition.specs[n] for n in partition.inputs], view.service_name)
+
+
+def _built_for(
+    views: dict[str, FleetConfig], inputs: dict[str, ImageInputs], height: int, width: int
+) -> ModelCamera | None:
+    """The camera the stereo service's model was built for, when one service takes stereo views
+    at the capture's size (the source's view is then the model's): a ROS 2 stereo source warns
+    when its CameraInfos say another (`robotd.sources.stereo_geometry`)."""
+    stereo = [
+        name
+        for name, i in inputs.items()
+        if i.views is not None and (i.height, i.width) == (height, width)
+    ]
+    if len(stereo) != 1:
+        return None
+    return model_camera(fleet_partition(views[stereo[0]]).full)

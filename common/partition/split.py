@@ -40,6 +40,7 @@ def split_model(
     prune: bool = True,
     runner: RunnerFactory | None = None,
     segments: bool = False,
+    zoo_options: Mapping[str, float] | None = None,
 ) -> Partition:
     """Split a model at every candidate cut (or the given ones) and write the split directory.
 
@@ -52,14 +53,16 @@ def split_model(
     Without ``out_dir`` the split is written to the cache (as :func:`load_partition` would).
     ``runner`` builds the runtime verification runs the cuts with (default: ``SplitModel``).
     ``segments`` also writes and verifies the segment between every two cuts (segment offload:
-    the cloud runs the part between them), listed in ``Partition.segments``.
+    the cloud runs the part between them), listed in ``Partition.segments``. ``zoo_options``
+    are a zoo model's build options (`common.models.resolve_model`).
     """
     if out_dir is None:
         return load_partition(
             spec_or_path, cuts, max_cut_tensors, input_shape, verify, atol=atol,
             threads=threads, prune=prune, refresh=True, runner=runner, segments=segments,
+            zoo_options=zoo_options,
         )  # fmt: skip
-    ref = _resolve(spec_or_path, input_shape)
+    ref = _resolve(spec_or_path, input_shape, zoo_options)
     runner = runner or _serving_runtime
     partitioner = Partitioner(
         ref, cuts, max_cut_tensors, input_shape, verify, atol, threads, prune,
@@ -81,15 +84,18 @@ def load_partition(
     refresh: bool = False,
     runner: RunnerFactory | None = None,
     segments: bool = False,
+    zoo_options: Mapping[str, float] | None = None,
 ) -> Partition:
     """The split of a model, from the cache if it was split before with the same options.
 
     The cache entry is keyed by the model's sha256 digest and the options, written to a
     temporary directory and renamed into place, so concurrent daemons never read half a split.
+    A zoo model built with other ``zoo_options`` (a fleet's camera geometry) is another file,
+    so another digest and another entry.
     """
     parsed_cuts = cuts_option(cuts)
     check_max_cut_tensors(max_cut_tensors)
-    ref = _resolve(spec_or_path, input_shape)
+    ref = _resolve(spec_or_path, input_shape, zoo_options)
     final = entry_dir(
         ref, parsed_cuts, max_cut_tensors, input_shape, verify, atol, prune, segments=segments
     )
@@ -105,11 +111,15 @@ def load_partition(
     return write_entry(final, partitioner.run)
 
 
-def _resolve(spec_or_path: str | Path, input_shape: InputShape) -> ModelRef:
+def _resolve(
+    spec_or_path: str | Path,
+    input_shape: InputShape,
+    zoo_options: Mapping[str, float] | None = None,
+) -> ModelRef:
     zoo_shape = input_shape if not isinstance(input_shape, Mapping) else None
     if str(spec_or_path).startswith("zoo:") and isinstance(input_shape, Mapping):
         raise OptionError("input_shape", "a zoo model takes {option} as CxHxW, not NAME=shape")
-    return resolve_model(spec_or_path, zoo_shape)
+    return resolve_model(spec_or_path, zoo_shape, zoo_options)
 
 
 def _serving_runtime(part: Partition, threads: int | None) -> CutRunner:

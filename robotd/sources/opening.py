@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from importlib.metadata import entry_points
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from common.errors import UserError
 from common.image_input import ImageInputs
@@ -40,6 +40,9 @@ from robotd.sources.frame_sources import (
     VideoSource,
 )
 
+if TYPE_CHECKING:
+    from robotd.sources.stereo_geometry import ModelCamera
+
 SOURCE_ENTRY_POINT_GROUP = "elasticfog.sources"
 
 
@@ -64,11 +67,13 @@ def open_source(
     seed: int = 0,
     session: SourceSession | None = None,
     views: tuple[str, ...] | None = None,
+    built_for: ModelCamera | None = None,
 ) -> FrameSource:
     """Open the source of `spec`; synthetic, photo, stereo and zenoh frames are made
     `height`×`width` (the model's input size). A source fed over Zenoh needs the daemon's
-    `session`, and `views`, the model's image inputs when it has several. A SourceError names a
-    spec that does not parse or a source that cannot be opened."""
+    `session`, and `views`, the model's image inputs when it has several. `built_for` is the
+    camera a stereo model was built for: a ROS 2 stereo source warns when its CameraInfos say
+    another. A SourceError names a spec that does not parse or a source that cannot be opened."""
     parsed = parse_source(spec)
     if parsed.needs_session and session is None:
         raise SourceError(
@@ -86,7 +91,9 @@ def open_source(
             assert session is not None
             from robotd.sources.ros2_stereo import Ros2StereoSource
 
-            return Ros2StereoSource(parsed, session, session.stop, height=height, width=width)
+            return Ros2StereoSource(
+                parsed, session, session.stop, height=height, width=width, built_for=built_for
+            )
         case SyntheticSpec():
             return SyntheticSource(
                 height,
@@ -129,11 +136,12 @@ def open_source_for(
     *,
     seed: int = 0,
     session: SourceSession | None = None,
+    built_for: ModelCamera | None = None,
 ) -> FrameSource:
     """`open_source` at the size of the model's image inputs (one fed over Zenoh on the daemon's
-    `session`); a one-line UserError (and the source closed) when its frames do not feed them:
-    a mono source on a model with several image inputs, a stereo source on a one-input model,
-    views not named like the inputs."""
+    `session`; `built_for`: the camera a stereo model was built for); a one-line UserError (and
+    the source closed) when its frames do not feed them: a mono source on a model with several
+    image inputs, a stereo source on a one-input model, views not named like the inputs."""
     source = open_source(
         spec,
         height=inputs.height,
@@ -141,6 +149,7 @@ def open_source_for(
         seed=seed,
         session=session,
         views=inputs.views,
+        built_for=built_for,
     )
     try:
         inputs.check_views(source.views, str(spec).strip())

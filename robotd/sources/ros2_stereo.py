@@ -18,7 +18,10 @@ with one crop and scale (a rectified pair stays rectified) and handed on as a `S
 stamp. Geometry (`geometry()`): fx, cx, cy from the left camera's CameraInfo and the baseline
 from the right camera's projection (P[3] = −fx·B), in pixels of the model's view; a right
 camera whose P[3] is not negative is a named error (`BadCameraInfo`) and the last good geometry
-is kept. `StereoPairing` is the pairing alone, drivable from a test without sessions.
+is kept. Given the camera the model was built for (`built_for`, its metadata `nav.camera`), a
+geometry that differs from it by more than 2% on fx or the baseline is one warning naming both
+and the fleet file's `nav: camera:` lines for this camera (`robotd.sources.stereo_geometry`);
+the source serves on. `StereoPairing` is the pairing alone, drivable from a test without sessions.
 """
 
 from __future__ import annotations
@@ -50,6 +53,7 @@ from robotd.sources.ros2 import (
     release_topics,
 )
 from robotd.sources.stereo_frame import LEFT_VIEW, RIGHT_VIEW, STEREO_VIEWS, StereoFrame
+from robotd.sources.stereo_geometry import ModelCamera, StereoGeometry, mismatch_warning
 
 if TYPE_CHECKING:
     from common.source_spec import Ros2Spec
@@ -127,17 +131,6 @@ class StereoPairing:
             self.unpaired += 1
 
 
-@dataclass(frozen=True)
-class StereoGeometry:
-    """A rectified pair's geometry in pixels of the model's view: focal length, principal
-    point, baseline (m)."""
-
-    fx_px: float
-    cx_px: float
-    cy_px: float
-    baseline_m: float
-
-
 def stereo_geometry(left: CameraInfo, right: CameraInfo, height: int, width: int) -> StereoGeometry:
     """The geometry of a pair whose images are fitted to `height`×`width` (fit_frame's crop and
     scale), from the left camera's K and the right camera's P; BadCameraInfo as the module
@@ -168,10 +161,12 @@ class Ros2StereoSource(FrameSource):
         *,
         height: int,
         width: int,
+        built_for: ModelCamera | None = None,
     ) -> None:
         assert spec.right is not None
         self.spec = spec
         self.height, self.width = height, width
+        self.built_for = built_for
         self.message = FRAME_MESSAGES[spec.type]
         self.pairing = StereoPairing(round(spec.slop_ms * NS_PER_MS))
         self.taken = 0
@@ -242,7 +237,16 @@ class Ros2StereoSource(FrameSource):
                 geometry.baseline_m,
             )
             self._geometry = geometry
+            self._check_built_for(geometry)
         return geometry
+
+    def _check_built_for(self, geometry: StereoGeometry) -> None:
+        """One warning when the model was built for another camera (module docstring)."""
+        if self.built_for is None:
+            return
+        warning = mismatch_warning(geometry, self.built_for, height=self.height, width=self.width)
+        if warning is not None:
+            log.warning("%s: %s", self.description, warning)
 
     @property
     def unpaired(self) -> int:

@@ -1,12 +1,14 @@
 """A stereo camera's two ROS 2 topics on real Zenoh sessions, through a ROS 2 session of the
 robot's own (`ros2.endpoint`): the node's tokens come from that session, not the fleet's; left and
 right images are paired by header stamp into one stereo frame; the geometry comes from the two
-CameraInfos; an image stamped out of order, an unpaired one and a right CameraInfo with a
-positive P[3] are each named and counted, and the next pair is served; closing the source closes
-the ROS 2 session."""
+CameraInfos, and a camera that is not the one the model was built for is one warning with the
+fleet file's `nav: camera:` lines; an image stamped out of order, an unpaired one and a right
+CameraInfo with a positive P[3] are each named and counted, and the next pair is served; closing
+the source closes the ROS 2 session."""
 
 from __future__ import annotations
 
+import logging
 import threading
 from collections.abc import Callable
 from pathlib import Path
@@ -25,12 +27,16 @@ from robotd.ros2_node import input_frame, ros2_session_open
 from robotd.sources.frame_sources import SourceSession
 from robotd.sources.ros2_stereo import Ros2StereoSource
 from robotd.sources.stereo_frame import StereoFrame
+from robotd.sources.stereo_geometry import ModelCamera
 
 WAIT_S = 10.0
 LEFT, RIGHT = "/stereo/left/image_raw", "/stereo/right/image_raw"
 T0 = 1_700_000_000_000_000_000
 MS = 1_000_000
 FX, BASELINE_M = 80.0, 0.06
+# zoo:stereo's default camera at the model's 80x60 view: 60° (fx = 40/tan 30° = 69.3 px, 15% less
+# than the camera's FX), 6 cm, 0.30 m above the floor.
+BUILT_FOR = ModelCamera(40 * 3**0.5, 0.06, 39.5, 29.5, 0.30, 0.10)
 
 
 def _image(stamp_ns: int, value: int, frame_id: str) -> bytes:
@@ -62,8 +68,12 @@ def _key(topic: str, kind: rm.MessageType) -> str:
 
 
 def test_two_topics_paired_on_a_ros2_session_of_its_own(
-    open_peer: Callable[..., zenoh.Session], zenoh_router: object, tmp_path: Path
+    open_peer: Callable[..., zenoh.Session],
+    zenoh_router: object,
+    tmp_path: Path,
+    caplog: pytest.LogCaptureFixture,
 ) -> None:
+    caplog.set_level(logging.WARNING, logger="robotd.ros2")
     endpoint = zenoh_router.endpoint  # type: ignore[attr-defined]
     cfg = load_fleet(
         write_local_fleet(
@@ -74,7 +84,9 @@ def test_two_topics_paired_on_a_ros2_session_of_its_own(
     fleet, camera = open_peer(), open_peer()
     stop = threading.Event()
     spec = parse_ros2_source(f"ros2:{LEFT},right={RIGHT},slop_ms=5")
-    source = Ros2StereoSource(spec, SourceSession(fleet, cfg, "r", stop), height=60, width=80)
+    source = Ros2StereoSource(
+        spec, SourceSession(fleet, cfg, "r", stop), height=60, width=80, built_for=BUILT_FOR
+    )
     image = rm.MessageType.IMAGE
     try:
         assert ros2_session_open(endpoint)
@@ -138,6 +150,14 @@ def test_two_topics_paired_on_a_ros2_session_of_its_own(
         kept = source.geometry()
         assert kept is not None and kept.baseline_m == pytest.approx(BASELINE_M)
         assert source.rejected_frames() == {"bad_value": 2}
+        # The camera is not the model's (fx 80 px, not 69.3): one warning however often the
+        # geometry is read, with the lines that build the model for it (hfov from fx: 53.13°).
+        warnings = [r.message for r in caplog.records if "model was built for" in r.message]
+        assert len(warnings) == 1, warnings
+        assert warnings[0].startswith(f"{source.description}: the camera's CameraInfo geometry")
+        assert warnings[0].endswith(
+            "nav:\n  camera:\n    baseline_m: 0.06\n    hfov_deg: 53.13\n    height_m: 0.3"
+        )
     finally:
         stop.set()
         source.close()
