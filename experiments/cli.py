@@ -25,6 +25,7 @@ from typing import Any, NoReturn, TypeVar
 import typer
 from rich.console import Console
 
+from common.defaults import DEFAULT_CAMERA_SOURCE
 from common.errors import UserError
 from experiments import scale_defaults
 from experiments.defaults import DEFAULT_INPUT_SHAPE, DEFAULT_MODEL, DEFAULT_ROBOT_CPU
@@ -72,6 +73,17 @@ TLS_OPTION = typer.Option(
     "--tls",
     help="Mutual TLS and access control on every link (as `elasticfog init --tls`; "
     "certificates carry the testbed addresses).",
+)
+SOURCE_OPTION = typer.Option(
+    DEFAULT_CAMERA_SOURCE,
+    "--source",
+    help="The robot's camera: photo[:NAME][,motion=pan|zoom|shake|mixed][,speed=F] or "
+    "synthetic[...] (e.g. photo:astronaut,motion=pan: a panning camera, as video codes it).",
+)
+POLICY_VARIANTS_HELP = (
+    "elastic-nohedge: elastic without hedged exploration; elastic-h264: elastic with h264 "
+    "video among the camera image's codecs (fidelity.video); elastic-h264only: with h264 its "
+    "only lossy codec"
 )
 TLS_NOTE = "Every link: mutual TLS with access control (`--tls`)."
 
@@ -229,6 +241,14 @@ def _guard(fn: Callable[[], Any]) -> Any:
         _fail(exc)
 
 
+def _use_source(options: Any, source: str) -> None:
+    """`--source` of a single-edge experiment, checked, into its options."""
+    from experiments.options import check_source
+
+    _guard(lambda: check_source(source))
+    options.source = source
+
+
 def _policies(text: str) -> list[str]:
     """`--policies`, checked against the policies the robot runs."""
     from experiments.options import parse_names
@@ -248,7 +268,7 @@ def table1(
     policies: str = typer.Option(
         "robot,cloud,cloud:jpeg80,elastic,elastic-nohedge,neurosurgeon,ans",
         "--policies",
-        help="Policies, comma-separated (elastic-nohedge: elastic without hedged exploration).",
+        help=f"Policies, comma-separated ({POLICY_VARIANTS_HELP}).",
     ),
     repeat: int = typer.Option(
         1,
@@ -257,11 +277,13 @@ def table1(
         help="Runs per cell, the policies alternated in each round; a cell reports its run "
         "with the median mean latency (a shared host's noise moves one run by a tenth).",
     ),
+    source: str = SOURCE_OPTION,
 ) -> None:
     """ElasticROS Table I: latency, robot CPU and energy per frame at each uplink cap."""
     from experiments import table1 as t1
     from experiments.options import parse_floats
 
+    _use_source(options, source)
     caps = _guard(lambda: parse_floats(uplinks, "--uplinks"))
     names = _policies(policies)
     _run(
@@ -281,13 +303,17 @@ def glitch(
     from_mbit: float = typer.Option(..., "--from-mbit", help="Uplink cap before, Mbit/s."),
     to_mbit: float = typer.Option(..., "--to-mbit", help="Uplink cap after, Mbit/s."),
     policies: str = typer.Option(
-        "elastic,elastic-nohedge,cloud:jpeg80,cloud,robot", "--policies", help="Comma-separated."
+        "elastic,elastic-nohedge,cloud:jpeg80,cloud,robot",
+        "--policies",
+        help=f"Comma-separated ({POLICY_VARIANTS_HELP}).",
     ),
+    source: str = SOURCE_OPTION,
 ) -> None:
     """A bandwidth glitch while the robot streams: before / on / after, frames to settle."""
     from experiments import glitch as gl
     from experiments.options import parse_floats
 
+    _use_source(options, source)
     a, b = _guard(lambda: parse_floats(f"{from_mbit},{to_mbit}", "--from-mbit/--to-mbit"))
     names = _policies(policies)
     _run(
@@ -305,12 +331,16 @@ def table2(
     options: Any,
     as_json: bool,
     policies: str = typer.Option(
-        "elastic,elastic-nohedge,cloud:jpeg80,cloud,robot", "--policies", help="Comma-separated."
+        "elastic,elastic-nohedge,cloud:jpeg80,cloud,robot",
+        "--policies",
+        help=f"Comma-separated ({POLICY_VARIANTS_HELP}).",
     ),
+    source: str = SOURCE_OPTION,
 ) -> None:
     """ElasticROS Table II: the glitches 10→3, 5→1 and 10→1 Mbit/s."""
     from experiments import glitch as gl
 
+    _use_source(options, source)
     names = _policies(policies)
     _run(
         options,
@@ -327,12 +357,16 @@ def table3(
     options: Any,
     as_json: bool,
     policies: str = typer.Option(
-        "elastic,elastic-nohedge,robot,cloud:jpeg80,cloud", "--policies", help="Comma-separated."
+        "elastic,elastic-nohedge,robot,cloud:jpeg80,cloud",
+        "--policies",
+        help=f"Comma-separated ({POLICY_VARIANTS_HELP}).",
     ),
+    source: str = SOURCE_OPTION,
 ) -> None:
     """ElasticROS Table III: the robot's CPU quota drops to --robot-cpu, then recovers."""
     from experiments import table3 as t3
 
+    _use_source(options, source)
     names = _policies(policies)
     _run(
         options,

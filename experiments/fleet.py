@@ -17,6 +17,7 @@ registry may query), so that certificate carries the bench host's address too.
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -43,17 +44,39 @@ SERVICE = "vision"
 REGISTRY_PORT = 7447
 PEER_PORT = 7448
 OBSERVER_PORT = 7449
-POLICY_VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
+
+
+@dataclass(frozen=True)
+class PolicyVariant:
+    """A bench policy name beyond the runtime's: the policy kind the robot runs (`--policy`),
+    its parameters, and what else of the fleet file the robot reads otherwise."""
+
+    kind: str
+    params: Mapping[str, Any] = field(default_factory=dict)
+    fleet: Mapping[str, Any] = field(default_factory=dict)
+    """Merged into the robot's copy of the fleet file (nested mappings merge, other values
+    replace), e.g. `fidelity: {video: true}`; the deployments read the fleet's own file."""
+
+
+POLICY_VARIANTS: dict[str, PolicyVariant] = {
     # ElasticAction without hedged exploration: on a robot with a few % of a core, the hedged
     # local run and the offload's sending share that CPU and the learner sees the transfer slow.
     # Its periodic local timing (`robot_probe_frames`) stays on: without it a robot whose CPU
     # came back would never learn that computing locally got cheap again.
-    "elastic-nohedge": ("elastic", {"hedge": False}),
+    "elastic-nohedge": PolicyVariant("elastic", {"hedge": False}),
     # ElasticAction over whole suffixes only, on a split made with segments (`bench nav`'s
     # `elastic` row, as it ran before segments were actions; `elastic-segments` is the default).
-    "elastic-suffixes": ("elastic", {"segments": False}),
+    "elastic-suffixes": PolicyVariant("elastic", {"segments": False}),
+    # ElasticAction with h264 video among the camera image's codecs (docs/video.md): cut 0 may
+    # cross as h264 where it meets the same fidelity bound as JPEG (measured at start).
+    "elastic-h264": PolicyVariant("elastic", fleet={"fidelity": {"video": True}}),
+    # The same with h264 the camera image's only lossy codec (`fidelity.codecs`; raw always
+    # may cross): what elastic makes of h264 when no JPEG action is there to learn from first.
+    "elastic-h264only": PolicyVariant(
+        "elastic", fleet={"fidelity": {"video": True, "codecs": ["h264"]}}
+    ),
 }
-"""Bench policy names beyond the runtime's: name -> (policy kind, its parameters)."""
+"""Bench policy names beyond the runtime's: name -> its variant."""
 
 
 @dataclass
@@ -79,6 +102,8 @@ class FleetSpec:
     services: Mapping[str, Mapping[str, Any]] | None = None
     """Several services (fleet.yaml's `services:`, name -> {model|handler, overrides}), written
     in place of the one-service form's `service`, `model` and `input_shape`; None: that form."""
+    source: str = DEFAULT_CAMERA_SOURCE
+    """The robot's frame source (a `common.source_spec` spec)."""
     changes: Mapping[str, Any] = field(default_factory=dict)
     """Merged into the mapping last (nested mappings merge, other values replace)."""
 
@@ -111,7 +136,7 @@ def fleet_dict(
         "role": "robot",
         "listen": [endpoint(addresses[ROBOT_HOST], PEER_PORT, tls=tls)],
         "threads": spec.robot_threads,
-        "source": DEFAULT_CAMERA_SOURCE,
+        "source": spec.source,
     }
     if spec.fps is not None:
         robot["fps"] = spec.fps
@@ -158,17 +183,19 @@ def cert_ips(spec: FleetSpec, addresses: Mapping[str, str]) -> dict[str, list[st
 
 
 def write_robot_variant(config: Path, policy: str) -> tuple[Path, str]:
-    """For a POLICY_VARIANTS name: a copy of `config` whose policy is that variant, and the
-    policy kind to pass to `elasticfog robot --policy`. Other names: `config` and the name."""
-    if policy not in POLICY_VARIANTS:
+    """For a POLICY_VARIANTS name: a copy of `config` whose policy is that variant (and with the
+    variant's fleet changes), and the policy kind to pass to `elasticfog robot --policy`. Other
+    names: `config` and the name."""
+    variant = POLICY_VARIANTS.get(policy)
+    if variant is None:
         return config, policy
-    kind, params = POLICY_VARIANTS[policy]
     data = read_yaml(config)  # the user's fleet file: a key given twice is refused
-    data["policy"] = {"kind": kind, "params": params}
+    data["policy"] = {"kind": variant.kind, "params": copy.deepcopy(dict(variant.params))}
+    merge_into(data, copy.deepcopy(dict(variant.fleet)))
     path = config.with_name(f"{config.stem}.{policy}.yaml")
     fleet_from_dict(data, source=path)
     path.write_text(yaml.safe_dump(data, sort_keys=False), encoding="utf-8")
-    return path, kind
+    return path, variant.kind
 
 
 def write_fleet(

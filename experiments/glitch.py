@@ -18,6 +18,8 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+from common.defaults import DEFAULT_CAMERA_SOURCE
+
 from .options import BenchOptions, open_fleet
 from .report import fmt, md_table, save_plot, use_agg
 from .runner import TestbedFleet
@@ -52,6 +54,8 @@ class GlitchSettings:
     before_frames: int
     after_frames: int
     deadline_s: float = DEADLINE_S
+    source: str = DEFAULT_CAMERA_SOURCE
+    """The robot's camera (`--source`)."""
 
     def to_json(self) -> dict[str, Any]:
         return asdict(self)
@@ -166,6 +170,7 @@ def run_table2(
         warmup_frames=warmup,
         before_frames=before,
         after_frames=after,
+        source=options.source,
     )
     return SingleEdgeResult(settings, results)
 

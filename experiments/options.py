@@ -18,7 +18,7 @@ from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from common.defaults import ZOO_PREFIX
+from common.defaults import DEFAULT_CAMERA_SOURCE, ZOO_PREFIX
 from common.errors import UserError
 from common.path_options import model_path, option_dir
 
@@ -40,6 +40,9 @@ class BenchOptions:
     """(): the default, set by `check()`: a file's own input shape when its dimensions are fixed,
     else (a zoo model, dynamic dimensions) DEFAULT_INPUT_SHAPE."""
     robot_cpu: float = DEFAULT_ROBOT_CPU
+    source: str = DEFAULT_CAMERA_SOURCE
+    """The robot's camera (`--source` of the single-edge experiments): a `photo` or `synthetic`
+    spec, generated on the robot (e.g. `photo:astronaut,motion=pan`)."""
     frames: int | None = None
     """Frames per robot run; None: the experiment's default (smaller with `quick`)."""
     quick: bool = False
@@ -60,6 +63,7 @@ class BenchOptions:
             raise UserError(f"--robot-cpu {self.robot_cpu:g}: expected 0.01 to 16 (cores)")
         if self.frames is not None and self.frames < 1:
             raise UserError(f"--frames {self.frames}: expected at least 1")
+        check_source(self.source)
         self.model = model_path(self.model)
         if not self.input_shape:
             self.input_shape = default_input_shape(self.model)
@@ -93,6 +97,21 @@ def default_input_shape(model: str) -> tuple[int, ...]:
     except OptionError:  # a dynamic dimension besides the batch: the default fills it
         return DEFAULT_INPUT_SHAPE
     return next(iter(shapes.values()), DEFAULT_INPUT_SHAPE)
+
+
+def check_source(source: str) -> None:
+    """A bench robot's source must be one it makes itself (`photo` or `synthetic`): a file's
+    relative path would be the fleet file's, and nothing publishes frames to a bench robot."""
+    from common.source_spec import PhotoSpec, SourceError, SyntheticSpec, parse_source
+
+    try:
+        spec = parse_source(source)
+    except SourceError as exc:
+        raise UserError(f"--source: {exc}") from None
+    if not isinstance(spec, PhotoSpec | SyntheticSpec):
+        raise UserError(
+            f"--source {source!r}: the bench's robot takes a photo[...] or synthetic[...] source"
+        )
 
 
 def parse_floats(text: str, what: str) -> list[float]:

@@ -56,13 +56,14 @@ class SingleEdgeResult(Generic[Settings, Row]):
 
 
 def fleet_spec(tf: TestbedFleet, options: BenchOptions, tag: str) -> FleetSpec:
-    """The single-edge fleet of a run: `edge-1` serving, the bench's model and shape."""
+    """The single-edge fleet of a run: `edge-1` serving, the bench's model, shape and source."""
     return FleetSpec(
         fleet=tf.next_fleet_name(tag),
         clouds=(CLOUD,),
         model=options.model,
         input_shape=options.input_shape,
         deadline_s=DEADLINE_S,
+        source=options.source,
     )
 
 

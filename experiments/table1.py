@@ -20,6 +20,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+from common.defaults import DEFAULT_CAMERA_SOURCE
 from common.errors import UserError
 
 from .options import BenchOptions, open_fleet
@@ -44,6 +45,8 @@ class Table1Settings:
     warmup_frames: int
     deadline_s: float = DEADLINE_S
     repeat: int = 1
+    source: str = DEFAULT_CAMERA_SOURCE
+    """The robot's camera (`--source`)."""
 
     def to_json(self) -> dict[str, Any]:
         return asdict(self)
@@ -127,6 +130,7 @@ def run(
         frames=frames,
         warmup_frames=warmup,
         repeat=repeat,
+        source=options.source,
     )
     return SingleEdgeResult(settings, results)
 

@@ -15,6 +15,8 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+from common.defaults import DEFAULT_CAMERA_SOURCE
+
 from .options import BenchOptions, open_fleet
 from .report import fmt, md_table, save_plot, use_agg
 from .runner import TestbedFleet
@@ -60,6 +62,8 @@ class Table3Settings:
     low_cpu: float
     frames: Table3Frames
     deadline_s: float = DEADLINE_S
+    source: str = DEFAULT_CAMERA_SOURCE
+    """The robot's camera (`--source`)."""
 
     def to_json(self) -> dict[str, Any]:
         return asdict(self)
@@ -160,6 +164,7 @@ def run(options: BenchOptions, policies: Sequence[str] = POLICIES) -> Table3Resu
         high_cpu=HIGH_CPU,
         low_cpu=options.robot_cpu,
         frames=Table3Frames(warmup=warmup, high=high, low=low, high_again=again),
+        source=options.source,
     )
     return SingleEdgeResult(settings, results)
 

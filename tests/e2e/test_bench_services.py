@@ -27,7 +27,7 @@ from tests.helpers.gates import ROOT_REASON
 pytestmark = pytest.mark.e2e
 
 RUN_TIMEOUT_S = 300
-"""A quick run takes about a minute (one round: two robot runs of ~25 s, start-ups); the model
+"""A quick run takes about a minute (one round: two robot runs of ~20 s, start-ups); the model
 splits into a fresh cache and a busy two-core host take the rest."""
 CONTRACT = ("mean_latency_s", "p95_latency_s", "deadline_misses", "frames", "lost")
 MODES = {"joint", "independent"}

@@ -12,7 +12,7 @@ from typer.testing import CliRunner
 
 from common.cli import app
 from common.errors import UserError
-from experiments.fleet import POLICY_VARIANTS
+from experiments.fleet import POLICY_VARIANTS, PolicyVariant
 from experiments.nav_rows import (
     DEFAULT_T_DEAD_S,
     NO_TIMING,
@@ -96,7 +96,7 @@ def test_options_and_resolutions_parse_and_bad_ones_are_named() -> None:
     # `elastic-segments` the runtime's own elastic, with the segments among its actions.
     policies = [robot_policy(o) for o in (1, 3, "elastic", "elastic-segments")]
     assert policies == ["option:1", "option:3", "elastic-suffixes", "elastic"]
-    assert POLICY_VARIANTS["elastic-suffixes"] == ("elastic", {"segments": False})
+    assert POLICY_VARIANTS["elastic-suffixes"] == PolicyVariant("elastic", {"segments": False})
     with pytest.raises(UserError, match="unknown '5'"):
         parse_options("1,5")
     with pytest.raises(UserError, match="'640' is not WIDTHxHEIGHT"):
