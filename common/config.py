@@ -363,7 +363,7 @@ DEFAULT_MAX_VIDEO_STREAMS = 64
 """h264 decoders kept per service plane: ~130 MB at 640x480, more robots than a plane serves."""
 DEFAULT_VIDEO_IDLE_S = 30.0
 """An h264 stream unused this long is freed: its robot went elsewhere or stopped."""
-DEFAULT_VIDEO_CRF = 28
+DEFAULT_VIDEO_CRF = 24
 """x264's CRF for h264 crossings (`common.wire.video_codec.DEFAULT_CRF`)."""
 
 
@@ -913,7 +913,7 @@ class VideoConfig(_Model):
         ge=0,
         le=51,
         description="x264's constant rate factor (0 = lossless .. 51 = worst): the quality of "
-        "h264 frames, as Q is JPEG's; 23-24 matches JPEG 50's PSNR at 640x480 (docs/video.md).",
+        "h264 frames, as Q is JPEG's; the default matches JPEG 50's PSNR (docs/video.md).",
     )
 
 

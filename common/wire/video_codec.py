@@ -8,9 +8,9 @@ encoder per (service, deployment) (`robotd.frame_path.video_streams`) and each d
 decoder per robot (`cloudd.video_streams`), and the request says where the frame stands in its
 stream (`common.wire.robot_to_cloud.VideoStream`: stream id, sequence number, keyframe).
 
-Settings, fixed (the receiver needs none of them): libx264 `preset=ultrafast`, `tune=zerolatency`
+Settings, fixed (the receiver needs none of them): libx264 `preset=superfast`, `tune=zerolatency`
 (no lookahead, no frame threads: one packet out for each frame in, at once), no B-frames, one
-reference frame (ultrafast's), one thread; 4:2:0 chroma (so sides must be even); quality by CRF
+reference frame (superfast's), one thread; 4:2:0 chroma (so sides must be even); quality by CRF
 (`DEFAULT_CRF`, the fleet file's `video.crf`). A keyframe is an IDR picture with its SPS and PPS
 in band: a fresh decoder can start from it. The decoder is FFmpeg's h264 with error concealment
 off and errors made fatal (`err_detect=explode`): a picture it cannot decode exactly is an error
@@ -34,16 +34,19 @@ import numpy as np
 from common.wire.errors import CorruptPayload, ShapeMismatch
 
 CODEC_H264 = "h264"
-# CRF 28 (x264's scale, 0..51: lower is better). On a camera panning over a photograph at
-# 640x480 its P-frames are ~5 KB against JPEG 50's ~27 KB, about 2 dB under JPEG 50's PSNR;
-# CRF 23-24 matches JPEG 50's PSNR at 7-8 KB (docs/video.md, benchmarks/video_bench.py).
-DEFAULT_CRF = 28
+# CRF 24 (x264's scale, 0..51: lower is better): a moving camera's P-frames at the PSNR of
+# JPEG 50 (CRF 23-24 at 320x240 and 640x480), about a thirteenth of its bytes (docs/video.md,
+# benchmarks/video_bench.py).
+DEFAULT_CRF = 24
 MIN_CRF = 0
 MAX_CRF = 51
 # An H.264 picture's sides in pixels; 4:2:0 chroma needs them even.
 MAX_VIDEO_SIDE_PX = 8192
 _ENCODER_OPTIONS = {
-    "preset": "ultrafast",
+    # superfast, not ultrafast: CABAC, the deblocking filter and adaptive quantization make a
+    # moving camera's P-frames a third of ultrafast's at the same PSNR, for ~0.7 ms more encoding
+    # at 640x480 (docs/video.md).
+    "preset": "superfast",
     "tune": "zerolatency",
     "bframes": "0",
     "threads": "1",

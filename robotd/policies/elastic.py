@@ -87,7 +87,7 @@ from robotd.policies.robot_probes import RobotProbes
 from robotd.policies.robotcost import SHORT_RUN_SHARE, RobotCostModel
 from robotd.policies.schedule import ForcedSchedule
 from robotd.policies.scores import Scores
-from robotd.policies.segment_actions import action_contexts
+from robotd.policies.segment_actions import action_contexts, context_unit_bytes
 from robotd.policies.take_up import TakeUp
 
 # A failed attempt with no reported wait is charged this multiple of its prediction.
@@ -116,14 +116,16 @@ class ElasticPolicy(Policy):
         self.params = params
         self.objective = objective
         mb = cuts.bytes / BYTES_PER_MB
-        # [MB sent, cloud share, 1], and MB returned when segments are among the actions.
+        # [bytes sent (in MB, or in keyframes with video actions: `context_unit_bytes`), cloud
+        # share, 1], and MB returned when segments are among the actions.
         self.contexts = action_contexts(cuts)
+        self._unit = context_unit_bytes(cuts)  # bytes per unit of the contexts' first column
         # Bytes sent per action, learned online: a JPEG's size follows the content.
         self._bytes: list[float] = cuts.bytes.tolist()
         self._ridge = self.ridge_type(self.contexts, params.gamma)
         # Video actions' keyframes, learned apart (the P-frames' bytes are `_bytes`).
         self._keyframes = KeyframeCosts(
-            cuts, params, objective, self._ridge, self.contexts, self._bytes
+            cuts, params, objective, self._ridge, self.contexts, self._bytes, self._unit
         )
         self._robot = RobotCostModel(cuts, objective, params)
         self._wait_rate = objective.wait_rate
@@ -191,8 +193,17 @@ class ElasticPolicy(Policy):
         take_up = self._take_up
         updating = detector.updating
         p_allowed = detector.p_allowed
-        # A frame where the video actions would send a keyframe: scored with its bytes.
-        scores = self._kf_scores if ctx.keyframe and self._keyframes.video else self._scores
+        # A frame where the video actions would send a keyframe: scored with its bytes, unless
+        # a video action is the cheapest of all on ordinary frames. Its keyframe then starts a
+        # stream that the next frames repay: priced frame by frame, a move from JPEG to h264
+        # would never pay for its first frame.
+        ordinary_cost, ordinary_best = self._scores.cheapest
+        invest = ordinary_best in self._keyframes.video and ordinary_cost < robot.full_cost
+        scores = (
+            self._kf_scores
+            if ctx.keyframe and self._keyframes.video and not invest
+            else self._scores
+        )
         best, j = scores.best_key if ctx.entropy >= params.key_entropy else scores.best_nonkey
         base, pred, cheapest_pair = scores.base, scores.pred, scores.cheapest
         p_cost = robot.full_cost
@@ -353,17 +364,17 @@ class ElasticPolicy(Policy):
         if sent <= 0:
             return
         new = self._bytes[j] = self._bytes[j] + self.params.bytes_ewma * (sent - self._bytes[j])
-        mb = new / BYTES_PER_MB
-        if abs(mb - self.contexts[j, 0]) <= BYTES_CHANGE_SHARE * self.contexts[j, 0]:
+        units = new / self._unit
+        if abs(units - self.contexts[j, 0]) <= BYTES_CHANGE_SHARE * self.contexts[j, 0]:
             return
-        self.contexts[j, 0] = mb
+        self.contexts[j, 0] = units
         self._ridge.set_context(j, self.contexts[j])
         k = self._k
         d = self.contexts.shape[1]
-        self._features[j, 0] = mb
-        self._features[j, -1] = self.objective.bytes * mb
+        self._features[j, 0] = units
+        self._features[j, -1] = self.objective.bytes * new / BYTES_PER_MB
         self._features[k + j, d : d + d * d] = quadratic_features(self.contexts[j : j + 1])[0]
-        self._features[2 * k + j, 0] = mb
+        self._features[2 * k + j, 0] = units
 
     def _track(self, j: int, target: float) -> None:
         """Feed one cloud-side observation of column j to the change detector (which updates

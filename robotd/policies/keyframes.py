@@ -2,9 +2,10 @@
 
 A keyframe sends several times a P-frame's bytes. Each video action keeps its keyframes' bytes
 (`CutTable.keys`, then learned from the keyframes sent) and their cloud-side cost as an excess
-over the P-frame's prediction (EWMA; before the first keyframe is answered, α̂'s seconds per MB
-times its extra MB): the regression's MB coefficient is learned poorly when every action sends
-tens of kilobytes (its prior outweighs the data), while the excess is measured directly.
+over the P-frame's prediction (EWMA; before the first keyframe is answered, α̂'s seconds per
+context unit times its extra bytes in that unit, `segment_actions.context_unit_bytes`): a
+keyframe's excess is measured directly, while the regression's bytes coefficient rests on the
+P-frames and whatever else is sent.
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ class KeyframeCosts:
         ridge: RidgeEstimator,
         contexts: FloatArray,
         p_bytes: list[float],
+        unit: float = BYTES_PER_MB,
     ) -> None:
         self.video = [j for j, codec in enumerate(cuts.codecs) if is_video(codec)]
         self.key_bytes: list[float] = list(cuts.keys)
@@ -42,6 +44,7 @@ class KeyframeCosts:
         self._ridge = ridge
         self._contexts = contexts
         self._p_bytes = p_bytes
+        self._unit = unit  # bytes per unit of the contexts' first column
 
     def learn_bytes(self, j: int, sent: int) -> None:
         """Follow the bytes video action j's keyframes really send (EWMA)."""
@@ -56,21 +59,21 @@ class KeyframeCosts:
 
     def rescore(self, frames: Scores, keyframes: Scores, learned: bool) -> None:
         """Set `keyframes`' parts from the ordinary `frames`': each video action's prediction
-        moved by its keyframe's learned excess (before one was answered, its extra MB at α̂'s
-        seconds per MB), its base cost by that and its extra MB's byte cost, its width at its
-        keyframe's context (`learned`: the regression changed; else the widths are kept)."""
-        alpha_mb = self._ridge.alpha[0]
+        moved by its keyframe's learned excess (before one was answered, its extra bytes at α̂'s
+        seconds per context unit), its base cost by that and its extra bytes' cost, its width
+        at its keyframe's context (`learned`: the regression changed; else the widths are kept)."""
+        alpha_unit = self._ridge.alpha[0]
         base, pred = list(frames.base), list(frames.pred)
         width = list(frames.width) if learned or not keyframes.width else keyframes.width
         q_inv = self._ridge.q_inv if learned else None
         for j in self.video:
-            extra_mb = (self.key_bytes[j] - self._p_bytes[j]) / BYTES_PER_MB
+            extra_bytes = self.key_bytes[j] - self._p_bytes[j]
             known = self._extra[j]
-            extra = extra_mb * alpha_mb if known is None else max(known, 0.0)
-            base[j] += extra + extra_mb * self._objective.bytes
+            extra = extra_bytes / self._unit * alpha_unit if known is None else max(known, 0.0)
+            base[j] += extra + extra_bytes / BYTES_PER_MB * self._objective.bytes
             pred[j] += extra
             if q_inv is not None:
                 v = self._contexts[j].copy()
-                v[0] = self.key_bytes[j] / BYTES_PER_MB
+                v[0] = self.key_bytes[j] / self._unit
                 width[j] = math.sqrt(max(float(v @ q_inv @ v), 0.0))
         keyframes.base, keyframes.pred, keyframes.width = base, pred, width

@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from common.errors import UserError
+from common.wire.tensor_codecs import is_video
 from robotd.policies.base import BYTES_PER_MB, CutTable, FloatArray
 from robotd.policies.nav_options import SEGMENTS_KEY
 
@@ -51,11 +52,27 @@ def actions_table(profile: Mapping[str, Any] | CutTable, segments: bool = True) 
     return cuts.with_segments(pairs) if pairs else cuts
 
 
+def context_unit_bytes(cuts: CutTable) -> float:
+    """The bytes of one unit of the context's first feature: a MB, or with video actions among
+    the actions their largest keyframe (about one JPEG of the frame).
+
+    The ridge prior (gamma·I) assumes features of order 1. Camera-image codecs at one cut send
+    a few KB to tens of KB, 0.002 to 0.03 MB: in MB, seconds per MB are shrunk so hard that
+    h264's P-frames and JPEG are predicted at one cost until hundreds of frames were answered
+    (docs/video.md), and the smaller one is never taken. In keyframe units the two differ by
+    about one unit. Without video actions the unit stays a MB, so the learners of other
+    configurations behave as before."""
+    video = [key for key, codec in zip(cuts.keys, cuts.codecs, strict=True) if is_video(codec)]
+    return max(video) if video and max(video) > 0 else BYTES_PER_MB
+
+
 def action_contexts(cuts: CutTable) -> FloatArray:
-    """The learner's context of every offloading action, one row each: [MB sent, share of the
-    model left to the cloud, 1], and with segments among the actions a fourth column, MB
-    returned (a segment's end-cut tensors; the model's outputs for the others)."""
-    columns = [cuts.bytes / BYTES_PER_MB, cuts.cloud_s / cuts.full_s, np.ones(cuts.size)]
+    """The learner's context of every offloading action, one row each: [bytes sent (in
+    `context_unit_bytes`), share of the model left to the cloud, 1], and with segments among
+    the actions a fourth column, MB returned (a segment's end-cut tensors; the model's outputs
+    for the others)."""
+    unit = context_unit_bytes(cuts)
+    columns = [cuts.bytes / unit, cuts.cloud_s / cuts.full_s, np.ones(cuts.size)]
     if cuts.has_segments:
         columns.append(cuts.returned_bytes / BYTES_PER_MB)
     return np.column_stack(columns)
