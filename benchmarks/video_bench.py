@@ -7,7 +7,7 @@ panning over scikit-image's astronaut photograph; speed 0 = still, 0.5 = slow, 2
 
 - JPEG at quality Q (50 and 80): each frame coded alone (`encode_tensor_as`), its bytes, encode
   and decode time, and PSNR against the frame;
-- h264 (`common.wire.video_codec`: libx264 ultrafast, zerolatency, no B-frames, one thread) at
+- h264 (`common.wire.video_codec`: libx264 superfast, zerolatency, no B-frames, one thread) at
   the highest CRF whose mean PSNR over the run is at least that JPEG's ("equal PSNR": at least
   as good a picture), found by bisection over CRF 0..51: the frames coded as one stream (a
   keyframe, then P-frames) and decoded in order; the P-frames' median bytes, the keyframe's

@@ -57,7 +57,7 @@ class _Stream:
 
 
 class VideoEncoders:
-    """`VideoEncoders(crf=28)`: `encode` a frame's image tensors for a deployment; `skipped`,
+    """`VideoEncoders(crf=24)`: `encode` a frame's image tensors for a deployment; `skipped`,
     `unseen` and `keyframe_due` keep the streams honest (see the module docstring)."""
 
     def __init__(self, *, crf: int = DEFAULT_CRF) -> None:

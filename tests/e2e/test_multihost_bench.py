@@ -18,6 +18,7 @@ from typer.testing import CliRunner
 
 from common.cli import app
 from deploy.procs import elasticfog_argv
+from deploy.testbed import Testbed
 from tests.e2e.conftest import processes_under, remains_of_testbed
 from tests.helpers.gates import root_only
 
@@ -77,7 +78,7 @@ def test_glitch_json_contract_and_nothing_lost(tmp_path: Path) -> None:
         [
             *elasticfog_argv(),
             *("bench", "glitch", "--from-mbit", "20", "--to-mbit", "1"),
-            *("--policies", "elastic", "--frames", "24", "--robot-cpu", "0.05", "--json"),
+            *("--policies", "elastic", "--frames", "24", "--robot-cpu", "0.5", "--json"),
             *("--name", name, "--workdir", str(tmp_path / "w"), *SMALL),
         ],
         capture_output=True,
@@ -107,7 +108,7 @@ def test_ctrl_c_during_a_bench_leaves_nothing_behind(tmp_path: Path) -> None:
         [
             *elasticfog_argv(),
             *("bench", "table1", "--uplinks", "2", "--policies", "robot", "--frames", "500"),
-            *("--robot-cpu", "0.05", "--name", name, "--workdir", str(workdir), *SMALL),
+            *("--robot-cpu", "0.5", "--name", name, "--workdir", str(workdir), *SMALL),
         ],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
@@ -132,7 +133,11 @@ def test_ctrl_c_during_a_bench_leaves_nothing_behind(tmp_path: Path) -> None:
         if bench.poll() is None:
             os.killpg(bench.pid, signal.SIGKILL)
             bench.communicate()
+        # Read, then remove, what is left: a failed run must not leave daemons loading the host.
+        leftovers = _leftovers(name, workdir)
+        if leftovers:
+            Testbed(name).down()
     assert bench.returncode == 130, err[-3000:]
     assert "interrupted" in err
-    assert not _leftovers(name, workdir)
+    assert not leftovers
     assert _root_qdiscs() == qdiscs
