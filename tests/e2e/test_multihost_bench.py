@@ -107,7 +107,7 @@ def test_ctrl_c_during_a_bench_leaves_nothing_behind(tmp_path: Path) -> None:
     bench = subprocess.Popen(
         [
             *elasticfog_argv(),
-            *("bench", "table1", "--uplinks", "2", "--policies", "robot", "--frames", "500"),
+            *("bench", "table1", "--uplinks", "2", "--policies", "robot", "--frames", "100000"),
             *("--robot-cpu", "0.5", "--name", name, "--workdir", str(workdir), *SMALL),
         ],
         stdout=subprocess.PIPE,
