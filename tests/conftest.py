@@ -5,11 +5,16 @@
   subprocesses inherit the same cache.
 - `_note_threads_left_behind` (autouse): non-daemon threads a test leaves running are named at
   the end of the run, which then exits with its status instead of waiting for them.
+- `pytest_configure`: a run started in the background by a script (`bash .ci/run &`) inherits
+  SIGINT ignored, as POSIX shells start background jobs, and so would every command a test
+  interrupts (`demo`, `bench`): Ctrl-C tests would wait on commands that never see it. The run
+  takes Python's own SIGINT handler back, as a run in the foreground has it.
 """
 
 from __future__ import annotations
 
 import os
+import signal
 import sys
 import threading
 import time
@@ -19,6 +24,11 @@ from pathlib import Path
 import pytest
 
 CACHE_DIR_ENV = "ELASTICFOG_CACHE_DIR"
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 @pytest.fixture(scope="session", autouse=True)
