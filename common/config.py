@@ -979,11 +979,7 @@ class NavCameraConfig(_Model):
 
     def zoo_options(self) -> dict[str, float]:
         """The geometry as zoo build options (`common.zoo.ZooGraph.options`: zoo:stereo's)."""
-        return {
-            "baseline_m": self.baseline_m,
-            "hfov_deg": self.hfov_deg,
-            "height_m": self.height_m,
-        }
+        return self.model_dump()
 
 
 class NavConfig(_Model):

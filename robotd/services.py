@@ -36,6 +36,7 @@ from common.errors import UserError
 from common.fleet_model import fleet_partition
 from common.image_input import ImageInputs
 from common.keys import Role
+from common.partition import Partition
 from common.session import open_session
 from common.source_spec import (
     Ros2Spec,
@@ -142,7 +143,11 @@ class RobotServices(Daemon):
     # -- lifecycle -----------------------------------------------------------------------------
     def startup(self) -> None:
         cfg, options = self.config, self.options
-        inputs = {name: _image_inputs(view) for name, view in self.views.items()}
+        partitions = {name: fleet_partition(view) for name, view in self.views.items()}
+        inputs = {
+            name: ImageInputs([part.specs[n] for n in part.inputs], name)
+            for name, part in partitions.items()
+        }
         height = max(i.height for i in inputs.values())
         width = max(i.width for i in inputs.values())
         session_for_source = None
@@ -159,7 +164,7 @@ class RobotServices(Daemon):
                 session=None
                 if session_for_source is None
                 else SourceSession(session_for_source, cfg, self.robot, stop=self.should_exit),
-                built_for=_built_for(self.views, inputs, height, width),
+                built_for=_built_for(partitions, inputs, height, width),
             ),
             "frame source",
         )
@@ -262,14 +267,8 @@ def _listen_anywhere(view: FleetConfig, robot: str) -> None:
     view.machines[robot] = machine.model_copy(update={"listen": listen})
 
 
-def _image_inputs(view: FleetConfig) -> ImageInputs:
-    """A service's image inputs, from its split (cached)."""
-    partition = fleet_partition(view)
-    return ImageInputs([partition.specs[n] for n in partition.inputs], view.service_name)
-
-
 def _built_for(
-    views: dict[str, FleetConfig], inputs: dict[str, ImageInputs], height: int, width: int
+    partitions: dict[str, Partition], inputs: dict[str, ImageInputs], height: int, width: int
 ) -> ModelCamera | None:
     """The camera the stereo service's model was built for, when one service takes stereo views
     at the capture's size (the source's view is then the model's): a ROS 2 stereo source warns
@@ -281,4 +280,4 @@ def _built_for(
     ]
     if len(stereo) != 1:
         return None
-    return model_camera(fleet_partition(views[stereo[0]]).full)
+    return model_camera(partitions[stereo[0]].full)

@@ -304,9 +304,7 @@ class SharedPolicy(Policy):
 
 def _period_s(view: FleetConfig) -> float | None:
     """1 / the fps a robot of this service's view runs it at (the service's, else a robot's)."""
-    fps = getattr(view.service_config, "fps", None) or next(
-        (m.fps for m in view.machines.values() if getattr(m, "fps", None)), None
-    )
+    fps = view.service_config.fps or next((m.fps for m in view.machines.values() if m.fps), None)
     return 1.0 / fps if fps else None
 
 

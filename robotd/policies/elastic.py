@@ -197,13 +197,11 @@ class ElasticPolicy(Policy):
         # a video action is the cheapest of all on ordinary frames. Its keyframe then starts a
         # stream that the next frames repay: priced frame by frame, a move from JPEG to h264
         # would never pay for its first frame.
-        ordinary_cost, ordinary_best = self._scores.cheapest
-        invest = ordinary_best in self._keyframes.video and ordinary_cost < robot.full_cost
-        scores = (
-            self._kf_scores
-            if ctx.keyframe and self._keyframes.video and not invest
-            else self._scores
-        )
+        scores = self._scores
+        if ctx.keyframe and self._keyframes.video:
+            ordinary_cost, ordinary_best = scores.cheapest
+            if ordinary_best not in self._keyframes.video or ordinary_cost >= robot.full_cost:
+                scores = self._kf_scores
         best, j = scores.best_key if ctx.entropy >= params.key_entropy else scores.best_nonkey
         base, pred, cheapest_pair = scores.base, scores.pred, scores.cheapest
         p_cost = robot.full_cost
